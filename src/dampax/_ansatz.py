@@ -1,0 +1,318 @@
+"""The ansatz x(t) = A f(t) cos(w0 t + phi) of Lelas & Pezer (Part I), eqs. 8-24, 36-54.
+
+f solves the Riccati equation f' = -(a f^2 + b' f + c), f(0) = 1 (eq. 20), with a = d2 A,
+b' = d1, c = d0 / A. Its five closed forms (DESIGN 2.3) are one Moebius expression
+
+    f(t) = (1 - (c + b'/2) T(t)) / (1 + (a + b'/2) T(t)),   T(t) = tanh(q t) / q,
+
+with q^2 = Q = b'^2/4 - a c. T is an entire function of Q (tan(|q| t)/|q| for Q < 0, t for
+Q = 0), so one formula covers every regime and its gradients stay finite across the
+boundaries a = 0, b' = 0, c = 0 and Q = 0. The halt time tau (f(tau) = 0) is the inverse,
+tau = atanh(q T*)/q with T* = 1/(c + b'/2).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._oscillator import Oscillator, damping_coefficients, initial_amplitude_phase
+
+Array = jax.Array
+
+_SERIES = 1e-4  # |Q t^2| below which the Taylor series is used
+
+
+def _tanc(Q, t):
+    """tanh(sqrt(Q) t) / sqrt(Q), analytic in Q (tan for Q < 0, t at Q = 0)."""
+    z = Q * t * t
+    small = jnp.abs(z) < _SERIES
+    pos = z >= _SERIES
+    neg = z <= -_SERIES
+    series = t * (1.0 - z / 3.0 + 2.0 * z * z / 15.0 - 17.0 * z**3 / 315.0)
+    q_pos = jnp.sqrt(jnp.where(pos, Q, 1.0))
+    q_neg = jnp.sqrt(jnp.where(neg, -Q, 1.0))
+    t_pos = jnp.where(pos, t, 0.0)
+    t_neg = jnp.where(neg, t, 0.0)
+    return jnp.where(small, series,
+                     jnp.where(pos, jnp.tanh(q_pos * t_pos) / q_pos,
+                               jnp.tan(q_neg * t_neg) / q_neg))
+
+
+def _atanc(Q, x):
+    """Inverse of :func:`_tanc` in t: atanh(sqrt(Q) x) / sqrt(Q); inf where Q x^2 >= 1."""
+    w = Q * x * x
+    small = jnp.abs(w) < _SERIES
+    pos = (w >= _SERIES) & (w < 1.0)
+    neg = w <= -_SERIES
+    series = x * (1.0 + w / 3.0 + w * w / 5.0 + w**3 / 7.0)
+    r_pos = jnp.sqrt(jnp.where(pos, w, 0.25))
+    r_neg = jnp.sqrt(jnp.where(neg, -w, 0.25))
+    q_pos = jnp.sqrt(jnp.where(pos, Q, 1.0))
+    q_neg = jnp.sqrt(jnp.where(neg, -Q, 1.0))
+    return jnp.where(small, series,
+                     jnp.where(pos, jnp.arctanh(r_pos) / q_pos,
+                               jnp.where(neg, jnp.arctan(r_neg) / q_neg, jnp.inf)))
+
+
+def halt_time(a, bp, c):
+    """Halt time tau with f(tau) = 0 for f' = -(a f^2 + b' f + c), f(0) = 1 (DESIGN 2.3).
+
+    Arguments:
+        a, bp, c: the Riccati coefficients a = d2 A, b' = d1, c = d0 / A (all >= 0).
+
+    Returns:
+        tau; inf when c = 0 (no Coulomb term, f never reaches zero).
+    """
+    a, bp, c = jnp.broadcast_arrays(*(jnp.asarray(v, dtype=float) for v in (a, bp, c)))
+    halts = c > 0.0
+    k_safe = jnp.where(halts, c + 0.5 * bp, 1.0)
+    tau = _atanc(0.25 * bp * bp - a * c, 1.0 / k_safe)
+    return jnp.where(halts, tau, jnp.inf)
+
+
+def decay(t, a, bp, c, tau=None):
+    """Amplitude factor f(t) of eq. 20 in closed form for any a, b', c >= 0 (DESIGN 2.3).
+
+    Arguments:
+        t: time(s) >= 0.
+        a, bp, c: the Riccati coefficients a = d2 A, b' = d1, c = d0 / A.
+        tau: the halt time, if already known (see :func:`halt_time`).
+
+    Returns:
+        f(t) for 0 <= t <= tau and 0 after the halt (the theta(t) of eq. 37); NaN for t < 0.
+    """
+    if tau is None:
+        tau = halt_time(a, bp, c)
+    t = jnp.asarray(t, dtype=float)
+    t_eff = jnp.clip(t, 0.0, tau)
+    T = _tanc(0.25 * bp * bp - a * c, t_eff)
+    f = (1.0 - (c + 0.5 * bp) * T) / (1.0 + (a + 0.5 * bp) * T)
+    f = jnp.where(t > tau, 0.0, jnp.maximum(f, 0.0))
+    return jnp.where(t < 0.0, jnp.nan, f)
+
+
+def decay_rate(f, a, bp, c):
+    """f' = -(a f^2 + b' f + c) (eq. 20), zero where the motion has halted (f = 0)."""
+    return jnp.where(f > 0.0, -(a * f * f + bp * f + c), 0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# amplitude and phase (eqs. 22-23)
+
+
+def _amplitude_residual(y, s, cphi, sphi, e0, e1, e2):
+    """F(y) = y^2 - (y cos phi)^2 - (y sin phi)^2 in units of A0 (the quartic of eq. 22 / y^2).
+
+    y = A / A0, s scales the damping (continuation parameter), y cos(phi) = cos(phi0) and
+    y sin(phi) = sin(phi0) - s cos(phi0) (e2 y + e1 + e0 / y).
+    Returns F, dF/dy, dF/ds and h = y sin(phi).
+    """
+    g = e2 * y + e1 + e0 / y
+    h = sphi - s * cphi * g
+    F = y * y - cphi * cphi - h * h
+    F_y = 2.0 * y + 2.0 * s * h * cphi * (e2 - e0 / (y * y))
+    F_s = 2.0 * h * cphi * g
+    return F, F_y, F_s, h
+
+
+def matched_amplitude(cphi, sphi, e0, e1, e2, *, steps=16, newton=3):
+    """Amplitude ratio A/A0 of eq. 22 on the root branch connected to A0 as damping -> 0.
+
+    Solves (d2 x0 A^2 + (v0 + d1 x0) A + d0 x0)^2 = w0^2 A^2 (A^2 - x0^2) in dimensionless form
+    by continuation in the damping strength s from 0 (root A = A0) to 1: an Euler predictor and
+    Newton correctors per step. The branch ends at a fold where no admissible root exists
+    (e.g. d2 |x0| >= w0 for quadratic damping); ``valid`` is then False.
+
+    Arguments:
+        cphi, sphi: cos(phi0) = x0/A0 and sin(phi0) = -v0/(w0 A0).
+        e0, e1, e2: the ratios d0/(w0 A0), d1/w0, d2 A0/w0.
+
+    Returns:
+        (y, h, valid): y = A/A0, h = y sin(phi) and the validity flag. First derivatives of y are
+        exact (implicit function theorem through a final Newton step).
+    """
+    args = tuple(jnp.asarray(v, dtype=float) for v in (cphi, sphi, e0, e1, e2))
+    const = jax.lax.stop_gradient(args)
+    ds = 1.0 / steps
+
+    def correct(y, s):
+        for _ in range(newton):
+            F, F_y, _, _ = _amplitude_residual(y, s, *const)
+            y = y - F / jnp.where(F_y == 0.0, 1.0, F_y)
+            y = jnp.where(jnp.isfinite(y) & (y > 0.0), y, jnp.nan)
+        return y
+
+    def step(carry, i):
+        y, min_fy = carry
+        s = i * ds
+        _, F_y, F_s, _ = _amplitude_residual(y, s, *const)
+        y = y - ds * F_s / jnp.where(F_y == 0.0, 1.0, F_y)
+        y = correct(jnp.where(y > 0.0, y, jnp.nan), s + ds)
+        _, F_y, _, _ = _amplitude_residual(y, s + ds, *const)
+        return (y, jnp.minimum(min_fy, F_y)), None
+
+    y0 = jnp.ones_like(const[0])
+    (y, min_fy), _ = jax.lax.scan(step, (y0, jnp.full_like(y0, jnp.inf)), jnp.arange(steps))
+    y = correct(y, 1.0)
+    F, F_y, _, _ = _amplitude_residual(y, 1.0, *const)
+    valid = jnp.isfinite(y) & (y > 0.0) & (min_fy > 1e-8) & (jnp.abs(F) < 1e-10 * y * y)
+    # implicit-function-theorem step: exact first derivatives, value unchanged to rounding
+    y_c = jnp.where(valid, y, 1.0)
+    F, F_y, _, h = _amplitude_residual(y_c, 1.0, *args)
+    y_out = y_c - F / jnp.where(valid, F_y, 1.0)
+    _, _, _, h = _amplitude_residual(y_out, 1.0, *args)
+    return jnp.where(valid, y_out, jnp.nan), jnp.where(valid, h, jnp.nan), valid
+
+
+# ----------------------------------------------------------------------------------------------
+# the solution object
+
+
+class AnsatzSolution(eqx.Module):
+    """x(t) = A f(t) cos(w0 t + phi) of eq. 11, zero after the halt time tau (eq. 37).
+
+    ``matched=True``: A and phi from eqs. 22-23, velocity eq. 12, energy eq. 15.
+    ``matched=False``: the earlier approach, A = A0, phi = phi0 (eq. 8), velocity without the
+    f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
+    Where no admissible amplitude exists, ``valid`` is False and the values are NaN.
+    """
+
+    amplitude: Array
+    phase: Array
+    omega0: Array
+    a: Array
+    bp: Array
+    c: Array
+    halt_time: Array
+    m: Array
+    k: Array
+    valid: Array
+    matched: bool = eqx.field(static=True)
+
+    @property
+    def halt_position(self) -> Array:
+        """Where the model comes to rest: x(tau) = 0 when it halts, NaN when it never does."""
+        return jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan) + 0.0 * self.amplitude
+
+    def f(self, t) -> Array:
+        """Amplitude factor f(t) (eq. 20 in closed form), 0 after the halt."""
+        return decay(t, self.a, self.bp, self.c, self.halt_time)
+
+    def _parts(self, t):
+        f = self.f(t)
+        fp = decay_rate(f, self.a, self.bp, self.c)
+        th = self.omega0 * jnp.asarray(t, dtype=float) + self.phase
+        return f, fp, jnp.cos(th), jnp.sin(th)
+
+    def x(self, t) -> Array:
+        """Displacement A f(t) cos(w0 t + phi) (eq. 11)."""
+        f, _, cth, _ = self._parts(t)
+        return self.amplitude * f * cth
+
+    def v(self, t) -> Array:
+        """Velocity: eq. 12 (matched) or eq. 9 (undamped phase)."""
+        f, fp, cth, sth = self._parts(t)
+        v = -self.omega0 * self.amplitude * f * sth
+        if self.matched:
+            v = v + self.amplitude * fp * cth
+        return v
+
+    def energy(self, t) -> Array:
+        """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
+        if self.matched:
+            return 0.5 * self.k * self.x(t) ** 2 + 0.5 * self.m * self.v(t) ** 2
+        return 0.5 * self.m * (self.omega0 * self.amplitude * self.f(t)) ** 2
+
+    # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
+
+    def _turning_time(self, n):
+        """Turning point n (v = 0 near w0 t + phi = n pi), found by Newton's method."""
+        w0, a, bp, c = self.omega0, self.a, self.bp, self.c
+
+        def G(t, params):
+            w0_, ph, a_, bp_, c_, tau = params
+            f = decay(t, a_, bp_, c_, tau)
+            f_safe = jnp.where(f > 0.0, f, 1.0)
+            fp = -(a_ * f_safe**2 + bp_ * f_safe + c_)
+            fpp = -(2.0 * a_ * f_safe + bp_) * fp
+            r = fp / (w0_ * f_safe)
+            dr = (fpp * f_safe - fp * fp) / (w0_ * f_safe * f_safe)
+            if self.matched:
+                val = w0_ * t + ph - n * jnp.pi - jnp.arctan(r)
+                der = w0_ - dr / (1.0 + r * r)
+            else:  # eq. 9: v ~ sin(w0 t + phi0)
+                val = w0_ * t + ph - n * jnp.pi
+                der = w0_ + 0.0 * dr
+            return val, der
+
+        params = (w0, self.phase, a, bp, c, self.halt_time)
+        frozen = jax.lax.stop_gradient(params)
+        tau = frozen[5]
+        t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, tau)
+        for _ in range(6):
+            val, der = G(t, frozen)
+            t = jnp.clip(t - val / der, 0.0, tau)
+        val, der = G(t, params)
+        return t - val / der
+
+    def _first_index(self):
+        """Index n of the first turning point w0 t + phi = n pi + atan(f'/(w0 f)) with t > 0."""
+        r0 = decay_rate(1.0, self.a, self.bp, self.c) / self.omega0 if self.matched else 0.0
+        return jax.lax.stop_gradient(
+            jnp.floor((self.phase - jnp.arctan(r0)) / jnp.pi + 1e-9) + 1.0)
+
+    def turning_points(self, n: int):
+        """First n turning points (t_k, x_k), t_k > 0, before the halt; NaN-padded."""
+        ks = self._first_index() + jnp.arange(n, dtype=float)
+        ts = jax.vmap(self._turning_time)(ks)
+        ok = (ts > 0.0) & (ts < self.halt_time) & self.valid
+        ts_safe = jnp.where(ok, ts, 0.0)
+        xs = self.x(ts_safe)
+        return jnp.where(ok, ts, jnp.nan), jnp.where(ok, xs, jnp.nan)
+
+
+def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSolution:
+    """Ansatz solution x(t) = A f(t) cos(w0 t + phi) (Lelas & Pezer eqs. 11-24 or 8-10).
+
+    Arguments:
+        osc: the Oscillator.
+        x0, v0: initial displacement and velocity.
+        phase: "matched" (A, phi from eqs. 22-23) or "undamped" (A0, phi0; eqs. 8-10).
+
+    Returns:
+        An :class:`AnsatzSolution`.
+    """
+    if phase not in ("matched", "undamped"):
+        raise ValueError(f"phase must be 'matched' or 'undamped', got {phase!r}")
+    w0 = osc.omega0
+    d0, d1, d2 = damping_coefficients(osc)
+    A0, phi0 = initial_amplitude_phase(osc, x0, v0)
+    at_rest = A0 == 0.0
+    A0_safe = jnp.where(at_rest, 1.0, A0)
+    if phase == "matched":
+        cphi = jnp.where(at_rest, 1.0, jnp.asarray(x0, dtype=float) / A0_safe)
+        sphi = jnp.where(at_rest, 0.0, -jnp.asarray(v0, dtype=float) / (w0 * A0_safe))
+        y, h, valid = matched_amplitude(cphi, sphi, d0 / (w0 * A0_safe), d1 / w0,
+                                        d2 * A0_safe / w0)
+        valid = valid | at_rest
+        y_safe = jnp.where(valid & ~at_rest, y, 1.0)
+        A = jnp.where(at_rest, 0.0, A0_safe * y_safe)
+        phi = jnp.where(at_rest, 0.0, jnp.arctan2(jnp.where(at_rest, 0.0, h),
+                                                  jnp.where(at_rest, 1.0, cphi)))
+        A = jnp.where(valid, A, jnp.nan)
+        phi = jnp.where(valid, phi, jnp.nan)
+        A_div = jnp.where(valid & ~at_rest, A, 1.0)
+    else:
+        A, phi, A_div = A0, phi0, A0_safe
+        valid = jnp.ones_like(A0, dtype=bool)
+    a = d2 * A_div
+    c = d0 / A_div
+    bp = d1 + 0.0 * a
+    tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
+    return AnsatzSolution(amplitude=A, phase=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
+                          halt_time=tau, m=osc.m, k=osc.k, valid=valid,
+                          matched=phase == "matched")
+
+

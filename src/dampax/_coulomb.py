@@ -1,0 +1,450 @@
+"""Exact Coulomb (+ viscous) half-swings, the Coulomb tail of the ansatz, and Rizcallah's model.
+
+Half-swing map (DESIGN 2.4, 2.6): from rest at x_j with |x_j| > xc the block swings about the
+shifted centre sgn(x_j) xc. With viscous damping gamma = b/(2m) the swing is a damped cosine of
+half period pi/wd, wd = sqrt(w0^2 - gamma^2), and with rho = exp(-gamma pi/wd) the turning
+points obey |x_(j+1)| = rho (|x_j| - xc) - xc, i.e. e_j - e* = rho^j (e_0 - e*) with
+e* = -xc (1 + rho)/(1 - rho). Position and velocity at any t, the number of swings and the rest
+point are therefore closed-form: no loop over swings, jit/vmap/grad-safe.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ._ansatz import AnsatzSolution, _atanc
+from ._oscillator import Oscillator, initial_amplitude_phase
+
+Array = jax.Array
+
+
+def _sign(x):
+    return jnp.where(x >= 0.0, 1.0, -1.0)
+
+
+def compact(ts, xs, ok, n: int):
+    """Keep the entries where ``ok`` holds, in order, in arrays of static length n (NaN-padded)."""
+    pos = jnp.where(ok, jnp.cumsum(ok) - 1, n)
+    out_t = jnp.full((n,), jnp.nan).at[pos].set(jnp.where(ok, ts, jnp.nan), mode="drop")
+    out_x = jnp.full((n,), jnp.nan).at[pos].set(jnp.where(ok, xs, jnp.nan), mode="drop")
+    return out_t, out_x
+
+
+class SwingSolution(eqx.Module):
+    """Exact motion under Coulomb friction (+ viscous damping) from the state (t_s, x_s, v_s).
+
+    Before t_s the solution is undefined (NaN). If v_s != 0 a first partial swing runs to the
+    velocity zero (t1, x1); from there whole half-swings follow until |x| <= xc (rest).
+    """
+
+    t_start: Array
+    x_start: Array
+    v_start: Array
+    t1: Array
+    x1: Array
+    n_swings: Array  # number of whole half-swings from (t1, x1) to rest; inf if never
+    xc: Array
+    gamma: Array
+    omega0: Array
+    omegad: Array
+    m: Array
+    k: Array
+    valid: Array
+
+    @property
+    def half_period(self):
+        return jnp.pi / self.omegad
+
+    def _log_rho(self):
+        return -self.gamma * self.half_period
+
+    def _e(self, j):
+        """Signed distance e_j of turning point j from the origin (|x_j| while e_j > 0)."""
+        L = self._log_rho()
+        lin = L == 0.0
+        L_safe = jnp.where(lin, -1.0, L)
+        G = jnp.where(lin, j + 0.5 * j * (j - 1.0) * L, jnp.expm1(j * L_safe) / jnp.expm1(L_safe))
+        e0 = jnp.abs(self.x1)
+        return jnp.exp(j * L) * e0 - self.xc * (1.0 + jnp.exp(L)) * G
+
+    def _x_turn(self, j):
+        parity = 1.0 - 2.0 * jnp.mod(j, 2.0)
+        return _sign(self.x1) * parity * self._e(j)
+
+    @property
+    def halt_time(self):
+        return jnp.where(jnp.isfinite(self.n_swings),
+                         self.t1 + jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
+                         * self.half_period, jnp.inf)
+
+    @property
+    def halt_position(self):
+        J = jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
+        return jnp.where(jnp.isfinite(self.n_swings), self._x_turn(J), jnp.nan)
+
+    def _state(self, t):
+        t = jnp.asarray(t, dtype=float)
+        g, wd, w0, xc = self.gamma, self.omegad, self.omega0, self.xc
+        # first partial swing (only when the start has a velocity)
+        sv = _sign(self.v_start)
+        cen0 = -sv * xc
+        U = self.x_start - cen0
+        V = self.v_start
+        B = (V + g * U) / wd
+        K = (g * V + w0 * w0 * U) / wd
+        tau0 = jnp.clip(t - self.t_start, 0.0, None)
+        ex0 = jnp.exp(-g * tau0)
+        c0, s0 = jnp.cos(wd * tau0), jnp.sin(wd * tau0)
+        x_a = cen0 + ex0 * (U * c0 + B * s0)
+        v_a = ex0 * (V * c0 - K * s0)
+        # whole half-swings from (t1, x1)
+        h = self.half_period
+        J = self.n_swings
+        j = jnp.floor(jnp.clip(t - self.t1, 0.0, None) / h)
+        resting = j >= J
+        j = jnp.where(resting, jnp.where(jnp.isfinite(J), J, 0.0), j)
+        xj = self._x_turn(j)
+        cen = _sign(xj) * xc
+        tau = jnp.clip(t - self.t1 - j * h, 0.0, h)
+        ex = jnp.exp(-g * tau)
+        cw, sw = jnp.cos(wd * tau), jnp.sin(wd * tau)
+        x_b = jnp.where(resting, xj, cen + (xj - cen) * ex * (cw + (g / wd) * sw))
+        v_b = jnp.where(resting, 0.0, -(xj - cen) * ex * (w0 * w0 / wd) * sw)
+        first = t < self.t1
+        x = jnp.where(first, x_a, x_b)
+        v = jnp.where(first, v_a, v_b)
+        before = (t < self.t_start) | ~self.valid
+        return jnp.where(before, jnp.nan, x), jnp.where(before, jnp.nan, v)
+
+    def x(self, t) -> Array:
+        """Displacement at time(s) t."""
+        return self._state(t)[0]
+
+    def v(self, t) -> Array:
+        """Velocity at time(s) t."""
+        return self._state(t)[1]
+
+    def energy(self, t) -> Array:
+        """Energy k x^2/2 + m v^2/2 (eq. 4)."""
+        x, v = self._state(t)
+        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+
+    def turning_points(self, n: int):
+        """First n velocity zeros after the start (the rest point is the last); NaN-padded."""
+        moving = self.v_start != 0.0
+        i = jnp.arange(n, dtype=float)
+        j = i + jnp.where(moving, 0.0, 1.0)
+        ok = (j <= self.n_swings) & self.valid
+        j_safe = jnp.where(ok, j, 0.0)
+        ts = self.t1 + j_safe * self.half_period
+        xs = self._x_turn(j_safe)
+        return jnp.where(ok, ts, jnp.nan), jnp.where(ok, xs, jnp.nan)
+
+
+def swings_from(t_s, x_s, v_s, *, xc, gamma, omega0, m, k) -> SwingSolution:
+    """Exact Coulomb (+ viscous) motion from the state (t_s, x_s, v_s); DESIGN 2.4 and 2.6.
+
+    Arguments:
+        t_s, x_s, v_s: start time and state.
+        xc: half-width of the sticking band mu g / w0^2.
+        gamma: viscous rate b/(2m) (< w0: underdamped; else ``valid`` is False).
+        omega0, m, k: the oscillator.
+
+    Returns:
+        A :class:`SwingSolution`.
+    """
+    t_s, x_s, v_s, xc, gamma, w0 = (jnp.asarray(v, dtype=float)
+                                    for v in (t_s, x_s, v_s, xc, gamma, omega0))
+    valid = (gamma < w0) & jnp.isfinite(x_s) & jnp.isfinite(v_s)
+    wd = jnp.sqrt(jnp.where(valid, w0 * w0 - gamma * gamma, 1.0))
+    moving = v_s != 0.0
+    # first partial swing: u = x - cen0 is a damped cosine; its velocity vanishes at
+    # wd tau1 = atan2(|V|, sgn(V) K) in (0, pi)
+    sv = _sign(v_s)
+    cen0 = -sv * xc
+    U = x_s - cen0
+    V = jnp.where(moving, v_s, 1.0)
+    K = (gamma * V + w0 * w0 * U) / wd
+    th1 = jnp.arctan2(jnp.abs(V), sv * K)
+    tau1 = jnp.where(moving, th1 / wd, 0.0)
+    B = (V + gamma * U) / wd
+    x_end = cen0 + jnp.exp(-gamma * tau1) * (U * jnp.cos(th1) + B * jnp.sin(th1))
+    x1 = jnp.where(moving, x_end, x_s)
+    t1 = t_s + tau1
+    # number of whole half-swings until |x| <= xc
+    e0 = jnp.abs(x1)
+    L = -gamma * jnp.pi / wd
+    halts = xc > 0.0
+    xc_safe = jnp.where(halts, xc, 1.0)
+    over = (e0 - xc) / (2.0 * xc_safe)
+    L_safe = jnp.where(L == 0.0, -1.0, L)
+    j_star = jnp.where(L == 0.0, over, jnp.log1p(-jnp.expm1(L_safe) * over) / (-L_safe))
+    n_swings = jax.lax.stop_gradient(
+        jnp.where(e0 <= xc, 0.0, jnp.where(halts, jnp.ceil(j_star - 1e-9), jnp.inf)))
+    return SwingSolution(t_start=t_s, x_start=x_s, v_start=v_s, t1=t1, x1=x1,
+                         n_swings=n_swings, xc=xc, gamma=gamma, omega0=w0, omegad=wd,
+                         m=jnp.asarray(m, dtype=float), k=jnp.asarray(k, dtype=float),
+                         valid=valid)
+
+
+def solve_coulomb_exact(osc: Oscillator, x0, v0) -> SwingSolution:
+    """Exact solution of eq. 3 with sliding friction (and viscous damping), D = 0.
+
+    Half-swing by half-swing from any initial state, including a start at rest inside the
+    sticking band (the block stays there). Exact for mu >= 0, 0 <= b < 2 sqrt(k m), D = 0.
+    """
+    return swings_from(0.0, x0, v0, xc=osc.xc, gamma=osc.gamma, omega0=osc.omega0,
+                       m=osc.m, k=osc.k)
+
+
+# ----------------------------------------------------------------------------------------------
+# the ansatz with the exact Coulomb tail (eqs. 41, 52, 54)
+
+
+class TailSolution(eqx.Module):
+    """The ansatz up to a turning point (t_s, x_s), the exact Coulomb (+ viscous) motion after.
+
+    Eqs. 41 and 52 (``back=0``: the last turning point with |x| > xc) and 54 (``back=1``: the
+    one before it), generalised to any number of swings and to viscous damping in the tail.
+    """
+
+    ansatz: AnsatzSolution
+    tail: SwingSolution
+    t_switch: Array
+    n_before: Array  # ansatz turning points (t > 0) up to and including t_switch
+
+    @property
+    def amplitude(self):
+        return self.ansatz.amplitude
+
+    @property
+    def phase(self):
+        return self.ansatz.phase
+
+    @property
+    def valid(self):
+        return self.ansatz.valid & self.tail.valid
+
+    @property
+    def halt_time(self):
+        return self.tail.halt_time
+
+    @property
+    def halt_position(self):
+        return self.tail.halt_position
+
+    def _pick(self, t, head, tail):
+        t = jnp.asarray(t, dtype=float)
+        early = t <= self.t_switch
+        t_head = jnp.where(early, t, 0.0)
+        t_tail = jnp.where(early, self.t_switch, t)
+        return jnp.where(early, head(t_head), tail(t_tail))
+
+    def x(self, t) -> Array:
+        """Displacement: ansatz before the switch, exact Coulomb motion after."""
+        return self._pick(t, self.ansatz.x, self.tail.x)
+
+    def v(self, t) -> Array:
+        """Velocity of the piecewise motion (eqs. 42, 53)."""
+        return self._pick(t, self.ansatz.v, self.tail.v)
+
+    def energy(self, t) -> Array:
+        """Energy k x^2/2 + m v^2/2 of the piecewise motion."""
+        return 0.5 * self.ansatz.k * self.x(t) ** 2 + 0.5 * self.ansatz.m * self.v(t) ** 2
+
+    def turning_points(self, n: int):
+        """The ansatz's turning points up to the switch, then the exact tail's."""
+        ta, xa = self.ansatz.turning_points(n)
+        tt, xt = self.tail.turning_points(n)
+        i = jnp.arange(n)
+        k = self.n_before.astype(int)
+        head = i < k
+        idx = jnp.clip(i - k, 0, n - 1)
+        in_tail = (i - k) < n
+        ts = jnp.where(head, ta, jnp.where(in_tail, tt[idx], jnp.nan))
+        xs = jnp.where(head, xa, jnp.where(in_tail, xt[idx], jnp.nan))
+        return ts, xs
+
+
+def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int = 0,
+                      window: int = 8) -> TailSolution:
+    """Attach the exact Coulomb tail to an ansatz solution (eqs. 41, 52, 54 generalised).
+
+    The last turning point with |x| > xc is located without scanning: f(t*) = xc/A is inverted
+    in closed form, which gives the half-period index, and Newton's method refines the few
+    turning points around it. When ``back`` reaches before the first turning point, or no
+    turning point lies outside the band, the exact motion starts at t = 0 from (x0, v0).
+    """
+    if back < 0:
+        raise ValueError(f"back must be >= 0, got {back}")
+    xc = osc.xc
+    A = jnp.where(sol.valid, sol.amplitude, 1.0)
+    frozen = jax.lax.stop_gradient((A, sol.a, sol.bp, sol.c, sol.phase, sol.omega0, xc))
+    A_, a_, bp_, c_, ph_, w0_, xc_ = frozen
+    F = jnp.clip(xc_ / jnp.where(A_ > 0.0, A_, 1.0), 0.0, 1.0)
+    T_star = (1.0 - F) / (c_ + 0.5 * bp_ + (a_ + 0.5 * bp_) * F)
+    t_star = jnp.where(F >= 1.0, 0.0, _atanc(0.25 * bp_ * bp_ - a_ * c_, T_star))
+    n_first = sol._first_index()
+    n_est = jnp.floor((w0_ * jnp.minimum(t_star, sol.halt_time) + ph_) / jnp.pi)
+    n_lo = jnp.maximum(n_first, jnp.where(jnp.isfinite(n_est), n_est, n_first) - 3.0)
+    ns = n_lo + jnp.arange(window, dtype=float)
+    ts = jax.vmap(sol._turning_time)(ns)
+    ts = jax.lax.stop_gradient(ts)
+    xs = sol.x(jnp.where(jnp.isfinite(ts), ts, 0.0))
+    ok = (ts > 0.0) & (ts < sol.halt_time) & (jnp.abs(xs) > xc_)
+    n_last = jnp.max(jnp.where(ok, ns, -jnp.inf))
+    n_s = n_last - back
+    from_start = ~(n_s >= n_first) | (xc_ <= 0.0)
+    n_s_safe = jnp.where(from_start, n_first, n_s)
+    t_s = sol._turning_time(n_s_safe)
+    x_s = sol.x(t_s)
+    never = xc_ <= 0.0  # no Coulomb friction: the ansatz holds for all t
+    t_switch = jnp.where(never, jnp.inf, jnp.where(from_start, 0.0, t_s))
+    tail = swings_from(jnp.where(from_start, 0.0, t_s),
+                       jnp.where(from_start, x0, x_s),
+                       jnp.where(from_start, v0, 0.0),
+                       xc=xc, gamma=osc.gamma, omega0=osc.omega0, m=osc.m, k=osc.k)
+    # estimate window must bracket the last admissible turning point
+    bracketed = (~ok[-1]) & (ok[0] | (n_lo <= n_first) | from_start)
+    ansatz = eqx.tree_at(lambda s: s.valid, sol, sol.valid & (bracketed | never))
+    n_before = jnp.where(from_start | never, jnp.where(never, 10**9, 0), n_s_safe - n_first + 1)
+    return TailSolution(ansatz=ansatz, tail=tail, t_switch=t_switch, n_before=n_before)
+
+
+# ----------------------------------------------------------------------------------------------
+# Rizcallah's sinusoidal friction (DESIGN 2.5)
+
+
+class RizcallahSolution(eqx.Module):
+    """x(t) = (A0 - d t) cos(w0 t + phi0) + (d/w0) cos(phi0) sin(w0 t), at rest after the halt.
+
+    Rizcallah (2019) replaces the friction force by its first harmonic kappa mu m g
+    sin(w0 t + phi0); d = kappa mu g/(2 w0). The halt is the first turning point with
+    |x| <= xc (the exact solution's criterion).
+    """
+
+    amplitude0: Array
+    phase0: Array
+    omega0: Array
+    d: Array
+    xc: Array
+    halt_time: Array
+    halt_position: Array
+    m: Array
+    k: Array
+    valid: Array
+
+    def _free(self, t):
+        t = jnp.asarray(t, dtype=float)
+        w0, d, ph = self.omega0, self.d, self.phase0
+        th = w0 * t + ph
+        x = (self.amplitude0 - d * t) * jnp.cos(th) + (d / w0) * jnp.cos(ph) * jnp.sin(w0 * t)
+        v = (-d * jnp.cos(th) - w0 * (self.amplitude0 - d * t) * jnp.sin(th)
+             + d * jnp.cos(ph) * jnp.cos(w0 * t))
+        return x, v
+
+    def _state(self, t):
+        t = jnp.asarray(t, dtype=float)
+        done = t >= self.halt_time
+        x, v = self._free(jnp.where(done, 0.0, t))
+        x = jnp.where(done, self.halt_position, x)
+        v = jnp.where(done, 0.0, v)
+        bad = (t < 0.0) | ~self.valid
+        return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
+
+    def x(self, t) -> Array:
+        """Displacement (Rizcallah's eq. 5 for kappa = 4/pi), at rest after the halt."""
+        return self._state(t)[0]
+
+    def v(self, t) -> Array:
+        """Velocity dx/dt, zero after the halt."""
+        return self._state(t)[1]
+
+    def energy(self, t) -> Array:
+        """Energy k x^2/2 + m v^2/2."""
+        x, v = self._state(t)
+        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+
+    def _turning_time(self, n):
+        params = (self.amplitude0, self.phase0, self.omega0, self.d)
+
+        def vel(t, p):
+            A0, ph, w0, d = p
+            th = w0 * t + ph
+            return -d * jnp.cos(th) - w0 * (A0 - d * t) * jnp.sin(th) + d * jnp.cos(ph) * jnp.cos(
+                w0 * t)
+
+        frozen = jax.lax.stop_gradient(params)
+        t = (n * jnp.pi - frozen[1]) / frozen[2]
+        for _ in range(6):
+            val, der = jax.jvp(lambda s: vel(s, frozen), (t,), (jnp.ones_like(t),))
+            t = t - val / der
+        val, der = jax.jvp(lambda s: vel(s, params), (t,), (jnp.ones_like(t),))
+        return t - val / der
+
+    def _candidates(self, n_lo, count):
+        ns = n_lo + jnp.arange(count, dtype=float)
+        ts = jax.vmap(self._turning_time)(ns)
+        xs = self._free(jnp.where(jnp.isfinite(ts), ts, 0.0))[0]
+        return ts, xs
+
+    def turning_points(self, n: int):
+        """First n turning points with t > 0; the halting point is the last; NaN-padded."""
+        n_lo = jax.lax.stop_gradient(jnp.floor(self.phase0 / jnp.pi))
+        ts, xs = self._candidates(n_lo, n + 2)
+        eps = 1e-9 / self.omega0
+        ok = (ts > eps) & (ts <= self.halt_time * (1 + 1e-12) + eps) & self.valid
+        return compact(ts, xs, ok, n)
+
+
+def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
+                    window: int = 8) -> RizcallahSolution:
+    """Rizcallah's sinusoidal-friction solution for Coulomb damping (DESIGN 2.5), any start.
+
+    Arguments:
+        osc: Oscillator with b = D = 0 (else ``valid`` is False).
+        x0, v0: initial state.
+        kappa: amplitude factor of the sinusoidal force: 4/pi (least squares, the paper's best),
+            pi/2 (equal impulse) or sqrt(2) (equal rms).
+
+    Returns:
+        A :class:`RizcallahSolution`; for kappa = 4/pi and a start at rest its turning points
+        at n pi/w0 equal the exact x_n = (-1)^n (x0 - 2 n xc).
+    """
+    w0 = osc.omega0
+    A0, phi0 = initial_amplitude_phase(osc, x0, v0)
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    d = kappa * osc.mu * osc.g / (2.0 * w0)
+    xc = osc.xc
+    valid = (osc.b == 0.0) & (osc.D == 0.0)
+    proto = RizcallahSolution(amplitude0=A0, phase0=phi0, omega0=w0, d=d, xc=xc,
+                              halt_time=jnp.inf + 0.0 * A0, halt_position=jnp.nan + 0.0 * A0,
+                              m=osc.m, k=osc.k, valid=valid)
+    # the envelope A0 - d t reaches xc near t*; search the turning points around it
+    frozen = jax.lax.stop_gradient((A0, phi0, w0, d, xc))
+    A0_, ph_, w0_, d_, xc_ = frozen
+    halts = d_ > 0.0
+    t_star = jnp.where(halts, jnp.clip(A0_ - xc_, 0.0, None) / jnp.where(halts, d_, 1.0), 0.0)
+    n_first = jnp.floor(ph_ / jnp.pi)
+    n_lo = jnp.maximum(n_first, jnp.floor((w0_ * t_star + ph_) / jnp.pi) - 3.0)
+    ts, xs = proto._candidates(n_lo, window)
+    eps = 1e-9 / w0_
+    inside = (ts > eps) & (jnp.abs(xs) <= xc_)
+    first = jnp.argmax(inside)
+    found = jnp.any(inside)
+    t_h = jnp.where(found, ts[first], jnp.inf)
+    x_h = jnp.where(found, xs[first], jnp.nan)
+    # a start at rest inside the band stays there
+    stuck = (v0 == 0.0) & (jnp.abs(x0) <= xc)
+    t_h = jnp.where(stuck, 0.0, t_h)
+    x_h = jnp.where(stuck, x0, x_h)
+    t_h = jnp.where(halts | stuck, t_h, jnp.inf)
+    x_h = jnp.where(halts | stuck, x_h, jnp.nan)
+    bracketed = found | stuck | ~halts
+    return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.valid), proto,
+                       (t_h, x_h, valid & bracketed))

@@ -1,0 +1,149 @@
+"""The oscillator's parameters and the damping coefficients of eq. 21."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Array = jax.Array
+
+
+def is_concrete(*xs) -> bool:
+    """True when every leaf of ``xs`` holds a value (no tracer): eager checks may run."""
+    leaves = jax.tree_util.tree_leaves(xs)
+    return not any(isinstance(x, jax.core.Tracer) for x in leaves)
+
+
+def check_finite(name: str, value) -> None:
+    """Raise ValueError naming ``name`` when a concrete ``value`` holds NaN or inf."""
+    if is_concrete(value):
+        arr = np.asarray(value, dtype=float)
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+def _check_field(name: str, value, *, positive: bool) -> None:
+    check_finite(name, value)
+    if not is_concrete(value):
+        return
+    arr = np.asarray(value, dtype=float)
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} must be > 0, got {value!r}")
+    if not positive and np.any(arr < 0):
+        raise ValueError(f"{name} must be >= 0 (damping constants cannot be negative), "
+                         f"got {value!r}")
+
+
+class Oscillator(eqx.Module):
+    """Block of mass m on a spring k with sliding friction mu, viscous b and quadratic drag D.
+
+    Equation of motion (paper eq. 3):
+        m x'' = -k x - mu m g sgn(x') - b x' - D x' |x'|.
+
+    Arguments:
+        m: mass [kg], > 0.
+        k: spring stiffness [N/m], > 0.
+        mu: coefficient of sliding (Coulomb) friction, >= 0 (static = kinetic).
+        b: viscous damping constant [kg/s], >= 0.
+        D: quadratic drag constant [kg/m], >= 0.
+        g: gravitational acceleration [m/s^2], > 0.
+
+    Every field may be a JAX array (a batch); the module is a pytree, so it passes through
+    ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Concrete values are validated at construction
+    (ValueError naming the field); traced values are not.
+    """
+
+    m: Array
+    k: Array
+    mu: Array = 0.0
+    b: Array = 0.0
+    D: Array = 0.0
+    g: Array = 9.81
+
+    def __init__(self, m=1.0, k=1.0, mu=0.0, b=0.0, D=0.0, g=9.81):
+        for name, value, positive in (("m", m, True), ("k", k, True), ("mu", mu, False),
+                                      ("b", b, False), ("D", D, False), ("g", g, True)):
+            _check_field(name, value, positive=positive)
+        self.m = jnp.asarray(m, dtype=float)
+        self.k = jnp.asarray(k, dtype=float)
+        self.mu = jnp.asarray(mu, dtype=float)
+        self.b = jnp.asarray(b, dtype=float)
+        self.D = jnp.asarray(D, dtype=float)
+        self.g = jnp.asarray(g, dtype=float)
+
+    @property
+    def omega0(self) -> Array:
+        """Undamped angular frequency w0 = sqrt(k/m)."""
+        return jnp.sqrt(self.k / self.m)
+
+    @property
+    def xc(self) -> Array:
+        """Half-width of the sticking band, xc = mu g / w0^2 = mu m g / k."""
+        return self.mu * self.g * self.m / self.k
+
+    @property
+    def gamma(self) -> Array:
+        """Viscous decay rate b/(2m) (= d1)."""
+        return self.b / (2.0 * self.m)
+
+    def energy(self, x, v) -> Array:
+        """Mechanical energy k x^2/2 + m v^2/2 (eq. 4)."""
+        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+
+
+def damping_coefficients(osc: Oscillator) -> tuple[Array, Array, Array]:
+    """Damping coefficients (d0, d1, d2) of the amplitude equation.
+
+    Implements eq. 21: d0 = 2 mu g / (pi w0), d1 = b / (2 m), d2 = 4 D w0 / (3 pi m).
+
+    Arguments:
+        osc: the Oscillator (fields may be batched arrays).
+
+    Returns:
+        (d0, d1, d2), each broadcast like the oscillator's fields.
+    """
+    w0 = osc.omega0
+    d0 = 2.0 * osc.mu * osc.g / (math.pi * w0)
+    d1 = osc.b / (2.0 * osc.m)
+    d2 = 4.0 * osc.D * w0 / (3.0 * math.pi * osc.m)
+    return d0, d1, d2
+
+
+def initial_amplitude_phase(osc: Oscillator, x0, v0) -> tuple[Array, Array]:
+    """Undamped amplitude and phase (eq. 6): x0 = A0 cos(phi0), v0 = -w0 A0 sin(phi0).
+
+    The phase comes from atan2, so every quadrant of (x0, v0) is handled; at rest
+    (x0 = v0 = 0) the phase is 0 and its gradient finite.
+    """
+    w0 = osc.omega0
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    s = -v0 / w0
+    r2 = x0**2 + s**2
+    at_rest = r2 == 0.0
+    r2_safe = jnp.where(at_rest, 1.0, r2)
+    A0 = jnp.where(at_rest, 0.0, jnp.sqrt(r2_safe))
+    phi0 = jnp.where(at_rest, 0.0,
+                     jnp.arctan2(jnp.where(at_rest, 0.0, s), jnp.where(at_rest, 1.0, x0)))
+    return A0, phi0
+
+
+def from_ratios(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30.0, A0=0.2,
+                g=9.81) -> Oscillator:
+    """Oscillator whose dimensionless damping ratios are the given ones.
+
+    d0_ratio = d0/(w0 A0), d1_ratio = d1/w0, d2_ratio = d2 A0/w0 (DESIGN section 1); inverts
+    eq. 21 for mu, b and D at the given m, k and reference amplitude A0.
+    """
+    w0 = math.sqrt(k / m)
+    d0 = jnp.asarray(d0_ratio, dtype=float) * w0 * A0
+    d1 = jnp.asarray(d1_ratio, dtype=float) * w0
+    d2 = jnp.asarray(d2_ratio, dtype=float) * w0 / A0
+    mu = d0 * math.pi * w0 / (2.0 * g)
+    b = 2.0 * m * d1
+    D = 3.0 * math.pi * m * d2 / (4.0 * w0)
+    return Oscillator(m=m, k=k, mu=mu, b=b, D=D, g=g)

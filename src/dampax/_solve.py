@@ -1,0 +1,103 @@
+"""One entry point, :func:`solve`, dispatching to the models, with eager input checks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._ansatz import solve_ansatz
+from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
+from ._oscillator import Oscillator, check_finite, is_concrete
+
+METHODS = ("ansatz", "rizcallah", "coulomb_exact", "reference")
+
+
+def _require(cond: bool, message: str) -> None:
+    if not cond:
+        raise ValueError(message)
+
+
+def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matched",
+          tail: str | None = None, back: int = 0, kappa: float = 4.0 / math.pi, **options):
+    """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
+
+    Arguments:
+        osc: the :class:`Oscillator`.
+        x0, v0: initial displacement [m] and velocity [m/s].
+        method: "ansatz" (Lelas & Pezer, eq. 11), "rizcallah" (sinusoidal friction),
+            "coulomb_exact" (exact half-swings; D = 0) or "reference" (diffrax integration of
+            eq. 3 with exact stick-slip).
+        phase: ansatz only: "matched" (A, phi from eqs. 22-23) or "undamped" (eqs. 8-10).
+        tail: ansatz only: None, or "coulomb" for the improved solutions (eqs. 41, 52, 54): the
+            exact Coulomb (+ viscous) motion from the last turning point with |x| > xc.
+        back: with tail="coulomb": start the tail this many turning points earlier (eq. 54: 1).
+        kappa: rizcallah only: 4/pi (least squares), pi/2 (impulse) or sqrt(2) (rms).
+        **options: reference only: t_end, rtol, atol, max_swings, ...
+
+    Returns:
+        A solution pytree with ``x(t)``, ``v(t)``, ``energy(t)``, ``halt_time``,
+        ``halt_position``, ``valid`` (and ``amplitude``, ``phase`` for the ansatz).
+
+    Called eagerly, invalid input (non-finite x0/v0, a model that does not exist for these
+    parameters, e.g. no admissible amplitude of eq. 22) raises ValueError naming the reason;
+    under jit/vmap the solution carries ``valid = False`` and NaN values instead.
+    """
+    if not isinstance(osc, Oscillator):
+        raise TypeError(f"osc must be a dampax.Oscillator, got {type(osc).__name__}")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if tail not in (None, "coulomb"):
+        raise ValueError(f"tail must be None or 'coulomb', got {tail!r}")
+    if method != "ansatz" and (tail is not None or phase != "matched" or back != 0):
+        raise ValueError(f"phase, tail and back apply to method='ansatz' only, not {method!r}")
+    if method != "reference" and options:
+        raise ValueError(f"options {sorted(options)} apply to method='reference' only")
+    check_finite("x0", x0)
+    check_finite("v0", v0)
+    eager = is_concrete(osc, x0, v0)
+    if method == "ansatz":
+        sol = solve_ansatz(osc, x0, v0, phase=phase)
+        if eager and not np.all(np.asarray(sol.valid)):
+            raise ValueError(
+                "x0, v0: no admissible amplitude A of eq. 22 for this oscillator and initial "
+                "state (the root branch connected to A0 ends in a fold; e.g. d2 |x0| >= w0 for "
+                "quadratic damping): the matched ansatz does not exist here")
+        if tail == "coulomb":
+            sol = with_coulomb_tail(sol, osc, x0, v0, back=int(back))
+    elif method == "rizcallah":
+        if eager:
+            _require(np.all(np.asarray(osc.b) == 0) and np.all(np.asarray(osc.D) == 0),
+                     "b, D: Rizcallah's model is for Coulomb damping only (b = D = 0)")
+        sol = solve_rizcallah(osc, x0, v0, kappa=kappa)
+    elif method == "coulomb_exact":
+        if eager:
+            _require(np.all(np.asarray(osc.D) == 0),
+                     "D: the exact half-swing solution has no quadratic drag (D must be 0)")
+            _require(np.all(np.asarray(osc.gamma) < np.asarray(osc.omega0)),
+                     "b: the exact half-swing solution needs underdamping, b < 2 sqrt(k m)")
+        sol = solve_coulomb_exact(osc, x0, v0)
+    else:
+        from ._reference import solve_reference
+
+        sol = solve_reference(osc, x0, v0, **options)
+    if eager and not np.all(np.asarray(sol.valid)):
+        raise ValueError(f"method={method!r}: the model could not be evaluated for these "
+                         f"parameters (validity flag is False)")
+    return sol
+
+
+def turning_points(sol, n: int):
+    """First n turning points (t_k, x_k) with t_k > 0 and v = 0.
+
+    A start at rest is not counted; after the halt the arrays are NaN-padded (the rest point of
+    models that stop at a turning point is the last one listed).
+
+    Arguments:
+        sol: a solution returned by :func:`solve`.
+        n: how many (static).
+
+    Returns:
+        (t, x), two arrays of shape (n,).
+    """
+    return sol.turning_points(int(n))
