@@ -138,11 +138,12 @@ def matched_amplitude(cphi, sphi, e0, e1, e2, *, steps=16, newton=3):
     ds = 1.0 / steps
 
     def correct(y, s):
-        for _ in range(newton):
+        def body(_, y):
             F, F_y, _, _ = _amplitude_residual(y, s, *const)
             y = y - F / jnp.where(F_y == 0.0, 1.0, F_y)
-            y = jnp.where(jnp.isfinite(y) & (y > 0.0), y, jnp.nan)
-        return y
+            return jnp.where(jnp.isfinite(y) & (y > 0.0), y, jnp.nan)
+
+        return jax.lax.fori_loop(0, newton, body, y)
 
     def step(carry, i):
         y, min_fy = carry
@@ -206,11 +207,13 @@ class AnsatzSolution(eqx.Module):
         th = self.omega0 * jnp.asarray(t, dtype=float) + self.phase
         return f, fp, jnp.cos(th), jnp.sin(th)
 
+    @eqx.filter_jit
     def x(self, t) -> Array:
         """Displacement A f(t) cos(w0 t + phi) (eq. 11)."""
         f, _, cth, _ = self._parts(t)
         return self.amplitude * f * cth
 
+    @eqx.filter_jit
     def v(self, t) -> Array:
         """Velocity: eq. 12 (matched) or eq. 9 (undamped phase)."""
         f, fp, cth, sth = self._parts(t)
@@ -219,6 +222,7 @@ class AnsatzSolution(eqx.Module):
             v = v + self.amplitude * fp * cth
         return v
 
+    @eqx.filter_jit
     def energy(self, t) -> Array:
         """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
         if self.matched:
@@ -250,10 +254,12 @@ class AnsatzSolution(eqx.Module):
         params = (w0, self.phase, a, bp, c, self.halt_time)
         frozen = jax.lax.stop_gradient(params)
         tau = frozen[5]
-        t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, tau)
-        for _ in range(6):
+        def newton(_, t):
             val, der = G(t, frozen)
-            t = jnp.clip(t - val / der, 0.0, tau)
+            return jnp.clip(t - val / der, 0.0, tau)
+
+        t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, tau)
+        t = jax.lax.fori_loop(0, 6, newton, t)
         val, der = G(t, params)
         return t - val / der
 
@@ -263,6 +269,7 @@ class AnsatzSolution(eqx.Module):
         return jax.lax.stop_gradient(
             jnp.floor((self.phase - jnp.arctan(r0)) / jnp.pi + 1e-9) + 1.0)
 
+    @eqx.filter_jit
     def turning_points(self, n: int):
         """First n turning points (t_k, x_k), t_k > 0, before the halt; NaN-padded."""
         ks = self._first_index() + jnp.arange(n, dtype=float)

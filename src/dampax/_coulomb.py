@@ -120,19 +120,23 @@ class SwingSolution(eqx.Module):
         before = (t < self.t_start) | ~self.valid
         return jnp.where(before, jnp.nan, x), jnp.where(before, jnp.nan, v)
 
+    @eqx.filter_jit
     def x(self, t) -> Array:
         """Displacement at time(s) t."""
         return self._state(t)[0]
 
+    @eqx.filter_jit
     def v(self, t) -> Array:
         """Velocity at time(s) t."""
         return self._state(t)[1]
 
+    @eqx.filter_jit
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2 (eq. 4)."""
         x, v = self._state(t)
         return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
 
+    @eqx.filter_jit
     def turning_points(self, n: int):
         """First n velocity zeros after the start (the rest point is the last); NaN-padded."""
         moving = self.v_start != 0.0
@@ -216,6 +220,7 @@ class TailSolution(eqx.Module):
     tail: SwingSolution
     t_switch: Array
     n_before: Array  # ansatz turning points (t > 0) up to and including t_switch
+    found: Array  # the search window bracketed the last turning point outside the band
 
     @property
     def amplitude(self):
@@ -227,7 +232,7 @@ class TailSolution(eqx.Module):
 
     @property
     def valid(self):
-        return self.ansatz.valid & self.tail.valid
+        return self.ansatz.valid & self.tail.valid & self.found
 
     @property
     def halt_time(self):
@@ -244,18 +249,22 @@ class TailSolution(eqx.Module):
         t_tail = jnp.where(early, self.t_switch, t)
         return jnp.where(early, head(t_head), tail(t_tail))
 
+    @eqx.filter_jit
     def x(self, t) -> Array:
         """Displacement: ansatz before the switch, exact Coulomb motion after."""
         return self._pick(t, self.ansatz.x, self.tail.x)
 
+    @eqx.filter_jit
     def v(self, t) -> Array:
         """Velocity of the piecewise motion (eqs. 42, 53)."""
         return self._pick(t, self.ansatz.v, self.tail.v)
 
+    @eqx.filter_jit
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2 of the piecewise motion."""
         return 0.5 * self.ansatz.k * self.x(t) ** 2 + 0.5 * self.ansatz.m * self.v(t) ** 2
 
+    @eqx.filter_jit
     def turning_points(self, n: int):
         """The ansatz's turning points up to the switch, then the exact tail's."""
         ta, xa = self.ansatz.turning_points(n)
@@ -310,9 +319,9 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
                        xc=xc, gamma=osc.gamma, omega0=osc.omega0, m=osc.m, k=osc.k)
     # estimate window must bracket the last admissible turning point
     bracketed = (~ok[-1]) & (ok[0] | (n_lo <= n_first) | from_start)
-    ansatz = eqx.tree_at(lambda s: s.valid, sol, sol.valid & (bracketed | never))
     n_before = jnp.where(from_start | never, jnp.where(never, 10**9, 0), n_s_safe - n_first + 1)
-    return TailSolution(ansatz=ansatz, tail=tail, t_switch=t_switch, n_before=n_before)
+    return TailSolution(ansatz=sol, tail=tail, t_switch=t_switch, n_before=n_before,
+                        found=bracketed | never)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -356,14 +365,17 @@ class RizcallahSolution(eqx.Module):
         bad = (t < 0.0) | ~self.valid
         return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
 
+    @eqx.filter_jit
     def x(self, t) -> Array:
         """Displacement (Rizcallah's eq. 5 for kappa = 4/pi), at rest after the halt."""
         return self._state(t)[0]
 
+    @eqx.filter_jit
     def v(self, t) -> Array:
         """Velocity dx/dt, zero after the halt."""
         return self._state(t)[1]
 
+    @eqx.filter_jit
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2."""
         x, v = self._state(t)
@@ -379,10 +391,11 @@ class RizcallahSolution(eqx.Module):
                 w0 * t)
 
         frozen = jax.lax.stop_gradient(params)
-        t = (n * jnp.pi - frozen[1]) / frozen[2]
-        for _ in range(6):
+        def newton(_, t):
             val, der = jax.jvp(lambda s: vel(s, frozen), (t,), (jnp.ones_like(t),))
-            t = t - val / der
+            return t - val / der
+
+        t = jax.lax.fori_loop(0, 6, newton, (n * jnp.pi - frozen[1]) / frozen[2])
         val, der = jax.jvp(lambda s: vel(s, params), (t,), (jnp.ones_like(t),))
         return t - val / der
 
@@ -392,6 +405,7 @@ class RizcallahSolution(eqx.Module):
         xs = self._free(jnp.where(jnp.isfinite(ts), ts, 0.0))[0]
         return ts, xs
 
+    @eqx.filter_jit
     def turning_points(self, n: int):
         """First n turning points with t > 0; the halting point is the last; NaN-padded."""
         n_lo = jax.lax.stop_gradient(jnp.floor(self.phase0 / jnp.pi))

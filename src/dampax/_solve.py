@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import numpy as np
 
 from ._ansatz import solve_ansatz
@@ -56,35 +57,44 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     check_finite("x0", x0)
     check_finite("v0", v0)
     eager = is_concrete(osc, x0, v0)
-    if method == "ansatz":
-        sol = solve_ansatz(osc, x0, v0, phase=phase)
-        if eager and not np.all(np.asarray(sol.valid)):
-            raise ValueError(
-                "x0, v0: no admissible amplitude A of eq. 22 for this oscillator and initial "
-                "state (the root branch connected to A0 ends in a fold; e.g. d2 |x0| >= w0 for "
-                "quadratic damping): the matched ansatz does not exist here")
-        if tail == "coulomb":
-            sol = with_coulomb_tail(sol, osc, x0, v0, back=int(back))
-    elif method == "rizcallah":
-        if eager:
-            _require(np.all(np.asarray(osc.b) == 0) and np.all(np.asarray(osc.D) == 0),
-                     "b, D: Rizcallah's model is for Coulomb damping only (b = D = 0)")
-        sol = solve_rizcallah(osc, x0, v0, kappa=kappa)
-    elif method == "coulomb_exact":
-        if eager:
-            _require(np.all(np.asarray(osc.D) == 0),
-                     "D: the exact half-swing solution has no quadratic drag (D must be 0)")
-            _require(np.all(np.asarray(osc.gamma) < np.asarray(osc.omega0)),
-                     "b: the exact half-swing solution needs underdamping, b < 2 sqrt(k m)")
-        sol = solve_coulomb_exact(osc, x0, v0)
-    else:
+    if eager and method == "rizcallah":
+        _require(np.all(np.asarray(osc.b) == 0) and np.all(np.asarray(osc.D) == 0),
+                 "b, D: Rizcallah's model is for Coulomb damping only (b = D = 0)")
+    if eager and method == "coulomb_exact":
+        _require(np.all(np.asarray(osc.D) == 0),
+                 "D: the exact half-swing solution has no quadratic drag (D must be 0)")
+        _require(np.all(np.asarray(osc.gamma) < np.asarray(osc.omega0)),
+                 "b: the exact half-swing solution needs underdamping, b < 2 sqrt(k m)")
+    if method == "reference":
         from ._reference import solve_reference
 
         sol = solve_reference(osc, x0, v0, **options)
+    else:
+        sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
+                              back=int(back), kappa=float(kappa))
+    if eager and method == "ansatz" and not np.all(np.asarray(
+            sol.ansatz.valid if tail else sol.valid)):
+        raise ValueError(
+            "x0, v0: no admissible amplitude A of eq. 22 for this oscillator and initial "
+            "state (the root branch connected to A0 ends in a fold; e.g. d2 |x0| >= w0 for "
+            "quadratic damping): the matched ansatz does not exist here")
     if eager and not np.all(np.asarray(sol.valid)):
         raise ValueError(f"method={method!r}: the model could not be evaluated for these "
                          f"parameters (validity flag is False)")
     return sol
+
+
+@eqx.filter_jit
+def _solve_analytic(osc, x0, v0, *, method, phase, tail, back, kappa):
+    """The analytic models, compiled once per (method, options) and re-used for new values."""
+    if method == "ansatz":
+        sol = solve_ansatz(osc, x0, v0, phase=phase)
+        if tail == "coulomb":
+            sol = with_coulomb_tail(sol, osc, x0, v0, back=back)
+        return sol
+    if method == "rizcallah":
+        return solve_rizcallah(osc, x0, v0, kappa=kappa)
+    return solve_coulomb_exact(osc, x0, v0)
 
 
 def turning_points(sol, n: int):

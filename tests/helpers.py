@@ -1,0 +1,77 @@
+"""Independent references for the tests: scipy integration of eq. 3 with exact stick-slip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+W0 = math.sqrt(30.0)  # the paper's block: m = 1 kg, k = 30 N/m, A0 = 0.2 m
+A0 = 0.2
+
+
+def ratios_to_constants(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30.0, A0=A0,
+                        g=9.81):
+    """(mu, b, D) for the dimensionless ratios, inverting eq. 21 by hand (independent of dampax)."""
+    w0 = math.sqrt(k / m)
+    mu = d0_ratio * w0 * A0 * math.pi * w0 / (2 * g)
+    b = 2 * m * d1_ratio * w0
+    D = 3 * math.pi * m * d2_ratio * w0 / A0 / (4 * w0)
+    return mu, b, D
+
+
+def scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, *, g=9.81, rtol=1e-12, atol=1e-14,
+                     max_swings=10_000):
+    """Integrate eq. 3 swing by swing with DOP853 and a v = 0 event.
+
+    Returns (segments, turning, rest): a list of dense-output pieces (t0, t1, sol), the turning
+    points [(t, x)] and the rest state (t, x) or None.
+    """
+    xc = mu * g * m / k
+    t, x, v = 0.0, float(x0), float(v0)
+    segments, turning = [], []
+    if v == 0.0:
+        if abs(x) <= xc:
+            return segments, turning, (0.0, x)
+        s = -math.copysign(1.0, x)
+    else:
+        s = math.copysign(1.0, v)
+    for _ in range(max_swings):
+        def rhs(_t, y, s=s):
+            return [y[1], (-k * y[0] - s * mu * m * g - b * y[1] - D * s * y[1] ** 2) / m]
+
+        def event(_t, y, s=s):
+            return s * y[1]
+
+        event.terminal = True
+        event.direction = -1
+        sol = solve_ivp(rhs, (t, t_end), [x, v], method="DOP853", rtol=rtol, atol=atol,
+                        events=event, dense_output=True)
+        segments.append((t, sol.t[-1], sol.sol))
+        if sol.status != 1:
+            return segments, turning, None
+        t = float(sol.t_events[0][0])
+        x = float(sol.y_events[0][0][0])
+        v = 0.0
+        turning.append((t, x))
+        if abs(x) <= xc:
+            return segments, turning, (t, x)
+        s = -math.copysign(1.0, x)
+    raise RuntimeError("max_swings exhausted")
+
+
+def evaluate(segments, rest, ts):
+    """x(t) and v(t) of a scipy_stick_slip result on the times ts."""
+    ts = np.asarray(ts, dtype=float)
+    x = np.full(ts.shape, np.nan)
+    v = np.full(ts.shape, np.nan)
+    for t0, t1, sol in segments:
+        sel = (ts >= t0) & (ts <= t1)
+        if np.any(sel):
+            y = sol(ts[sel])
+            x[sel], v[sel] = y[0], y[1]
+    if rest is not None:
+        sel = ts >= rest[0]
+        x[sel], v[sel] = rest[1], 0.0
+    return x, v
