@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._oscillator import Oscillator, damping_coefficients, initial_amplitude_phase
+from ._oscillator import jit_method, Oscillator, damping_coefficients, initial_amplitude_phase
 
 Array = jax.Array
 
@@ -180,8 +180,8 @@ class AnsatzSolution(eqx.Module):
     Where no admissible amplitude exists, ``valid`` is False and the values are NaN.
     """
 
-    amplitude: Array
-    phase: Array
+    A: Array  # amplitude, finite even where invalid (see ``amplitude``)
+    phi: Array
     omega0: Array
     a: Array
     bp: Array
@@ -193,9 +193,22 @@ class AnsatzSolution(eqx.Module):
     matched: bool = eqx.field(static=True)
 
     @property
+    def amplitude(self) -> Array:
+        """A of eq. 11 (A0 for the undamped phase); NaN where the model does not exist."""
+        return jnp.where(self.valid, self.A, jnp.nan)
+
+    @property
+    def phase(self) -> Array:
+        """phi of eq. 11 (phi0 for the undamped phase); NaN where the model does not exist."""
+        return jnp.where(self.valid, self.phi, jnp.nan)
+
+    def _mask(self, value):
+        return jnp.where(self.valid, value, jnp.nan)
+
+    @property
     def halt_position(self) -> Array:
         """Where the model comes to rest: x(tau) = 0 when it halts, NaN when it never does."""
-        return jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan) + 0.0 * self.amplitude
+        return self._mask(jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan))
 
     def f(self, t) -> Array:
         """Amplitude factor f(t) (eq. 20 in closed form), 0 after the halt."""
@@ -204,30 +217,30 @@ class AnsatzSolution(eqx.Module):
     def _parts(self, t):
         f = self.f(t)
         fp = decay_rate(f, self.a, self.bp, self.c)
-        th = self.omega0 * jnp.asarray(t, dtype=float) + self.phase
+        th = self.omega0 * jnp.asarray(t, dtype=float) + self.phi
         return f, fp, jnp.cos(th), jnp.sin(th)
 
-    @eqx.filter_jit
+    @jit_method
     def x(self, t) -> Array:
         """Displacement A f(t) cos(w0 t + phi) (eq. 11)."""
         f, _, cth, _ = self._parts(t)
-        return self.amplitude * f * cth
+        return self._mask(self.A * f * cth)
 
-    @eqx.filter_jit
+    @jit_method
     def v(self, t) -> Array:
         """Velocity: eq. 12 (matched) or eq. 9 (undamped phase)."""
         f, fp, cth, sth = self._parts(t)
-        v = -self.omega0 * self.amplitude * f * sth
+        v = -self.omega0 * self.A * f * sth
         if self.matched:
-            v = v + self.amplitude * fp * cth
-        return v
+            v = v + self.A * fp * cth
+        return self._mask(v)
 
-    @eqx.filter_jit
+    @jit_method
     def energy(self, t) -> Array:
         """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
         if self.matched:
             return 0.5 * self.k * self.x(t) ** 2 + 0.5 * self.m * self.v(t) ** 2
-        return 0.5 * self.m * (self.omega0 * self.amplitude * self.f(t)) ** 2
+        return self._mask(0.5 * self.m * (self.omega0 * self.A * self.f(t)) ** 2)
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
@@ -251,7 +264,7 @@ class AnsatzSolution(eqx.Module):
                 der = w0_ + 0.0 * dr
             return val, der
 
-        params = (w0, self.phase, a, bp, c, self.halt_time)
+        params = (w0, self.phi, a, bp, c, self.halt_time)
         frozen = jax.lax.stop_gradient(params)
         tau = frozen[5]
         def newton(_, t):
@@ -267,7 +280,7 @@ class AnsatzSolution(eqx.Module):
         """Index n of the first turning point w0 t + phi = n pi + atan(f'/(w0 f)) with t > 0."""
         r0 = decay_rate(1.0, self.a, self.bp, self.c) / self.omega0 if self.matched else 0.0
         return jax.lax.stop_gradient(
-            jnp.floor((self.phase - jnp.arctan(r0)) / jnp.pi + 1e-9) + 1.0)
+            jnp.floor((self.phi - jnp.arctan(r0)) / jnp.pi + 1e-9) + 1.0)
 
     @eqx.filter_jit
     def turning_points(self, n: int):
@@ -303,14 +316,12 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
         sphi = jnp.where(at_rest, 0.0, -jnp.asarray(v0, dtype=float) / (w0 * A0_safe))
         y, h, valid = matched_amplitude(cphi, sphi, d0 / (w0 * A0_safe), d1 / w0,
                                         d2 * A0_safe / w0)
+        usable = valid & ~at_rest
         valid = valid | at_rest
-        y_safe = jnp.where(valid & ~at_rest, y, 1.0)
-        A = jnp.where(at_rest, 0.0, A0_safe * y_safe)
-        phi = jnp.where(at_rest, 0.0, jnp.arctan2(jnp.where(at_rest, 0.0, h),
-                                                  jnp.where(at_rest, 1.0, cphi)))
-        A = jnp.where(valid, A, jnp.nan)
-        phi = jnp.where(valid, phi, jnp.nan)
-        A_div = jnp.where(valid & ~at_rest, A, 1.0)
+        A = jnp.where(at_rest, 0.0, A0_safe * jnp.where(usable, y, 1.0))
+        phi = jnp.where(usable, jnp.arctan2(jnp.where(usable, h, 0.0),
+                                            jnp.where(usable, cphi, 1.0)), 0.0)
+        A_div = jnp.where(at_rest, 1.0, A)
     else:
         A, phi, A_div = A0, phi0, A0_safe
         valid = jnp.ones_like(A0, dtype=bool)
@@ -318,7 +329,7 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     c = d0 / A_div
     bp = d1 + 0.0 * a
     tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
-    return AnsatzSolution(amplitude=A, phase=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
+    return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
                           halt_time=tau, m=osc.m, k=osc.k, valid=valid,
                           matched=phase == "matched")
 

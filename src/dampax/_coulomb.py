@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from ._ansatz import AnsatzSolution, _atanc
-from ._oscillator import Oscillator, initial_amplitude_phase
+from ._oscillator import jit_method, Oscillator, initial_amplitude_phase
 
 Array = jax.Array
 
@@ -120,17 +120,17 @@ class SwingSolution(eqx.Module):
         before = (t < self.t_start) | ~self.valid
         return jnp.where(before, jnp.nan, x), jnp.where(before, jnp.nan, v)
 
-    @eqx.filter_jit
+    @jit_method
     def x(self, t) -> Array:
         """Displacement at time(s) t."""
         return self._state(t)[0]
 
-    @eqx.filter_jit
+    @jit_method
     def v(self, t) -> Array:
         """Velocity at time(s) t."""
         return self._state(t)[1]
 
-    @eqx.filter_jit
+    @jit_method
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2 (eq. 4)."""
         x, v = self._state(t)
@@ -249,17 +249,17 @@ class TailSolution(eqx.Module):
         t_tail = jnp.where(early, self.t_switch, t)
         return jnp.where(early, head(t_head), tail(t_tail))
 
-    @eqx.filter_jit
+    @jit_method
     def x(self, t) -> Array:
         """Displacement: ansatz before the switch, exact Coulomb motion after."""
         return self._pick(t, self.ansatz.x, self.tail.x)
 
-    @eqx.filter_jit
+    @jit_method
     def v(self, t) -> Array:
         """Velocity of the piecewise motion (eqs. 42, 53)."""
         return self._pick(t, self.ansatz.v, self.tail.v)
 
-    @eqx.filter_jit
+    @jit_method
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2 of the piecewise motion."""
         return 0.5 * self.ansatz.k * self.x(t) ** 2 + 0.5 * self.ansatz.m * self.v(t) ** 2
@@ -291,8 +291,7 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
     if back < 0:
         raise ValueError(f"back must be >= 0, got {back}")
     xc = osc.xc
-    A = jnp.where(sol.valid, sol.amplitude, 1.0)
-    frozen = jax.lax.stop_gradient((A, sol.a, sol.bp, sol.c, sol.phase, sol.omega0, xc))
+    frozen = jax.lax.stop_gradient((sol.A, sol.a, sol.bp, sol.c, sol.phi, sol.omega0, xc))
     A_, a_, bp_, c_, ph_, w0_, xc_ = frozen
     F = jnp.clip(xc_ / jnp.where(A_ > 0.0, A_, 1.0), 0.0, 1.0)
     T_star = (1.0 - F) / (c_ + 0.5 * bp_ + (a_ + 0.5 * bp_) * F)
@@ -365,38 +364,66 @@ class RizcallahSolution(eqx.Module):
         bad = (t < 0.0) | ~self.valid
         return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
 
-    @eqx.filter_jit
+    @jit_method
     def x(self, t) -> Array:
         """Displacement (Rizcallah's eq. 5 for kappa = 4/pi), at rest after the halt."""
         return self._state(t)[0]
 
-    @eqx.filter_jit
+    @jit_method
     def v(self, t) -> Array:
         """Velocity dx/dt, zero after the halt."""
         return self._state(t)[1]
 
-    @eqx.filter_jit
+    @jit_method
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2."""
         x, v = self._state(t)
         return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
 
+    def _psi(self, t, params):
+        """Angle psi(t) with v = 0 <=> w0 t = psi(t) + n pi, continuous in t.
+
+        v = u_y cos(w0 t) - u_x sin(w0 t) with u(t) linear in t, so psi(t) - psi(0), the angle
+        swept by u along a straight segment, is below pi and atan2 needs no unwrapping.
+        """
+        A0, ph, w0, d = params
+        cph, sph = jnp.cos(ph), jnp.sin(ph)
+
+        def u(t):
+            P = (A0 - d * t) * cph
+            Q = -(A0 - d * t) * sph + (d / w0) * cph
+            return w0 * P - d * sph, -d * cph + w0 * Q
+
+        ux0, uy0 = u(0.0)
+        ux, uy = u(t)
+        # cross(u0, u') = -w0 d^2 sin^2(phi0): from rest (or without friction) u runs through
+        # the origin, where its angle jumps by pi; psi mod pi, all that matters, is constant
+        line = (sph == 0.0) | (d == 0.0)
+        swept = jnp.arctan2(ux0 * uy - uy0 * ux, ux0 * ux + uy0 * uy)
+        return jnp.arctan2(uy0, ux0) + jnp.where(line, 0.0, swept)
+
+    def _params(self):
+        return (self.amplitude0, self.phase0, self.omega0, self.d)
+
+    def _first_index(self):
+        psi0 = self._psi(0.0, jax.lax.stop_gradient(self._params()))
+        return jax.lax.stop_gradient(jnp.floor(-psi0 / jnp.pi + 1e-9) + 1.0)
+
     def _turning_time(self, n):
-        params = (self.amplitude0, self.phase0, self.omega0, self.d)
-
-        def vel(t, p):
-            A0, ph, w0, d = p
-            th = w0 * t + ph
-            return -d * jnp.cos(th) - w0 * (A0 - d * t) * jnp.sin(th) + d * jnp.cos(ph) * jnp.cos(
-                w0 * t)
-
+        """Turning point n: the root of G(t) = w0 t - psi(t) - n pi, by Newton's method."""
+        params = self._params()
         frozen = jax.lax.stop_gradient(params)
+
+        def G(t, p):
+            return p[2] * t - self._psi(t, p) - n * jnp.pi
+
         def newton(_, t):
-            val, der = jax.jvp(lambda s: vel(s, frozen), (t,), (jnp.ones_like(t),))
+            val, der = jax.jvp(lambda s: G(s, frozen), (t,), (jnp.ones_like(t),))
             return t - val / der
 
-        t = jax.lax.fori_loop(0, 6, newton, (n * jnp.pi - frozen[1]) / frozen[2])
-        val, der = jax.jvp(lambda s: vel(s, params), (t,), (jnp.ones_like(t),))
+        t = (n * jnp.pi + self._psi(0.0, frozen)) / frozen[2]
+        t = jax.lax.fori_loop(0, 8, newton, t)
+        val, der = jax.jvp(lambda s: G(s, params), (t,), (jnp.ones_like(t),))
         return t - val / der
 
     def _candidates(self, n_lo, count):
@@ -408,10 +435,11 @@ class RizcallahSolution(eqx.Module):
     @eqx.filter_jit
     def turning_points(self, n: int):
         """First n turning points with t > 0; the halting point is the last; NaN-padded."""
-        n_lo = jax.lax.stop_gradient(jnp.floor(self.phase0 / jnp.pi))
-        ts, xs = self._candidates(n_lo, n + 2)
+        ts, xs = self._candidates(self._first_index(), n + 1)
         eps = 1e-9 / self.omega0
         ok = (ts > eps) & (ts <= self.halt_time * (1 + 1e-12) + eps) & self.valid
+        # past the envelope's zero Newton may land on an earlier root again: keep increasing t
+        ok = ok & (ts > jnp.concatenate([jnp.array([-jnp.inf]), ts[:-1]]) + eps)
         return compact(ts, xs, ok, n)
 
 
@@ -444,8 +472,9 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     A0_, ph_, w0_, d_, xc_ = frozen
     halts = d_ > 0.0
     t_star = jnp.where(halts, jnp.clip(A0_ - xc_, 0.0, None) / jnp.where(halts, d_, 1.0), 0.0)
-    n_first = jnp.floor(ph_ / jnp.pi)
-    n_lo = jnp.maximum(n_first, jnp.floor((w0_ * t_star + ph_) / jnp.pi) - 3.0)
+    n_first = proto._first_index()
+    n_est = jnp.floor((w0_ * t_star - proto._psi(t_star, (A0_, ph_, w0_, d_))) / jnp.pi)
+    n_lo = jnp.maximum(n_first, n_est - 3.0)
     ts, xs = proto._candidates(n_lo, window)
     eps = 1e-9 / w0_
     inside = (ts > eps) & (jnp.abs(xs) <= xc_)

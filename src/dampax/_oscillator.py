@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -10,6 +11,21 @@ import jax.numpy as jnp
 import numpy as np
 
 Array = jax.Array
+
+
+def jit_method(fn):
+    """Compile a solution method ``fn(self, t)`` once per solution type; t becomes an array.
+
+    (``equinox.filter_jit`` alone would treat a Python float t as static and recompile for
+    every new value.)
+    """
+    compiled = eqx.filter_jit(fn)
+
+    @functools.wraps(fn)
+    def method(self, t):
+        return compiled(self, jnp.asarray(t, dtype=float))
+
+    return method
 
 
 def is_concrete(*xs) -> bool:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 
 from ._ansatz import solve_ansatz
@@ -70,6 +71,8 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
 
         sol = solve_reference(osc, x0, v0, **options)
     else:
+        x0 = jnp.asarray(x0, dtype=float)
+        v0 = jnp.asarray(v0, dtype=float)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
                               back=int(back), kappa=float(kappa))
     if eager and method == "ansatz" and not np.all(np.asarray(

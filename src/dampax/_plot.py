@@ -1,0 +1,347 @@
+"""Solve every applicable model once and plot x(t) and E(t) in the papers' colour code.
+
+The models of one oscillator and initial state are solved and summarised in a single compiled
+call (:func:`run_models`), so the command-line tool and the plots share one evaluation; the
+figure is drawn with matplotlib's object API on the Agg canvas (no display, no pyplot state).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._oscillator import Oscillator, check_finite, damping_coefficients
+from ._solve import solve, turning_points
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """One model of :func:`dampax.solve`: options, when it applies, and how it is drawn."""
+
+    label: str
+    options: tuple[tuple[str, object], ...]
+    applies: Callable[[Oscillator], bool]
+    color: str
+    linestyle: str | tuple
+    linewidth: float = 1.4
+    zorder: float = 2.0
+
+
+def _scalar(x) -> float:
+    return float(np.asarray(x))
+
+
+def _has_friction(osc: Oscillator) -> bool:
+    return _scalar(osc.mu) > 0.0
+
+
+def _coulomb_only(osc: Oscillator) -> bool:
+    return _has_friction(osc) and _scalar(osc.b) == 0.0 and _scalar(osc.D) == 0.0
+
+
+def _exact_applies(osc: Oscillator) -> bool:
+    return (_has_friction(osc) and _scalar(osc.D) == 0.0
+            and _scalar(osc.gamma) < _scalar(osc.omega0))
+
+
+#: The models in table and legend order. ``reference`` is the diffrax integrator of eq. 3.
+MODELS: dict[str, ModelSpec] = {
+    "matched": ModelSpec("matched ansatz (eqs. 22-23)", (("method", "ansatz"),),
+                         lambda osc: True, "tab:red", "-", 2.0, 3.0),
+    "undamped": ModelSpec("undamped-phase ansatz (eqs. 8-10)",
+                          (("method", "ansatz"), ("phase", "undamped")),
+                          lambda osc: True, "tab:blue", "-", 1.6, 2.5),
+    "tail": ModelSpec("matched + Coulomb tail (eq. 41)",
+                      (("method", "ansatz"), ("tail", "coulomb")),
+                      _has_friction, "tab:green", "-.", 1.6, 2.8),
+    "rizcallah": ModelSpec("Rizcallah, sinusoidal friction", (("method", "rizcallah"),),
+                           _coulomb_only, "tab:orange", (0, (5, 2)), 1.4, 2.2),
+    "coulomb_exact": ModelSpec("exact half-swings (D = 0)", (("method", "coulomb_exact"),),
+                               _exact_applies, "tab:purple", (0, (8, 3, 2, 3)), 1.4, 2.1),
+    "reference": ModelSpec("reference (diffrax)", (("method", "reference"),),
+                           lambda osc: True, "black", ":", 2.0, 4.0),
+}
+
+
+@dataclasses.dataclass
+class ModelResult:
+    """Solution and summary of one model; ``error`` says why it is missing (then no solution)."""
+
+    name: str
+    solution: object | None
+    halt_time: float = math.nan
+    halt_position: float = math.nan
+    turning_t: np.ndarray | None = None
+    turning_x: np.ndarray | None = None
+    error: str | None = None
+
+    @property
+    def label(self) -> str:
+        return MODELS[self.name].label
+
+
+@dataclasses.dataclass
+class ModelRun:
+    """Everything :func:`run_models` computed for one oscillator and initial state."""
+
+    osc: Oscillator
+    x0: float
+    v0: float
+    results: dict[str, ModelResult]
+    t_end: float
+    notes: list[str]
+
+    def ok(self) -> dict[str, ModelResult]:
+        """The models that could be solved, in table order."""
+        return {k: r for k, r in self.results.items() if r.error is None}
+
+
+def applicable_models(osc: Oscillator, *, reference: bool = True) -> tuple[str, ...]:
+    """Names of the models that apply to this oscillator, in table order.
+
+    Arguments:
+        osc: a scalar :class:`~dampax.Oscillator`.
+        reference: include the reference integrator.
+
+    Returns:
+        A tuple of keys of :data:`MODELS`: both ansatz phases always; the Coulomb tail when
+        mu > 0; Rizcallah's model when mu > 0 and b = D = 0; the exact half-swings when mu > 0,
+        D = 0 and b < 2 sqrt(k m); the reference when asked for.
+    """
+    names = tuple(k for k, spec in MODELS.items() if k != "reference" and spec.applies(osc))
+    return names + (("reference",) if reference else ())
+
+
+@eqx.filter_jit
+def _solve_analytic(osc, x0, v0, names: tuple[str, ...], n_turning: int):
+    sols = {k: solve(osc, x0, v0, **dict(MODELS[k].options)) for k in names}
+    summary = {k: (s.halt_time, s.halt_position, s.valid, turning_points(s, n_turning))
+               for k, s in sols.items()}
+    return sols, summary
+
+
+@eqx.filter_jit
+def _summarize(sol, n_turning: int):
+    return sol.halt_time, sol.halt_position, sol.valid, turning_points(sol, n_turning)
+
+
+@eqx.filter_jit
+def _curves(sols: dict, t):
+    return {k: (s.x(t), s.energy(t)) for k, s in sols.items()}
+
+
+def _why_invalid(osc, x0, v0, name: str) -> str:
+    """dampax's own reason for an invalid model, from an eager solve."""
+    try:
+        solve(osc, x0, v0, **dict(MODELS[name].options))
+    except ValueError as err:
+        return str(err)
+    return "the model could not be evaluated for these parameters"
+
+
+def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:
+    """Time span of a plot: half an undamped period past the latest finite halt time.
+
+    Arguments:
+        osc: the oscillator (its undamped period T0 = 2 pi / w0 sets the margin).
+        halt_times: halt times [s] of the models; inf / nan entries are ignored.
+
+    Returns:
+        t_end [s]: latest finite halt + T0/2, at most 100 T0; 6 T0 when nothing halts.
+    """
+    period = 2.0 * math.pi / _scalar(osc.omega0)
+    finite = [t for t in halt_times if math.isfinite(t)]
+    if not finite:
+        return 6.0 * period
+    return min(max(finite) + 0.5 * period, 100.0 * period)
+
+
+def run_models(osc: Oscillator, x0: float, v0: float, *, models: Sequence[str] | None = None,
+               n_turning: int = 6, t_end: float | None = None) -> ModelRun:
+    """Solve and summarise several models of one oscillator in one compiled call.
+
+    The analytic models are solved under ``jax.jit`` together (much faster than eager
+    evaluation); a model that comes out invalid is solved again eagerly to report dampax's
+    reason. The reference integrator (``dampax._reference``) is imported lazily and skipped,
+    with a note, when it is missing or not implemented yet.
+
+    Arguments:
+        osc: a scalar :class:`~dampax.Oscillator`.
+        x0, v0: initial displacement [m] and velocity [m/s].
+        models: keys of :data:`MODELS`; default :func:`applicable_models`.
+        n_turning: how many turning points to compute per model.
+        t_end: time span [s] (reference integration, plots); default :func:`default_t_end`.
+
+    Returns:
+        A :class:`ModelRun`; ``results[name].error`` holds the reason a model is missing.
+    """
+    if np.ndim(osc.m) or any(np.ndim(v) for v in (osc.k, osc.mu, osc.b, osc.D, osc.g)):
+        raise ValueError("osc: plots and summaries need a scalar Oscillator, not a batch")
+    check_finite("x0", x0)
+    check_finite("v0", v0)
+    x0, v0 = float(x0), float(v0)
+    if n_turning < 0:
+        raise ValueError(f"n_turning must be >= 0, got {n_turning}")
+    if t_end is not None and not (math.isfinite(t_end) and t_end > 0.0):
+        raise ValueError(f"t_end must be a finite time > 0, got {t_end}")
+    names = applicable_models(osc) if models is None else tuple(models)
+    unknown = [k for k in names if k not in MODELS]
+    if unknown:
+        raise ValueError(f"models: unknown {unknown}; choose from {list(MODELS)}")
+    analytic = tuple(k for k in names if k != "reference")
+    notes: list[str] = []
+    results: dict[str, ModelResult] = {}
+    sols, summary = _solve_analytic(osc, jnp.asarray(x0), jnp.asarray(v0), analytic,
+                                    n_turning)
+    for k in analytic:
+        tau, x_h, valid, (tt, tx) = summary[k]
+        if bool(valid):
+            results[k] = ModelResult(k, sols[k], _scalar(tau), _scalar(x_h),
+                                     np.asarray(tt), np.asarray(tx))
+        else:
+            results[k] = ModelResult(k, None, error=_why_invalid(osc, x0, v0, k))
+    if t_end is None:
+        t_end = default_t_end(osc, [r.halt_time for r in results.values() if r.error is None])
+    if "reference" in names:
+        results["reference"] = _run_reference(osc, x0, v0, t_end, n_turning, notes)
+    results = {k: results[k] for k in MODELS if k in results}
+    return ModelRun(osc, x0, v0, results, float(t_end), notes)
+
+
+def _run_reference(osc, x0, v0, t_end, n_turning, notes) -> ModelResult:
+    try:
+        import dampax._reference  # noqa: F401  (written separately; may not exist yet)
+
+        sol = solve(osc, x0, v0, method="reference", t_end=t_end)
+    except (ImportError, NotImplementedError) as err:
+        why = f"{type(err).__name__}: {err}"
+        notes.append(f"reference integrator not available, skipped ({why})")
+        return ModelResult("reference", None, error="not available")
+    except ValueError as err:
+        notes.append(f"reference integrator failed, skipped: {err}")
+        return ModelResult("reference", None, error=str(err))
+    tau, x_h, _, (tt, tx) = _summarize(sol, n_turning)
+    return ModelResult("reference", sol, _scalar(tau), _scalar(x_h), np.asarray(tt),
+                       np.asarray(tx))
+
+
+def damping_ratios(osc: Oscillator, x0: float, v0: float) -> tuple[float, float, float]:
+    """The dimensionless ratios d0/(w0 A0), d1/w0, d2 A0/w0 (DESIGN section 1).
+
+    Arguments:
+        osc: a scalar oscillator.
+        x0, v0: initial state; A0 = sqrt(x0^2 + (v0/w0)^2).
+
+    Returns:
+        (d0/(w0 A0), d1/w0, d2 A0/w0); the first is inf (nan without friction) when A0 = 0.
+    """
+    w0 = _scalar(osc.omega0)
+    d0, d1, d2 = (_scalar(d) for d in damping_coefficients(osc))
+    A0 = math.hypot(x0, v0 / w0)
+    r0 = d0 / (w0 * A0) if A0 > 0 else (math.inf if d0 > 0 else math.nan)
+    return r0, d1 / w0, d2 * A0 / w0
+
+
+def _grid(osc: Oscillator, t_end: float, n_points: int | None) -> np.ndarray:
+    if n_points is None:
+        periods = t_end * _scalar(osc.omega0) / (2.0 * math.pi)
+        n_points = int(min(max(2000, 500 * math.ceil(120 * periods / 500)), 200_000))
+    return np.linspace(0.0, t_end, n_points)
+
+
+def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int = 120):
+    """Draw x(t) and E(t) of already-solved models side by side and save the figure.
+
+    Colours follow the papers: matched ansatz solid red, undamped-phase ansatz solid blue,
+    reference black dotted; the other models get their own colours and dash patterns. With
+    friction (mu > 0) the sticking band +-xc is drawn as dashed horizontal lines.
+
+    Arguments:
+        run: the output of :func:`run_models`.
+        path: output file (the format follows the suffix, e.g. ``.png``).
+        n_points: samples of the time grid; default ~120 per undamped period, >= 2000.
+        dpi: resolution of raster output.
+
+    Returns:
+        ``path``, unchanged.
+    """
+    from matplotlib.figure import Figure  # Agg canvas; no pyplot, no display needed
+
+    osc, x0, v0 = run.osc, run.x0, run.v0
+    t = _grid(osc, run.t_end, n_points)
+    ok = run.ok()
+    analytic = {k: r.solution for k, r in ok.items() if k != "reference"}
+    curves = {k: tuple(map(np.asarray, v))
+              for k, v in _curves(analytic, jnp.asarray(t)).items()}
+    if "reference" in ok:
+        curves["reference"] = tuple(map(np.asarray, _curves({"r": ok["reference"].solution},
+                                                            jnp.asarray(t))["r"]))
+
+    fig = Figure(figsize=(12.0, 4.8), layout="constrained")
+    ax_x, ax_e = fig.subplots(1, 2)
+    for k in MODELS:
+        if k not in curves:
+            continue
+        spec = MODELS[k]
+        style = dict(color=spec.color, linestyle=spec.linestyle, linewidth=spec.linewidth,
+                     zorder=spec.zorder, label=spec.label)
+        ax_x.plot(t, curves[k][0], **style)
+        ax_e.plot(t, curves[k][1], **style)
+    xc = _scalar(osc.xc)
+    if xc > 0.0:
+        for sign in (1.0, -1.0):
+            ax_x.axhline(sign * xc, color="0.35", linestyle="--", linewidth=0.9, zorder=1.0,
+                         label=r"$\pm x_c$" if sign > 0 else None)
+    ax_x.axhline(0.0, color="0.8", linewidth=0.6, zorder=0.5)
+    ax_x.set(xlabel="t [s]", ylabel="x [m]", title="displacement x(t)", xlim=(0, run.t_end))
+    ax_e.set(xlabel="t [s]", ylabel="E [J]", title="energy E(t) = k x²/2 + m v²/2",
+             xlim=(0, run.t_end))
+    ax_e.set_ylim(bottom=0.0)
+    for ax in (ax_x, ax_e):
+        ax.grid(True, alpha=0.3)
+    # the energy decays from the upper left: its upper right corner is free for the legend
+    handles, labels = ax_x.get_legend_handles_labels()
+    ax_e.legend(handles, labels, loc="upper right", fontsize=8, framealpha=0.9)
+    r0, r1, r2 = damping_ratios(osc, x0, v0)
+    fig.suptitle(
+        rf"$d_0/(\omega_0 A_0)$ = {r0:.4g},   $d_1/\omega_0$ = {r1:.4g},   "
+        rf"$d_2 A_0/\omega_0$ = {r2:.4g}" "\n"
+        rf"m = {_scalar(osc.m):g} kg, k = {_scalar(osc.k):g} N/m, $\mu$ = {_scalar(osc.mu):g}, "
+        rf"b = {_scalar(osc.b):g} kg/s, D = {_scalar(osc.D):g} kg/m, "
+        rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11)
+    fig.savefig(path, dpi=dpi)
+    fig.clear()
+    return path
+
+
+def plot_solutions(osc: Oscillator, x0: float, v0: float, path, *, t_end: float | None = None,
+                   models: Sequence[str] | None = None, n_points: int | None = None):
+    """Solve the applicable models and save a two-panel plot of x(t) and E(t).
+
+    Models that cannot be solved (or the reference integrator, while it is missing) are left
+    out with a note on stderr.
+
+    Arguments:
+        osc: a scalar :class:`~dampax.Oscillator`.
+        x0, v0: initial displacement [m] and velocity [m/s].
+        path: output file, e.g. ``"fig.png"``.
+        t_end: time span [s]; default :func:`default_t_end` (a bit past the latest halt).
+        models: keys of :data:`MODELS` to draw; default :func:`applicable_models`.
+        n_points: samples of the time grid (default ~120 per undamped period).
+
+    Returns:
+        ``path``, unchanged.
+    """
+    run = run_models(osc, x0, v0, models=models, n_turning=0, t_end=t_end)
+    for note in run.notes:
+        print(f"dampax: note: {note}", file=sys.stderr)
+    for r in run.results.values():
+        if r.error is not None and r.name != "reference":
+            print(f"dampax: note: {r.label} left out: {r.error}", file=sys.stderr)
+    return plot_results(run, path, n_points=n_points)

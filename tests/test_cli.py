@@ -1,0 +1,141 @@
+"""The ``dampax`` command line, in process (capsys) and once through the installed script.
+
+The console-script run starts at the first test of this module and runs beside the in-process
+tests (the 2-core test machine compiles in both at once); its test collects it at the end.
+"""
+
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from dampax._cli import main
+
+W0 = math.sqrt(30.0)  # m = 1 kg, k = 30 N/m
+G = 9.81
+X0 = 0.2
+# mu for d0/(w0 A0) = 0.05 at A0 = 0.2 m (inverts d0 = 2 mu g/(pi w0), eq. 21)
+MU_005 = 0.05 * W0 * X0 * math.pi * W0 / (2.0 * G)
+# only the analytic models in process: the reference integrator compiles for ~15 s
+FAST = ["--no-reference"]
+
+
+def _value(out: str, name: str) -> str:
+    """The printed value of a ``name = value`` line of the summary."""
+    match = re.search(rf"^\s*{re.escape(name)}\s+=\s+(\S+)", out, re.MULTILINE)
+    assert match, f"no line '{name} = ...' in:\n{out}"
+    return match.group(1)
+
+
+def _row(out: str, label: str) -> list[str]:
+    """The halt time and halt position printed in the model table for ``label``."""
+    line = next((ln for ln in out.splitlines() if ln.strip().startswith(label)), None)
+    assert line is not None, f"no row {label!r} in:\n{out}"
+    return re.split(r"\s{2,}", line.strip())[1:]  # columns are 2+ spaces apart
+
+
+@pytest.fixture(scope="module", autouse=True)
+def console_script():
+    """``dampax solve --mu 0.1`` through the installed entry point, started early."""
+    script = Path(sys.executable).with_name("dampax")
+    assert script.exists(), f"console script not installed next to {sys.executable}"
+    proc = subprocess.Popen([str(script), "solve", "--mu", "0.1"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    yield proc
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+def test_default_case_undamped(capsys):
+    assert main(["solve", *FAST]) == 0
+    out = capsys.readouterr().out
+    # no damping: the matched amplitude and phase are the undamped ones, nothing halts
+    assert _value(out, "A") == "0.2"
+    assert _value(out, "phi") == "0"
+    assert _value(out, "A0") == "0.2"
+    assert _value(out, "d0/(w0 A0)") == "0"
+    assert _value(out, "xc") == "0"
+    assert _row(out, "matched ansatz") == ["never", "-"]
+    assert _row(out, "undamped-phase ansatz") == ["never", "-"]
+    assert "Rizcallah" not in out and "Coulomb tail" not in out
+    # turning points at n pi / w0, alternating +-x0
+    t6 = f"{6 * math.pi / W0:.4g}"
+    assert re.search(rf"^\s*6\s+{re.escape(t6)}\s+0\.2\s+1\s*$", out, re.MULTILINE), out
+
+
+def test_coulomb_005_matches_eq_40(capsys):
+    assert main(["solve", "--mu", repr(MU_005), *FAST]) == 0
+    out = capsys.readouterr().out
+    d0 = 2.0 * MU_005 * G / (math.pi * W0)
+    # eq. 40: the Coulomb case of the quartic, started at rest
+    A = math.sqrt((X0**2 + math.sqrt(X0**4 + 4.0 * (d0 * X0 / W0) ** 2)) / 2.0)
+    phi = math.atan(-d0 / (W0 * A))
+    assert _value(out, "A") == f"{A:.4g}" == "0.2002"
+    assert _value(out, "phi") == f"{phi:.4g}" == "-0.0499"
+    assert _value(out, "d0/(w0 A0)") == "0.05"
+    xc = MU_005 * G / W0**2
+    assert _value(out, "xc") == f"{xc:.4g}"
+    # exact Coulomb motion from rest: x_n = (-1)^n (x0 - 2 n xc) until |x_n| <= xc
+    n = math.ceil((X0 - xc) / (2.0 * xc))
+    expected = [f"{n * math.pi / W0:.4g}", f"{(-1) ** n * (X0 - 2 * n * xc):.4g}"]
+    assert _row(out, "exact half-swings") == expected
+    assert _row(out, "Rizcallah") == expected
+    assert _row(out, "matched ansatz")[1] == "0"
+
+
+def test_plot_writes_png(tmp_path, capsys):
+    path = tmp_path / "fig.png"
+    # same options as above but --plot: the solve is compiled already
+    assert main(["solve", "--mu", repr(MU_005), "--plot", str(path), *FAST]) == 0
+    assert str(path) in capsys.readouterr().out
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    import matplotlib.image
+
+    image = matplotlib.image.imread(path)
+    assert image.shape[0] >= 300 and image.shape[1] >= 400
+    assert image[..., :3].std() > 0.05  # something was drawn
+
+
+@pytest.mark.parametrize("argv, field", [(["--m", "-1"], "m"), (["--mu", "-0.1"], "mu"),
+                                         (["--x0", "nan"], "x0")])
+def test_bad_input_exits_2(argv, field, capsys):
+    assert main(["solve", *argv, *FAST]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert "\n" not in err and captured.out == ""
+    assert re.match(rf"dampax: error: {field}\b", err), err
+
+
+def test_bad_plot_path_fails_before_solving(tmp_path, capsys):
+    assert main(["solve", "--plot", str(tmp_path / "nowhere" / "fig.png")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_syntax_error_exits_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["solve", "--m", "abc"])
+    assert exc.value.code == 2
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert exc.value.code == 2
+
+
+def test_console_script(console_script):
+    out, err = console_script.communicate(timeout=300)
+    assert console_script.returncode == 0, err
+    assert _value(out, "d0/(w0 A0)") == "0.1041"
+    for label in ("matched ansatz", "undamped-phase ansatz", "matched + Coulomb tail",
+                  "Rizcallah", "exact half-swings", "reference"):
+        assert _row(out, label), label
+    # the reference integrator is either there and agrees with the exact half-swings
+    # (rest after 3 half-swings at x0 - 6 xc = -0.0038 m), or it is reported missing
+    ref = _row(out, "reference")
+    exact = [float(v) for v in _row(out, "exact half-swings")]
+    assert exact == pytest.approx([3 * math.pi / W0, -(X0 - 6 * 0.1 * G / W0**2)], abs=1e-3)
+    if ref != ["not available"]:
+        assert [float(v) for v in ref] == pytest.approx(exact, abs=1e-4), out
