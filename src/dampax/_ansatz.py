@@ -244,37 +244,42 @@ class AnsatzSolution(eqx.Module):
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
-    def _turning_time(self, n):
-        """Turning point n (v = 0 near w0 t + phi = n pi), found by Newton's method."""
-        w0, a, bp, c = self.omega0, self.a, self.bp, self.c
+    def _turning_residual(self, t, n, params):
+        """G(t) = w0 t + phi - n pi - atan(f'/(w0 f)) and G'(t); G = 0 at turning point n."""
+        w0, ph, a, bp, c, tau = params
+        f = decay(t, a, bp, c, tau)
+        f_safe = jnp.where(f > 0.0, f, 1.0)
+        fp = -(a * f_safe**2 + bp * f_safe + c)
+        fpp = -(2.0 * a * f_safe + bp) * fp
+        r = fp / (w0 * f_safe)
+        dr = (fpp * f_safe - fp * fp) / (w0 * f_safe * f_safe)
+        if not self.matched:  # eq. 9: v ~ sin(w0 t + phi0)
+            r, dr = 0.0 * r, 0.0 * dr
+        return w0 * t + ph - n * jnp.pi - jnp.arctan(r), w0 - dr / (1.0 + r * r)
 
-        def G(t, params):
-            w0_, ph, a_, bp_, c_, tau = params
-            f = decay(t, a_, bp_, c_, tau)
-            f_safe = jnp.where(f > 0.0, f, 1.0)
-            fp = -(a_ * f_safe**2 + bp_ * f_safe + c_)
-            fpp = -(2.0 * a_ * f_safe + bp_) * fp
-            r = fp / (w0_ * f_safe)
-            dr = (fpp * f_safe - fp * fp) / (w0_ * f_safe * f_safe)
-            if self.matched:
-                val = w0_ * t + ph - n * jnp.pi - jnp.arctan(r)
-                der = w0_ - dr / (1.0 + r * r)
-            else:  # eq. 9: v ~ sin(w0 t + phi0)
-                val = w0_ * t + ph - n * jnp.pi
-                der = w0_ + 0.0 * dr
-            return val, der
+    def _params(self):
+        return (self.omega0, self.phi, self.a, self.bp, self.c, self.halt_time)
 
-        params = (w0, self.phi, a, bp, c, self.halt_time)
-        frozen = jax.lax.stop_gradient(params)
+    def _turning_newton(self, n):
+        """Turning point n (v = 0 near w0 t + phi = n pi) by Newton's method, no gradient."""
+        frozen = jax.lax.stop_gradient(self._params())
         tau = frozen[5]
+
         def newton(_, t):
-            val, der = G(t, frozen)
+            val, der = self._turning_residual(t, n, frozen)
             return jnp.clip(t - val / der, 0.0, tau)
 
         t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, tau)
-        t = jax.lax.fori_loop(0, 6, newton, t)
-        val, der = G(t, params)
+        return jax.lax.fori_loop(0, 6, newton, t)
+
+    def _turning_refine(self, n, t):
+        """One Newton step at the converged t: exact first derivatives (implicit function)."""
+        val, der = self._turning_residual(t, n, self._params())
         return t - val / der
+
+    def _turning_time(self, n):
+        """Turning point n with derivatives w.r.t. the parameters."""
+        return self._turning_refine(n, self._turning_newton(n))
 
     def _first_index(self):
         """Index n of the first turning point w0 t + phi = n pi + atan(f'/(w0 f)) with t > 0."""

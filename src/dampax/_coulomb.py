@@ -299,16 +299,16 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
     n_first = sol._first_index()
     n_est = jnp.floor((w0_ * jnp.minimum(t_star, sol.halt_time) + ph_) / jnp.pi)
     n_lo = jnp.maximum(n_first, jnp.where(jnp.isfinite(n_est), n_est, n_first) - 3.0)
-    ns = n_lo + jnp.arange(window, dtype=float)
-    ts = jax.vmap(sol._turning_time)(ns)
-    ts = jax.lax.stop_gradient(ts)
+    ns = n_lo - back + jnp.arange(window + back, dtype=float)  # back reaches into the window
+    ts = jax.vmap(sol._turning_newton)(ns)
     xs = sol.x(jnp.where(jnp.isfinite(ts), ts, 0.0))
     ok = (ts > 0.0) & (ts < sol.halt_time) & (jnp.abs(xs) > xc_)
     n_last = jnp.max(jnp.where(ok, ns, -jnp.inf))
     n_s = n_last - back
     from_start = ~(n_s >= n_first) | (xc_ <= 0.0)
     n_s_safe = jnp.where(from_start, n_first, n_s)
-    t_s = sol._turning_time(n_s_safe)
+    t_s = sol._turning_refine(n_s_safe, ts[jnp.clip((n_s_safe - ns[0]).astype(int), 0,
+                                                    window + back - 1)])
     x_s = sol.x(t_s)
     never = xc_ <= 0.0  # no Coulomb friction: the ansatz holds for all t
     t_switch = jnp.where(never, jnp.inf, jnp.where(from_start, 0.0, t_s))
@@ -317,7 +317,7 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
                        jnp.where(from_start, v0, 0.0),
                        xc=xc, gamma=osc.gamma, omega0=osc.omega0, m=osc.m, k=osc.k)
     # estimate window must bracket the last admissible turning point
-    bracketed = (~ok[-1]) & (ok[0] | (n_lo <= n_first) | from_start)
+    bracketed = (~ok[-1]) & (ok[back] | (n_lo <= n_first) | from_start)
     n_before = jnp.where(from_start | never, jnp.where(never, 10**9, 0), n_s_safe - n_first + 1)
     return TailSolution(ansatz=sol, tail=tail, t_switch=t_switch, n_before=n_before,
                         found=bracketed | never)

@@ -1,7 +1,7 @@
 """Solve every applicable model once and plot x(t) and E(t) in the papers' colour code.
 
-The models of one oscillator and initial state are solved and summarised in a single compiled
-call (:func:`run_models`), so the command-line tool and the plots share one evaluation; the
+The models of one oscillator and initial state are solved and summarised by compiled code
+(:func:`run_models`), so the command-line tool and the plots share one evaluation; the
 figure is drawn with matplotlib's object API on the Agg canvas (no display, no pyplot state).
 """
 
@@ -118,12 +118,14 @@ def applicable_models(osc: Oscillator, *, reference: bool = True) -> tuple[str, 
     return names + (("reference",) if reference else ())
 
 
+# One compiled program per model (name and n_turning are static), reused for every oscillator
+# and initial state: a second call with other numbers costs no compilation.
+
+
 @eqx.filter_jit
-def _solve_analytic(osc, x0, v0, names: tuple[str, ...], n_turning: int):
-    sols = {k: solve(osc, x0, v0, **dict(MODELS[k].options)) for k in names}
-    summary = {k: (s.halt_time, s.halt_position, s.valid, turning_points(s, n_turning))
-               for k, s in sols.items()}
-    return sols, summary
+def _solve_one(osc, x0, v0, name: str, n_turning: int):
+    sol = solve(osc, x0, v0, **dict(MODELS[name].options))
+    return sol, _summarize(sol, n_turning)
 
 
 @eqx.filter_jit
@@ -132,8 +134,8 @@ def _summarize(sol, n_turning: int):
 
 
 @eqx.filter_jit
-def _curves(sols: dict, t):
-    return {k: (s.x(t), s.energy(t)) for k, s in sols.items()}
+def _curves(sol, t):
+    return sol.x(t), sol.energy(t)
 
 
 def _why_invalid(osc, x0, v0, name: str) -> str:
@@ -164,12 +166,13 @@ def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:
 
 def run_models(osc: Oscillator, x0: float, v0: float, *, models: Sequence[str] | None = None,
                n_turning: int = 6, t_end: float | None = None) -> ModelRun:
-    """Solve and summarise several models of one oscillator in one compiled call.
+    """Solve and summarise several models of one oscillator with compiled code.
 
-    The analytic models are solved under ``jax.jit`` together (much faster than eager
-    evaluation); a model that comes out invalid is solved again eagerly to report dampax's
-    reason. The reference integrator (``dampax._reference``) is imported lazily and skipped,
-    with a note, when it is missing or not implemented yet.
+    The analytic models are solved under ``jax.jit``, one compiled program per model that is
+    reused for other numbers (much faster than eager evaluation); a model that comes out
+    invalid is solved again eagerly to report dampax's reason. The reference integrator
+    (``dampax._reference``) is imported lazily and skipped, with a note, when it is missing or
+    not implemented yet.
 
     Arguments:
         osc: a scalar :class:`~dampax.Oscillator`.
@@ -197,12 +200,11 @@ def run_models(osc: Oscillator, x0: float, v0: float, *, models: Sequence[str] |
     analytic = tuple(k for k in names if k != "reference")
     notes: list[str] = []
     results: dict[str, ModelResult] = {}
-    sols, summary = _solve_analytic(osc, jnp.asarray(x0), jnp.asarray(v0), analytic,
-                                    n_turning)
     for k in analytic:
-        tau, x_h, valid, (tt, tx) = summary[k]
+        sol, (tau, x_h, valid, (tt, tx)) = _solve_one(osc, jnp.asarray(x0), jnp.asarray(v0),
+                                                      k, n_turning)
         if bool(valid):
-            results[k] = ModelResult(k, sols[k], _scalar(tau), _scalar(x_h),
+            results[k] = ModelResult(k, sol, _scalar(tau), _scalar(x_h),
                                      np.asarray(tt), np.asarray(tx))
         else:
             results[k] = ModelResult(k, None, error=_why_invalid(osc, x0, v0, k))
@@ -275,13 +277,8 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
 
     osc, x0, v0 = run.osc, run.x0, run.v0
     t = _grid(osc, run.t_end, n_points)
-    ok = run.ok()
-    analytic = {k: r.solution for k, r in ok.items() if k != "reference"}
-    curves = {k: tuple(map(np.asarray, v))
-              for k, v in _curves(analytic, jnp.asarray(t)).items()}
-    if "reference" in ok:
-        curves["reference"] = tuple(map(np.asarray, _curves({"r": ok["reference"].solution},
-                                                            jnp.asarray(t))["r"]))
+    curves = {k: tuple(map(np.asarray, _curves(r.solution, jnp.asarray(t))))
+              for k, r in run.ok().items()}
 
     fig = Figure(figsize=(12.0, 4.8), layout="constrained")
     ax_x, ax_e = fig.subplots(1, 2)

@@ -49,6 +49,7 @@ _DT0_W0 = 0.25
 # Default t_end in undamped periods: 25 periods are about 50 swings, within max_swings=64.
 _DEFAULT_PERIODS = 25.0
 
+_UNROLL = False
 _STATUS_OK = 0
 _STATUS_BUDGET = 1
 _STATUS_SOLVER = 2
@@ -295,7 +296,7 @@ def _ode_args(osc: Oscillator, s):
 def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_swing,
                   solver_name, root_finder, adjoint):
     """Unbatched core of `solve_reference` (all inputs scalars)."""
-    solver = _UnrolledERK(solver_name)
+    solver = _UnrolledERK(solver_name) if _UNROLL else _SOLVERS[solver_name]()
     w0 = osc.omega0
     xc = osc.xc
     zero = jnp.zeros((), dtype=float)
