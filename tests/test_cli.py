@@ -8,6 +8,7 @@ import math
 import re
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import pytest
@@ -19,7 +20,8 @@ G = 9.81
 X0 = 0.2
 # mu for d0/(w0 A0) = 0.05 at A0 = 0.2 m (inverts d0 = 2 mu g/(pi w0), eq. 21)
 MU_005 = 0.05 * W0 * X0 * math.pi * W0 / (2.0 * G)
-# only the analytic models in process: the reference integrator compiles for ~15 s
+# in process only the analytic models (a stand-in for the reference below): the diffrax
+# reference integrator compiles for ~10 s; the console-script run covers the real one
 FAST = ["--no-reference"]
 
 
@@ -123,6 +125,48 @@ def test_syntax_error_exits_2(capsys):
     with pytest.raises(SystemExit) as exc:
         main([])
     assert exc.value.code == 2
+
+
+def _fake_reference(monkeypatch, behaviour):
+    """Replace the diffrax reference by the exact half-swings, or make it fail like a stub."""
+    import dampax._plot as plot
+
+    real = plot.solve
+    seen = {}
+
+    def solve(osc, x0, v0, **options):
+        if options.get("method") != "reference":
+            return real(osc, x0, v0, **options)
+        seen.update(options)
+        if behaviour == "not implemented":
+            raise NotImplementedError("reference integrator: work in progress")
+        return real(osc, x0, v0, method="coulomb_exact")
+
+    module = None if behaviour == "missing" else types.ModuleType("dampax._reference")
+    monkeypatch.setitem(sys.modules, "dampax._reference", module)
+    monkeypatch.setattr(plot, "solve", solve)
+    return seen
+
+
+def test_reference_row_and_curve(monkeypatch, tmp_path, capsys):
+    # the CLI's plumbing for the reference, with the exact solution standing in for diffrax
+    seen = _fake_reference(monkeypatch, "exact")
+    path = tmp_path / "ref.png"
+    assert main(["solve", "--mu", repr(MU_005), "--t-end", "4", "--plot", str(path)]) == 0
+    captured = capsys.readouterr()
+    assert seen == {"method": "reference", "t_end": 4.0}
+    assert _row(captured.out, "reference (diffrax)") == _row(captured.out, "exact half-swings")
+    assert captured.err == "" and path.stat().st_size > 0
+
+
+@pytest.mark.parametrize("behaviour", ["missing", "not implemented"])
+def test_reference_unavailable_is_a_note(behaviour, monkeypatch, capsys):
+    _fake_reference(monkeypatch, behaviour)
+    assert main(["solve", "--mu", repr(MU_005)]) == 0
+    captured = capsys.readouterr()
+    assert "dampax: note: reference integrator not available" in captured.err
+    assert _row(captured.out, "reference (diffrax)") == ["not available"]
+    assert _value(captured.out, "A") == "0.2002"
 
 
 def test_console_script(console_script):

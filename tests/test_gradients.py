@@ -38,7 +38,7 @@ RTOL, ATOL = 1e-4, 1e-7
 KINK_GAP = 1e-4  # skip t this close to the halt time (x has a kink at t = tau)
 PHASES = ("matched", "undamped")
 
-SETTINGS = settings(derandomize=True, max_examples=35, deadline=None, database=None,
+SETTINGS = settings(derandomize=True, max_examples=40, deadline=None, database=None,
                     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
 
 
@@ -198,9 +198,11 @@ def _ratio(max_value):
                                              allow_nan=False, allow_infinity=False))
 
 
+# phi0 = (quadrant - 2 + frac) pi/2: hypothesis would otherwise favour phi0 near 0+
 RATIOS = dict(r0=_ratio(0.2), r1=_ratio(0.3), r2=_ratio(0.6),
               A0=st.floats(min_value=0.05, max_value=0.4),
-              phi0=st.floats(min_value=-math.pi, max_value=math.pi))
+              quadrant=st.sampled_from([0, 3, 1, 2]),
+              frac=st.floats(min_value=0.0, max_value=1.0))
 
 
 # --------------------------------------------------------------------------------------------
@@ -210,7 +212,8 @@ RATIOS = dict(r0=_ratio(0.2), r1=_ratio(0.3), r2=_ratio(0.6),
 @pytest.mark.parametrize("phase", PHASES)
 @SETTINGS
 @given(**RATIOS)
-def test_values_finite_and_gradients_match_fd(phase, r0, r1, r2, A0, phi0):
+def test_values_finite_and_gradients_match_fd(phase, r0, r1, r2, A0, quadrant, frac):
+    phi0 = (quadrant - 2 + frac) * math.pi / 2
     p = params_from(r0, r1, r2, A0, phi0)
     check_model(phase, p)
 

@@ -67,8 +67,15 @@ def halt_time(a, bp, c):
     """
     a, bp, c = jnp.broadcast_arrays(*(jnp.asarray(v, dtype=float) for v in (a, bp, c)))
     halts = c > 0.0
-    k_safe = jnp.where(halts, c + 0.5 * bp, 1.0)
-    tau = _atanc(0.25 * bp * bp - a * c, 1.0 / k_safe)
+    c_safe = jnp.where(halts, c, 1.0)
+    k = c_safe + 0.5 * bp
+    Q = 0.25 * bp * bp - a * c_safe
+    # Q > 0: atanh(q/k)/q = log1p(2q/(k - q))/(2q) with k - q = c (a + b' + c)/(k + q), free of
+    # the cancellation in 1 - q/k when c << b'
+    hyper = Q >= _SERIES * k * k
+    q = jnp.sqrt(jnp.where(hyper, Q, 1.0))
+    k_minus_q = c_safe * (a + bp + c_safe) / (k + q)
+    tau = jnp.where(hyper, jnp.log1p(2.0 * q / k_minus_q) / (2.0 * q), _atanc(Q, 1.0 / k))
     return jnp.where(halts, tau, jnp.inf)
 
 
