@@ -66,7 +66,8 @@ def test_coulomb_general_start_quartic():
 
 
 def test_combined_general_start():
-    # V.C: A = 0.234 m, phi = -0.922; turning points 4 and 5 at (1.84 s, -0.146 x0), (2.37, 0.049 x0)
+    # V.C: A = 0.234 m, phi = -0.922;
+    # turning points 4 and 5 at (1.84 s, -0.146 x0), (2.37, 0.049 x0)
     x0 = A0 * math.sqrt(2) / 2
     sol = dp.solve(paper_osc(0.03, 0.25), x0, W0 * x0)
     assert round(float(sol.amplitude), 3) == 0.234

@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._oscillator import jit_method, Oscillator, damping_coefficients, initial_amplitude_phase
+from ._oscillator import Oscillator, damping_coefficients, initial_amplitude_phase, jit_method
 
 Array = jax.Array
 

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from ._ansatz import AnsatzSolution, _atanc
-from ._oscillator import jit_method, Oscillator, initial_amplitude_phase
+from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
 
 Array = jax.Array
 
@@ -34,7 +34,27 @@ def compact(ts, xs, ok, n: int):
     return out_t, out_x
 
 
-class SwingSolution(eqx.Module):
+class _PiecewiseSolution(eqx.Module):
+    """x(t), v(t) and energy(t) of a model that defines ``_state(t) -> (x, v)``, m and k."""
+
+    @jit_method
+    def x(self, t) -> Array:
+        """Displacement at time(s) t."""
+        return self._state(t)[0]
+
+    @jit_method
+    def v(self, t) -> Array:
+        """Velocity at time(s) t."""
+        return self._state(t)[1]
+
+    @jit_method
+    def energy(self, t) -> Array:
+        """Energy k x^2/2 + m v^2/2 (eq. 4)."""
+        x, v = self._state(t)
+        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+
+
+class SwingSolution(_PiecewiseSolution):
     """Exact motion under Coulomb friction (+ viscous damping) from the state (t_s, x_s, v_s).
 
     Before t_s the solution is undefined (NaN). If v_s != 0 a first partial swing runs to the
@@ -119,22 +139,6 @@ class SwingSolution(eqx.Module):
         v = jnp.where(first, v_a, v_b)
         before = (t < self.t_start) | ~self.valid
         return jnp.where(before, jnp.nan, x), jnp.where(before, jnp.nan, v)
-
-    @jit_method
-    def x(self, t) -> Array:
-        """Displacement at time(s) t."""
-        return self._state(t)[0]
-
-    @jit_method
-    def v(self, t) -> Array:
-        """Velocity at time(s) t."""
-        return self._state(t)[1]
-
-    @jit_method
-    def energy(self, t) -> Array:
-        """Energy k x^2/2 + m v^2/2 (eq. 4)."""
-        x, v = self._state(t)
-        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
 
     @eqx.filter_jit
     def turning_points(self, n: int):
@@ -327,7 +331,7 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
 # Rizcallah's sinusoidal friction (DESIGN 2.5)
 
 
-class RizcallahSolution(eqx.Module):
+class RizcallahSolution(_PiecewiseSolution):
     """x(t) = (A0 - d t) cos(w0 t + phi0) + (d/w0) cos(phi0) sin(w0 t), at rest after the halt.
 
     Rizcallah (2019) replaces the friction force by its first harmonic kappa mu m g
@@ -363,22 +367,6 @@ class RizcallahSolution(eqx.Module):
         v = jnp.where(done, 0.0, v)
         bad = (t < 0.0) | ~self.valid
         return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
-
-    @jit_method
-    def x(self, t) -> Array:
-        """Displacement (Rizcallah's eq. 5 for kappa = 4/pi), at rest after the halt."""
-        return self._state(t)[0]
-
-    @jit_method
-    def v(self, t) -> Array:
-        """Velocity dx/dt, zero after the halt."""
-        return self._state(t)[1]
-
-    @jit_method
-    def energy(self, t) -> Array:
-        """Energy k x^2/2 + m v^2/2."""
-        x, v = self._state(t)
-        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
 
     def _psi(self, t, params):
         """Angle psi(t) with v = 0 <=> w0 t = psi(t) + n pi, continuous in t.
