@@ -4,22 +4,23 @@ Inside a swing sgn(v) = s is constant, so the equation of motion
 
     x' = v,   v' = -(k/m) x - s mu g - (b/m) v - (D/m) s v^2
 
-is smooth and an adaptive Runge--Kutta method integrates it to full accuracy. A swing ends
-at the velocity zero, located by a `diffrax.Event` (cond = s v, root-found on the dense
-interpolation) and then polished by Newton steps on a re-taken Runge--Kutta step. There the
-block sticks for good when |x| <= xc = mu m g / k, or the next swing starts with v = 0 and
-s = -sgn(x). The sign function is never smoothed.
+is smooth and an adaptive Runge--Kutta method integrates it to full accuracy. A swing ends at
+the velocity zero: a `diffrax.Event` (cond = s v, `direction=False` so that a swing starting at
+v = 0 does not end at once) stops the solve in the step that crosses it, and Newton's method
+on a re-taken Runge--Kutta step finds it. There the block sticks for good when |x| <= xc =
+mu m g / k, or the next swing starts with v = 0 and s = -sgn(x). sgn(v) is never smoothed.
 
-The swings run in a fixed-length `jax.lax.scan` (reverse-mode differentiable, vmappable with
-different numbers of swings per element). Each scan slot is one `diffeqsolve` ("segment") that
-ends at a velocity zero, at `t_end`, or after `max_steps_per_swing` solver steps; in the last
-case the same swing continues in the next slot. Every accepted step endpoint is stored, and the
-dense output x(t), v(t) re-takes one Runge--Kutta step from the step start before t, so it is as
-accurate between the steps as at them (the step is no longer than the accepted one).
+The swings run in a fixed-length `jax.lax.scan` (reverse-mode differentiable; under `jax.vmap`
+the elements may use different numbers of swings). Each scan slot is one `diffeqsolve`
+("segment") that ends at a velocity zero, at `t_end`, or after `max_steps_per_swing` solver
+steps; in the last case the same swing continues in the next slot. Every accepted step end is
+stored, and the dense output x(t), v(t) re-takes one Runge--Kutta step from the stored point
+before t: it is as accurate between the steps as at them, since that step is no longer than
+the accepted one.
 
-Derivatives: the event time from the root finder is held fixed (`stop_gradient`); the swing's
-end time is t* - v(t*)/a(t*) on the re-taken step, whose first derivative is the exact one
-(implicit function theorem), and the turning point x(t*) then carries the total derivative.
+Derivatives: the starting guess of Newton's method is held fixed (`stop_gradient`); the swing's
+end time is t* - v(t*)/a(t*) on the re-taken step, whose first derivative is exact (implicit
+function theorem), and the turning point x(t*) then carries the total derivative.
 """
 
 from __future__ import annotations
@@ -38,29 +39,33 @@ from ._oscillator import Oscillator, check_finite, is_concrete
 Array = jax.Array
 
 _SOLVERS = {"dopri8": dfx.Dopri8, "dopri5": dfx.Dopri5, "tsit5": dfx.Tsit5}
-_ROOT_FINDERS = ("newton", "bisection")
+_ROOT_FINDERS = ("newton", "optx-newton", "optx-bisection")
 _ADJOINTS = ("recursive", "forward", "direct")
 
 # Largest step, in units of 1/w0: a step never spans two velocity zeros (a swing lasts about
-# pi/w0), and the dense interpolation the event root finder works on stays accurate.
+# pi/w0), and the guess for the turning point stays close.
 _DTMAX_W0 = 1.0
 # First trial step of every segment, in units of 1/w0 (the controller shrinks it if needed).
 _DT0_W0 = 0.25
-# Default t_end in undamped periods: 25 periods are about 50 swings, within max_swings=64.
+# Default t_end in undamped periods: 25 periods are about 50 swings, within max_swings = 64.
 _DEFAULT_PERIODS = 25.0
+# Newton steps (re-taken Runge--Kutta steps) held fixed before the last, differentiable one.
+_NEWTON_ITERS = 1
 
-_UNROLL = False
 _STATUS_OK = 0
 _STATUS_BUDGET = 1
 _STATUS_SOLVER = 2
 
 
 def _vector_field(t, y, args):
-    """Right-hand side of eq. 3 inside a swing with constant sgn(v) = s."""
+    """Right-hand side of eq. 3 inside a swing with constant sgn(v) = s; y = (x, v)."""
     del t
     s, w2, fric, bm, dm = args
-    x, v = y[0], y[1]
-    return jnp.stack([v, -w2 * x - s * fric - bm * v - dm * s * v * v])
+    x, v = y
+    # lax, not jnp operators: the stages are unrolled, and lax keeps tracing cheap.
+    mul, add = jax.lax.mul, jax.lax.add
+    drag = add(add(mul(w2, x), mul(s, fric)), mul(add(bm, mul(mul(dm, s), v)), v))
+    return v, jax.lax.neg(drag)
 
 
 def _event_cond(t, y, args, **kwargs):
@@ -69,27 +74,46 @@ def _event_cond(t, y, args, **kwargs):
     return args[0] * y[1]
 
 
+def _lincomb(weights, ks):
+    """sum_i w_i k_i for a list of (x, v) pairs; zero weights skipped."""
+    pairs = [(float(w), k) for w, k in zip(weights, ks) if w != 0.0]
+    out = []
+    for i in range(2):
+        acc = None
+        for w, k in pairs:
+            term = jax.lax.mul(k[i], jnp.asarray(w, dtype=k[i].dtype))
+            acc = term if acc is None else jax.lax.add(acc, term)
+        out.append(acc)
+    return tuple(out)
+
+
 def _stages(tableau, vf, t0, y0, h, *, last: bool):
-    """Stage derivatives k_i of an explicit Runge--Kutta step, unrolled in Python."""
+    """Stage derivatives of an explicit Runge--Kutta step, unrolled in Python.
+
+    With ``last=False`` the final stage is skipped: for the first-same-as-last tableaux used
+    here it is f(y1) and not needed for y1.
+    """
     ks = [vf(t0, y0)]
-    rows = zip(tableau.c, tableau.a_lower) if last else zip(tableau.c[:-1], tableau.a_lower[:-1])
+    rows = list(zip(tableau.c, tableau.a_lower))
+    if not last:
+        rows = rows[:-1]
+    mul, add = jax.lax.mul, jax.lax.add
     for c_i, a_i in rows:
-        incr = sum(float(a) * k for a, k in zip(a_i, ks) if a != 0.0)
-        ks.append(vf(t0 + float(c_i) * h, y0 + h * incr))
+        incr = _lincomb(a_i, ks)
+        y_i = (add(y0[0], mul(h, incr[0])), add(y0[1], mul(h, incr[1])))
+        k = vf(add(t0, mul(h, jnp.asarray(float(c_i), dtype=h.dtype))), y_i)
+        ks.append(k)
     return ks
 
 
-def _combine(weights, ks):
-    return sum(float(w) * k for w, k in zip(weights, ks) if w != 0.0)
-
-
 class _UnrolledERK(dfx.AbstractAdaptiveSolver):
-    """An explicit Runge--Kutta method of diffrax (Dopri8, Dopri5, Tsit5) with unrolled stages.
+    """A diffrax explicit Runge--Kutta method (Dopri8, Dopri5, Tsit5) with unrolled stages.
 
     Same tableau, error estimate and dense interpolation as the diffrax solver, but the stages
-    are written out instead of looped over: faster to run and to compile for this 2-dimensional
-    system, and differentiable in forward and reverse mode with any adjoint. The first stage is
-    evaluated afresh every step (no first-same-as-last reuse), so the solver has no state.
+    are written out instead of looped over (diffrax loops, which suits large systems): several
+    times faster for this 2-dimensional system, and differentiable in forward and reverse mode
+    with any adjoint. The first stage is evaluated afresh every step (no first-same-as-last
+    reuse), so the solver has no state.
     """
 
     name: str = eqx.field(static=True)
@@ -110,9 +134,12 @@ class _UnrolledERK(dfx.AbstractAdaptiveSolver):
         tableau = _SOLVERS[self.name].tableau
         h = t1 - t0
         ks = _stages(tableau, lambda t, y: terms.vf(t, y, args), t0, y0, h, last=True)
-        y1 = y0 + h * _combine(tableau.b_sol, ks)
-        y_error = h * _combine(tableau.b_error, ks)
-        dense_info = dict(y0=y0, y1=y1, k=h * jnp.stack(ks))
+        incr = _lincomb(tableau.b_sol, ks)
+        y1 = (y0[0] + h * incr[0], y0[1] + h * incr[1])
+        err = _lincomb(tableau.b_error, ks)
+        y_error = (h * err[0], h * err[1])
+        k = tuple(h * jnp.stack([k_j[i] for k_j in ks]) for i in range(2))
+        dense_info = dict(y0=y0, y1=y1, k=k)
         return y1, y_error, dense_info, None, dfx.RESULTS.successful
 
     def func(self, terms, t0, y0, args):
@@ -120,14 +147,78 @@ class _UnrolledERK(dfx.AbstractAdaptiveSolver):
 
 
 def _restep(solver_name, args, t0, y0, t1):
-    """One Runge--Kutta step of the named solver from (t0, y0) to t1: the dense output.
-
-    The step's last stage (first-same-as-last) is not needed for y1 and is skipped.
-    """
+    """One Runge--Kutta step of the named method from (t0, y0) to t1: the dense output."""
     tableau = _SOLVERS[solver_name].tableau
     h = t1 - t0
     ks = _stages(tableau, lambda t, y: _vector_field(t, y, args), t0, y0, h, last=False)
-    return y0 + h * _combine(tableau.b_sol, ks)
+    incr = _lincomb(tableau.b_sol, ks)
+    return y0[0] + h * incr[0], y0[1] + h * incr[1]
+
+
+def _hermite_root(t_a, y_a, t_b, y_b, args, mask):
+    """Zero of v on [t_a, t_b] of the cubic Hermite interpolant of (v, v') at both ends.
+
+    A starting guess for Newton's method; v(t_a) and v(t_b) have opposite signs (or
+    v(t_b) = 0) where ``mask`` holds.
+    """
+    h = t_b - t_a
+    v_a, v_b = y_a[1], y_b[1]
+    d_a = _vector_field(t_a, y_a, args)[1] * h
+    d_b = _vector_field(t_b, y_b, args)[1] * h
+    c2 = -3.0 * v_a - 2.0 * d_a + 3.0 * v_b - d_b
+    c3 = 2.0 * v_a + d_a - 2.0 * v_b + d_b
+    denom = jnp.where(mask & (v_a != v_b), v_a - v_b, 1.0)
+    th = jnp.clip(jnp.where(mask, v_a / denom, 0.0), 0.0, 1.0)
+    for _ in range(4):
+        p = v_a + th * (d_a + th * (c2 + th * c3))
+        dp = d_a + th * (2.0 * c2 + th * 3.0 * c3)
+        ok = mask & (dp != 0.0)
+        th = jnp.clip(th - jnp.where(ok, p / jnp.where(ok, dp, 1.0), 0.0), 0.0, 1.0)
+    return t_a + th * h
+
+
+def _ode_args(osc: Oscillator, s):
+    """Arguments of `_vector_field`: (s, k/m, mu g, b/m, D/m)."""
+    return (jnp.asarray(s, dtype=float), osc.k / osc.m, osc.mu * osc.g, osc.b / osc.m,
+            osc.D / osc.m)
+
+
+def _state_at(sol: ReferenceSolution, t):
+    """(x, v) of one (unbatched) trajectory at a scalar time t."""
+    before = t < 0.0
+    resting = sol.halted & (t >= sol.halt_time)
+    beyond = (~resting) & (t > sol.t_cover)
+    moving = ~(before | resting | beyond)
+    first = sol.seg_t0[0]
+    t_safe = jnp.where(moving, t, jnp.where(jnp.isfinite(first), first, 0.0))
+    i = jnp.clip(jnp.searchsorted(sol.seg_t0, t_safe, side="right") - 1, 0,
+                 sol.seg_t0.shape[0] - 1)
+    ts_i = sol.seg_ts[i]
+    n_i = jnp.maximum(sol.seg_n[i], 1)
+    j = jnp.clip(jnp.searchsorted(ts_i, t_safe, side="right") - 1, 0, n_i - 1)
+    t_j = ts_i[j]
+    finite = jnp.isfinite(t_j)
+    t_j = jnp.where(finite, t_j, t_safe)
+    y_j = (jnp.where(finite, sol.seg_xs[i, j], 0.0), jnp.where(finite, sol.seg_vs[i, j], 0.0))
+    args = (sol.seg_s[i],) + _ode_args(sol.osc, 0.0)[1:]
+    x, v = _restep(sol.solver_name, args, t_j, y_j, t_safe)
+    x = jnp.where(moving, x, jnp.where(resting, sol.halt_position, jnp.nan))
+    v = jnp.where(moving, v, jnp.where(resting, 0.0, jnp.nan))
+    return x, v
+
+
+@jax.jit
+def _evaluate(sol: ReferenceSolution, t):
+    """(x, v) at the times t (any shape), for a solution with any batch shape."""
+
+    def single(s, tt):
+        x, v = jax.vmap(lambda u: _state_at(s, u))(tt.reshape(-1))
+        return x.reshape(tt.shape), v.reshape(tt.shape)
+
+    fn = single
+    for _ in sol.batch_shape:
+        fn = jax.vmap(fn, in_axes=(0, None))
+    return fn(sol, t)
 
 
 class ReferenceSolution(eqx.Module):
@@ -137,24 +228,25 @@ class ReferenceSolution(eqx.Module):
         osc: the Oscillator that was solved.
         x0, v0: the initial state.
         t_end: end of the requested interval [0, t_end].
-        halted: True when the block stuck for good at or before t_end.
+        halted: True when the block stuck for good within [0, t_end].
         halt_time: time of the final stop (0 for a start at rest inside the band); inf when the
-            block does not stop within [0, t_end] (always for mu = 0; for mu > 0 check `halted`).
-        halt_position: position of the final stop; NaN where it does not stop within [0, t_end].
-        valid: False when the budget (max_swings, max_steps_per_swing) ran out or the solver
-            failed before t_end or the halt; the solution then covers only part of [0, t_end].
-        n_swings: number of swings (intervals of motion with constant sgn(v)) that were used.
-        swing_times: end times of the swings, i.e. the turning points (v = 0, t > 0); the last
-            one is the rest point when the block halts. Length max_swings, NaN-padded.
-        turning_x: positions at those turning points, NaN-padded.
+            block does not stop within [0, t_end] (always for mu = 0; for mu > 0 `halted` is
+            then False and the block was still moving at t_end).
+        halt_position: position of the final stop; NaN where it does not stop.
+        valid: False when the budget (max_swings x max_steps_per_swing) ran out, or the ODE
+            solver failed, before t_end or the halt: the solution then covers only [0, t_cover].
         status: 0 ok, 1 budget ran out, 2 the ODE solver failed.
-        seg_t0, seg_n, seg_s, seg_ts, seg_ys: per scan slot its start time (inf if unused), the
-            number of stored step points, the sign of v, and the step times and states (inf
-            padded); used by the dense output.
-        t_cover: the end of the integrated interval (inf once halted).
+        n_swings: number of swings (intervals of motion with constant sgn(v)).
+        swing_times: end times of the swings, i.e. the turning points (v = 0, t > 0), the rest
+            point last when the block halts. Length max_swings, NaN-padded.
+        turning_x: positions at those turning points, NaN-padded.
+        t_cover: end of the integrated interval (t_end when complete; inf once halted).
+        seg_t0, seg_n, seg_s, seg_ts, seg_xs, seg_vs: per scan slot its start time (inf if
+            unused), the number of stored points, sgn(v), and the stored step times and states
+            (inf-padded); the dense output works from them.
 
-    Every array attribute may carry leading batch axes (a batched solve); the methods then
-    evaluate every trajectory.
+    Array attributes may carry leading batch axes (a batched solve); the methods then evaluate
+    every trajectory.
     """
 
     osc: Oscillator
@@ -165,81 +257,36 @@ class ReferenceSolution(eqx.Module):
     halt_time: Array
     halt_position: Array
     valid: Array
+    status: Array
     n_swings: Array
     swing_times: Array
     turning_x: Array
-    status: Array
+    t_cover: Array
     seg_t0: Array
     seg_n: Array
     seg_s: Array
     seg_ts: Array
-    seg_ys: Array
-    t_cover: Array
+    seg_xs: Array
+    seg_vs: Array
     solver_name: str = eqx.field(static=True, default="dopri8")
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
-        """Leading batch shape of a batched solution (() for a single trajectory)."""
+        """Leading batch shape (() for a single trajectory)."""
         return jnp.shape(self.halt_time)
-
-    def _map(self, fn, *xs):
-        """Apply ``fn(single_solution, *xs)`` over the batch axes of ``self``."""
-        for _ in self.batch_shape:
-            fn = jax.vmap(fn, in_axes=(0,) + (None,) * len(xs))
-        return fn(self, *xs)
-
-    def _state_single(self, t):
-        """(x, v) of one trajectory at a scalar time t."""
-        t = jnp.asarray(t, dtype=float)
-        args_static = _ode_args(self.osc, 0.0)
-        before = t < 0.0
-        resting = self.halted & (t >= self.halt_time)
-        beyond = (~resting) & (t > self.t_cover)
-        moving = ~(before | resting | beyond)
-        first_t = self.seg_t0[0]
-        t_safe = jnp.where(moving, t, jnp.where(jnp.isfinite(first_t), first_t, 0.0))
-        i = jnp.searchsorted(self.seg_t0, t_safe, side="right") - 1
-        i = jnp.clip(i, 0, self.seg_t0.shape[0] - 1)
-        ts_i = self.seg_ts[i]
-        n_i = jnp.maximum(self.seg_n[i], 1)
-        j = jnp.clip(jnp.searchsorted(ts_i, t_safe, side="right") - 1, 0, n_i - 1)
-        tj = ts_i[j]
-        tj = jnp.where(jnp.isfinite(tj), tj, t_safe)
-        yj = jnp.where(jnp.isfinite(self.seg_ys[i, j]), self.seg_ys[i, j], 0.0)
-        args = (self.seg_s[i],) + args_static[1:]
-        y = _restep(self.solver_name, args, tj, yj, t_safe)
-        nan = jnp.nan
-        x = jnp.where(moving, y[0], jnp.where(resting, self.halt_position, nan))
-        v = jnp.where(moving, y[1], jnp.where(resting, 0.0, nan))
-        return x, v
-
-    def _eval(self, t, which):
-        t = jnp.asarray(t, dtype=float)
-
-        def single(sol, tt):
-            flat = tt.reshape(-1)
-            x, v = jax.vmap(sol._state_single)(flat)
-            if which == "x":
-                out = x
-            elif which == "v":
-                out = v
-            else:
-                out = sol.osc.energy(x, v)
-            return out.reshape(tt.shape)
-
-        return self._map(single, t)
 
     def x(self, t) -> Array:
         """Position at time(s) t.
 
         Arguments:
-            t: scalar or array of times; NaN before 0, and after the end of the integrated
-                interval unless the block has stuck (then its rest position).
+            t: scalar or array of times. Before 0, or after the integrated interval while
+                the block still moves, the result is NaN; after the halt it is the rest
+                position.
 
         Returns:
-            x(t), shaped like t (with the solution's batch shape in front when batched).
+            x(t), shaped like t (batch shape in front for a batched solution).
         """
-        return self._eval(t, "x")
+        return _evaluate(self, jnp.asarray(t, dtype=float))[0]
 
     def v(self, t) -> Array:
         """Velocity at time(s) t.
@@ -248,9 +295,9 @@ class ReferenceSolution(eqx.Module):
             t: scalar or array of times (see `x`).
 
         Returns:
-            v(t), shaped like t (with the batch shape in front when batched).
+            v(t), shaped like t (batch shape in front for a batched solution).
         """
-        return self._eval(t, "v")
+        return _evaluate(self, jnp.asarray(t, dtype=float))[1]
 
     def energy(self, t) -> Array:
         """Mechanical energy k x^2/2 + m v^2/2 at time(s) t.
@@ -259,21 +306,25 @@ class ReferenceSolution(eqx.Module):
             t: scalar or array of times (see `x`).
 
         Returns:
-            E(t), shaped like t (with the batch shape in front when batched).
+            E(t), shaped like t (batch shape in front for a batched solution).
         """
-        return self._eval(t, "energy")
+        x, v = _evaluate(self, jnp.asarray(t, dtype=float))
+        shape = self.batch_shape + (1,) * (x.ndim - len(self.batch_shape))
+        k = jnp.reshape(jnp.broadcast_to(self.osc.k, self.batch_shape), shape)
+        m = jnp.reshape(jnp.broadcast_to(self.osc.m, self.batch_shape), shape)
+        return 0.5 * k * x**2 + 0.5 * m * v**2
 
     def turning_points(self, n: int) -> tuple[Array, Array]:
         """The first n turning points (t_n, x_n): v = 0 at t_n > 0, the rest point last.
 
-        A start at rest is not counted; after the halt (or beyond what was integrated) the
-        entries are NaN.
+        A start at rest is not counted. Entries after the halt (or beyond what was integrated)
+        are NaN.
 
         Arguments:
             n: number of turning points (static Python int).
 
         Returns:
-            (t_n, x_n), each of shape (n,) (with the batch shape in front when batched).
+            (t_n, x_n), each of shape (n,) (batch shape in front for a batched solution).
         """
         n = int(n)
         length = self.swing_times.shape[-1]
@@ -287,24 +338,20 @@ class ReferenceSolution(eqx.Module):
         return pick(self.swing_times), pick(self.turning_x)
 
 
-def _ode_args(osc: Oscillator, s):
-    """Arguments of `_vector_field`: (s, k/m, mu g, b/m, D/m)."""
-    return (jnp.asarray(s, dtype=float), osc.k / osc.m, osc.mu * osc.g, osc.b / osc.m,
-            osc.D / osc.m)
-
-
 def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_swing,
                   solver_name, root_finder, adjoint):
     """Unbatched core of `solve_reference` (all inputs scalars)."""
-    solver = _UnrolledERK(solver_name) if _UNROLL else _SOLVERS[solver_name]()
+    solver = _UnrolledERK(solver_name)
     w0 = osc.omega0
     xc = osc.xc
     zero = jnp.zeros((), dtype=float)
     term = dfx.ODETerm(_vector_field)
-    if root_finder == "newton":
+    if root_finder == "optx-newton":
         rf = optx.Newton(rtol=1e-10, atol=1e-12)
+    elif root_finder == "optx-bisection":
+        rf = optx.Bisection(rtol=1e-10, atol=1e-12, expand_if_necessary=True)
     else:
-        rf = optx.Bisection(rtol=1e-10, atol=1e-12)
+        rf = None
     event = dfx.Event(_event_cond, root_finder=rf, direction=False)
     controller = dfx.PIDController(rtol=rtol, atol=atol, dtmax=_DTMAX_W0 / w0)
     adj = {"recursive": dfx.RecursiveCheckpointAdjoint(), "forward": dfx.ForwardMode(),
@@ -313,73 +360,63 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
 
     rest0 = (v0 == 0.0) & (jnp.abs(x0) <= xc)
     s0 = jnp.where(v0 != 0.0, jnp.sign(v0), -jnp.sign(x0))
-    active0 = (~rest0) & (t_end > 0.0)
     carry0 = dict(
-        t=zero, x=x0, v=v0, s=s0, active=active0, halted=rest0, t_halt=zero,
-        x_halt=x0, failed=jnp.array(False), n_swings=jnp.where(rest0, 0, 1),
+        t=zero, x=x0, v=v0, s=s0, active=(~rest0) & (t_end > 0.0), halted=rest0,
+        t_halt=zero, x_halt=x0, failed=jnp.array(False), n_swings=jnp.where(rest0, 0, 1),
     )
 
     def body(c, _):
         active = c["active"]
         t0 = c["t"]
-        t1 = jnp.where(active, t_end, t0)
         args = _ode_args(osc, c["s"])
-        y0 = jnp.stack([c["x"], c["v"]])
         sol = dfx.diffeqsolve(
-            term, solver, t0, t1, _DT0_W0 / w0, y0, args, saveat=saveat,
-            stepsize_controller=controller, adjoint=adj, event=event,
+            term, solver, t0, jnp.where(active, t_end, t0), _DT0_W0 / w0, (c["x"], c["v"]),
+            args, saveat=saveat, stepsize_controller=controller, adjoint=adj, event=event,
             max_steps=max_steps_per_swing, throw=False,
         )
-        ts = sol.ts
-        ys = sol.ys
         fired = active & (sol.result == dfx.RESULTS.event_occurred)
         capped = active & (sol.result == dfx.RESULTS.max_steps_reached)
-        okay = (sol.result == dfx.RESULTS.successful) | (sol.result == dfx.RESULTS.event_occurred)
-        failed = active & ~(okay | (sol.result == dfx.RESULTS.max_steps_reached))
-        # Stored points: t0 and every accepted step end. After an event diffrax appends the
-        # interpolated event state; drop it, the polished turning point replaces it.
+        failed = active & ~(fired | capped | (sol.result == dfx.RESULTS.successful))
+
+        # Stored points: t0 and every accepted step end. After an event the last one is past
+        # the velocity zero (the crossing step's end or, with an optx root finder, diffrax's
+        # interpolated event state): it is dropped, the turning point replaces it.
+        ts, (xs, vs) = sol.ts, sol.ys
         n_fin = jnp.sum(jnp.isfinite(ts))
-        n_seg = jnp.where(fired, n_fin - 1, n_fin)
-        n_seg = jnp.maximum(n_seg, 1)
+        last = jnp.maximum(n_fin - 1, 0)
+        n_seg = jnp.maximum(jnp.where(fired, n_fin - 1, n_fin), 1)
         keep = jnp.arange(ts.shape[0]) < n_seg
-        ts = jnp.where(keep, ts, jnp.inf)
-        ys = jnp.where(keep[:, None], ys, jnp.inf)
         t_p = ts[n_seg - 1]
-        y_p = ys[n_seg - 1]
+        y_p = (xs[n_seg - 1], vs[n_seg - 1])
 
-        # Turning point: Newton on the re-taken step from the last stored point. The root
-        # finder's time and one Newton step are held fixed; the last Newton step carries the
-        # derivative (implicit function theorem).
-        t_star = jax.lax.stop_gradient(jnp.where(fired, sol.ts[n_fin - 1], t_p))
-        t_star = jnp.maximum(t_star, jax.lax.stop_gradient(t_p))
+        # Turning point: Newton on the re-taken step from the last stored point. The guess and
+        # all but the last Newton step are held fixed; the last one carries the derivative.
+        if rf is None:
+            t_guess = _hermite_root(t_p, y_p, ts[last], (xs[last], vs[last]), args, fired)
+        else:
+            t_guess = jnp.where(fired, ts[last], t_p)
 
-        def newton(t_guess):
-            y = _restep(solver_name, args, t_p, y_p, t_guess)
-            a = _vector_field(t_guess, y, args)[1]
-            a_safe = jnp.where(fired & (a != 0.0), a, 1.0)
-            dt = jnp.where(fired & (a != 0.0), -y[1] / a_safe, 0.0)
-            return y, dt
+        def newton(t_g):
+            y = _restep(solver_name, args, t_p, y_p, t_g)
+            a = _vector_field(t_g, y, args)[1]
+            ok = fired & (a != 0.0)
+            return y, jnp.where(ok, -y[1] / jnp.where(ok, a, 1.0), 0.0)
 
-        _, dt1 = newton(t_star)
-        t_new = jax.lax.stop_gradient(t_star + dt1)
-        y_new, dt2 = newton(t_new)
-        t_sw = t_new + dt2
-        x_sw = y_new[0] + y_new[1] * dt2
+        t_guess = jax.lax.stop_gradient(t_guess)
+        for _ in range(_NEWTON_ITERS):
+            t_guess = jax.lax.stop_gradient(t_guess + newton(t_guess)[1])
+        y_new, dt = newton(t_guess)
+        t_sw = t_guess + dt
+        x_sw = y_new[0] + y_new[1] * dt
 
         stick = fired & (jnp.abs(x_sw) <= xc)
         reverse = fired & ~stick
-        # Continue the same swing after a full step budget, from the last stored point.
-        t_next = jnp.where(fired, t_sw, t_p)
-        x_next = jnp.where(fired, x_sw, y_p[0])
-        v_next = jnp.where(fired, 0.0, y_p[1])
-        s_next = jnp.where(reverse, -jnp.sign(x_sw), c["s"])
-        still = active & (reverse | capped) & ~failed
         new = dict(
-            t=jnp.where(active, t_next, t0),
-            x=jnp.where(active, x_next, c["x"]),
-            v=jnp.where(active, v_next, c["v"]),
-            s=jnp.where(active, s_next, c["s"]),
-            active=still,
+            t=jnp.where(active, jnp.where(fired, t_sw, t_p), t0),
+            x=jnp.where(active, jnp.where(fired, x_sw, y_p[0]), c["x"]),
+            v=jnp.where(active, jnp.where(fired, 0.0, y_p[1]), c["v"]),
+            s=jnp.where(reverse, -jnp.sign(x_sw), c["s"]),
+            active=active & (reverse | capped),
             halted=c["halted"] | stick,
             t_halt=jnp.where(stick, t_sw, c["t_halt"]),
             x_halt=jnp.where(stick, x_sw, c["x_halt"]),
@@ -390,8 +427,9 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
             seg_t0=jnp.where(active, t0, jnp.inf),
             seg_n=jnp.where(active, n_seg, 0),
             seg_s=c["s"],
-            seg_ts=ts,
-            seg_ys=ys,
+            seg_ts=jnp.where(keep, ts, jnp.inf),
+            seg_xs=jnp.where(keep, xs, jnp.inf),
+            seg_vs=jnp.where(keep, vs, jnp.inf),
             fired=fired,
             t_sw=jnp.where(fired, t_sw, 0.0),
             x_sw=jnp.where(fired, x_sw, 0.0),
@@ -401,89 +439,78 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
     final, out = jax.lax.scan(body, carry0, None, length=max_swings)
 
     exhausted = final["active"]
-    valid = ~exhausted & ~final["failed"]
     status = jnp.where(final["failed"], _STATUS_SOLVER,
                        jnp.where(exhausted, _STATUS_BUDGET, _STATUS_OK))
     halted = final["halted"]
-    halt_time = jnp.where(halted, final["t_halt"], jnp.inf)
-    halt_position = jnp.where(halted, final["x_halt"], jnp.nan)
-    t_cover = jnp.where(halted, jnp.inf, final["t"])
-
-    fired = out["fired"]
-    slot = jnp.where(fired, jnp.cumsum(fired) - 1, max_swings)
+    slot = jnp.where(out["fired"], jnp.cumsum(out["fired"]) - 1, max_swings)
     nan_row = jnp.full((max_swings,), jnp.nan)
-    swing_times = nan_row.at[slot].set(out["t_sw"], mode="drop")
-    turning_x = nan_row.at[slot].set(out["x_sw"], mode="drop")
-
-    seg_ts = out["seg_ts"]
-    seg_ys = out["seg_ys"]
     return ReferenceSolution(
-        osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted, halt_time=halt_time,
-        halt_position=halt_position, valid=valid, n_swings=final["n_swings"],
-        swing_times=swing_times, turning_x=turning_x, status=status,
-        seg_t0=out["seg_t0"], seg_n=out["seg_n"], seg_s=out["seg_s"], seg_ts=seg_ts,
-        seg_ys=seg_ys, t_cover=t_cover, solver_name=solver_name,
+        osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted,
+        halt_time=jnp.where(halted, final["t_halt"], jnp.inf),
+        halt_position=jnp.where(halted, final["x_halt"], jnp.nan),
+        valid=status == _STATUS_OK, status=status, n_swings=final["n_swings"],
+        swing_times=nan_row.at[slot].set(out["t_sw"], mode="drop"),
+        turning_x=nan_row.at[slot].set(out["x_sw"], mode="drop"),
+        t_cover=jnp.where(halted, jnp.inf, final["t"]),
+        seg_t0=out["seg_t0"], seg_n=out["seg_n"], seg_s=out["seg_s"], seg_ts=out["seg_ts"],
+        seg_xs=out["seg_xs"], seg_vs=out["seg_vs"], solver_name=solver_name,
     )
 
 
-_STATIC = ("rtol", "atol", "max_swings", "max_steps_per_swing", "solver_name", "root_finder",
-           "adjoint")
-
-
-@jax.jit
-def _default_t_end(osc):
-    return _DEFAULT_PERIODS * 2.0 * math.pi / osc.omega0
-
-
 def _solve_batched(osc, x0, v0, t_end, **kw):
-    shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in jax.tree_util.tree_leaves(
-        (osc, x0, v0, t_end))))
+    """`_solve_single` over the broadcast shape of all inputs (vmapped when not scalar)."""
+    leaves = jax.tree_util.tree_leaves((osc, x0, v0, t_end))
+    shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in leaves))
     if shape == ():
         return _solve_single(osc, x0, v0, t_end, **kw)
-    size = int(np.prod(shape))
+    size = math.prod(shape)
 
     def flat(a):
         return jnp.broadcast_to(a, shape).reshape(size)
 
-    osc_f, x0_f, v0_f, t_end_f = jax.tree_util.tree_map(flat, (osc, x0, v0, t_end))
-    sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, **kw))(osc_f, x0_f, v0_f,
-                                                                       t_end_f)
+    args = jax.tree_util.tree_map(flat, (osc, x0, v0, t_end))
+    sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, **kw))(*args)
     return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), sol)
 
 
-_solve_jit = jax.jit(_solve_batched, static_argnames=_STATIC)
+_solve_jit = jax.jit(_solve_batched, static_argnames=(
+    "rtol", "atol", "max_swings", "max_steps_per_swing", "solver_name", "root_finder",
+    "adjoint"))
 
 
 def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
                     atol: float = 1e-12, max_swings: int = 64, max_steps_per_swing: int = 64,
                     solver: str = "dopri8", root_finder: str = "newton",
                     adjoint: str = "recursive") -> ReferenceSolution:
-    """Integrate eq. 3 swing by swing with diffrax; the reference for the analytic models.
+    """Integrate eq. 3 swing by swing with diffrax: the reference for the analytic models.
 
     Arguments:
-        osc: the Oscillator (fields may be arrays: every combination is solved, broadcast with
-            x0, v0 and t_end).
+        osc: the Oscillator. Its fields, x0, v0 and t_end broadcast together; a non-scalar
+            shape solves every element (vmapped) and gives a batched solution.
         x0: initial position [m].
         v0: initial velocity [m/s].
         t_end: end of the time interval [s]; default 25 undamped periods (50 pi / w0), about
             50 swings. May be traced.
-        rtol, atol: tolerances of the PID step-size controller.
-        max_swings: number of scan slots (static). A slot holds one swing, or part of a swing
-            that needs more than `max_steps_per_swing` steps (it continues in the next slot).
+        rtol, atol: tolerances of the PID step-size controller (static).
+        max_swings: scan slots (static). A slot holds one swing, or the part of a swing that
+            fits in `max_steps_per_swing` steps (the swing then continues in the next slot).
         max_steps_per_swing: solver steps (accepted and rejected) per slot (static). Every
             accepted step is stored for the dense output, so memory grows with
             max_swings * max_steps_per_swing; a swing takes about 10 steps at rtol = 1e-10.
-        solver: "dopri8" (default), "dopri5" or "tsit5".
-        root_finder: event root finder, "newton" (default) or "bisection" (the one that works
-            under `jax.shard_map`).
-        adjoint: "recursive" (default, reverse mode: jax.grad), "forward" (jax.jacfwd) or
-            "direct" (both, slower). A diffrax limitation: no single fast adjoint supports
-            both reverse and forward mode.
+        solver: "dopri8" (default), "dopri5" or "tsit5" (diffrax's tableaux, unrolled).
+        root_finder: how the velocity zero is found. "newton" (default): the event stops the
+            solve after the crossing step, then Newton's method on re-taken Runge--Kutta steps
+            (plain jnp: works under jit, vmap, grad and shard_map). "optx-newton" /
+            "optx-bisection": diffrax root-finds the event on its dense interpolation with
+            optimistix first (Bisection being the one that works under shard_map), followed
+            by the same Newton step.
+        adjoint: "recursive" (default; reverse mode, jax.grad), "forward" (jax.jacfwd) or
+            "direct" (both; slower). No single diffrax adjoint serves both modes well.
 
     Returns:
-        A `ReferenceSolution`. Called eagerly, raises ValueError when x0 or v0 is not finite,
-        when t_end is not positive, or when the budget ran out before t_end or the halt
-        (naming max_swings / max_steps_per_swing); under jit it returns valid = False instead.
+        A `ReferenceSolution`. Called eagerly it raises ValueError when x0, v0 or t_end is not
+        finite, t_end is not positive, or the budget ran out before t_end or the halt (naming
+        max_swings and max_steps_per_swing); under jit it returns valid = False instead.
     """
     if solver not in _SOLVERS:
         raise ValueError(f"solver must be one of {sorted(_SOLVERS)}, got {solver!r}")
@@ -491,14 +518,18 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         raise ValueError(f"root_finder must be one of {_ROOT_FINDERS}, got {root_finder!r}")
     if adjoint not in _ADJOINTS:
         raise ValueError(f"adjoint must be one of {_ADJOINTS}, got {adjoint!r}")
+    if jnp.asarray(0.0, dtype=float).dtype != jnp.float64:
+        raise ValueError("solve_reference needs float64: call "
+                         "jax.config.update('jax_enable_x64', True) first")
     if int(max_swings) < 1 or int(max_steps_per_swing) < 2:
-        raise ValueError("max_swings must be >= 1 and max_steps_per_swing >= 2")
+        raise ValueError("max_swings must be >= 1 and max_steps_per_swing >= 2, got "
+                         f"{max_swings} and {max_steps_per_swing}")
     check_finite("x0", x0)
     check_finite("v0", v0)
     x0 = jnp.asarray(x0, dtype=float)
     v0 = jnp.asarray(v0, dtype=float)
     if t_end is None:
-        t_end = _default_t_end(osc)
+        t_end = _DEFAULT_PERIODS * 2.0 * math.pi / osc.omega0
     else:
         check_finite("t_end", t_end)
         if is_concrete(t_end) and np.any(np.asarray(t_end, dtype=float) <= 0):
@@ -516,5 +547,5 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
                 f"{max_steps_per_swing}), or shorten t_end")
         if np.any(status == _STATUS_SOLVER):
             raise ValueError("solve_reference: the ODE solver failed (non-finite state or step "
-                             "size too small); check the parameters")
+                             "size too small); check the oscillator's parameters")
     return sol
