@@ -225,7 +225,7 @@ def _run_reference(osc, x0, v0, t_end, n_turning, notes) -> ModelResult:
         why = f"{type(err).__name__}: {err}"
         notes.append(f"reference integrator not available, skipped ({why})")
         return ModelResult("reference", None, error="not available")
-    except ValueError as err:
+    except (ValueError, RuntimeError) as err:  # e.g. its step budget ran out before t_end
         notes.append(f"reference integrator failed, skipped: {err}")
         return ModelResult("reference", None, error=str(err))
     tau, x_h, _, (tt, tx) = _summarize(sol, n_turning)
@@ -342,3 +342,198 @@ def plot_solutions(osc: Oscillator, x0: float, v0: float, path, *, t_end: float 
         if r.error is not None and r.name != "reference":
             print(f"dampax: note: {r.label} left out: {r.error}", file=sys.stderr)
     return plot_results(run, path, n_points=n_points)
+
+
+# ----------------------------------------------------------------------------------------------
+# error maps (dampax.error_map): heat maps of d0 ratio against d2 ratio
+
+
+#: How each metric of an error map is drawn: title, colour-bar label, log scale, contours.
+ERROR_MAP_METRICS: dict[str, dict] = {
+    "max_error": dict(title=r"max $|x - x_\mathrm{ref}|\,/\,A_0$", label="max error [A0]",
+                      log=True, contours=(0.01, 0.05)),
+    "rms_error": dict(title=r"rms of $(x - x_\mathrm{ref})\,/\,A_0$", label="rms error [A0]",
+                      log=True, contours=(0.01, 0.05)),
+    "energy_error": dict(title=r"max $|E - E_\mathrm{ref}|\,/\,E_0$", label="energy error [E0]",
+                         log=True, contours=(0.01, 0.05)),
+    "halt_time_error": dict(title=r"|halt time $-$ reference's| in undamped periods",
+                            label="|halt time error| [periods]", log=False, contours=()),
+    "halt_position_error": dict(title=r"|halt position $-$ reference's| in units of $x_c$",
+                                label=r"|halt position error| [$x_c$]", log=False,
+                                contours=()),
+}
+
+#: Panel titles of the error-map models.
+ERROR_MAP_LABELS = {
+    "matched": "matched ansatz (eqs. 22-23)",
+    "undamped": "undamped-phase ansatz (eqs. 8-10)",
+    "matched_tail": "matched + Coulomb tail (eqs. 41, 52)",
+    "rizcallah": "Rizcallah (Coulomb only: d2 = d1 = 0)",
+    "coulomb_exact": "exact half-swings (D = 0)",
+}
+
+
+# contour line colours (each with a black outline), by level
+_CONTOUR_STYLES = (("white", "1 %"), ("red", "5 %"))
+
+
+def _edges(values: np.ndarray) -> np.ndarray:
+    """Cell edges around sorted grid values (half-way between neighbours), never below 0.
+
+    The ratios are >= 0: the cell of a 0 value starts at 0 (half width) instead of showing
+    negative ratios on the axis.
+    """
+    v = np.asarray(values, dtype=float)
+    if v.size == 1:
+        half = 0.05 * (abs(v[0]) if v[0] != 0 else 1.0)
+        edges = np.array([v[0] - half, v[0] + half])
+    else:
+        mid = 0.5 * (v[1:] + v[:-1])
+        edges = np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+    if v[0] >= 0.0:
+        edges[0] = max(edges[0], 0.0)
+    return edges
+
+
+def _in_pi(value: float) -> str:
+    """An angle as a multiple of pi when it is one (to 1e-9), e.g. "7π/8"; else decimals."""
+    from fractions import Fraction
+
+    frac = Fraction(value / math.pi).limit_denominator(64)
+    if abs(float(frac) * math.pi - value) > 1e-9:
+        return f"{value:.3g}"
+    if frac == 0:
+        return "0"
+    num = {1: "", -1: "-"}.get(frac.numerator, str(frac.numerator))
+    return f"{num}π" + (f"/{frac.denominator}" if frac.denominator != 1 else "")
+
+
+def _phi0_text(phi0: np.ndarray) -> str:
+    if phi0.size == 1:
+        return rf"$\varphi_0$ = {_in_pi(phi0[0])}"
+    return (rf"worst case over {phi0.size} initial phases $\varphi_0$ from "
+            rf"{_in_pi(phi0.min())} to {_in_pi(phi0.max())}")
+
+
+def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
+    """Heat maps of one metric of an error map: d0 ratio (y) against d2 ratio (x), per model.
+
+    Each panel is one model (rows: the d1 ratios of the map); the colour is the worst case
+    (largest magnitude) over phi0. Error metrics use a shared logarithmic colour scale with
+    contour lines at 1 % and 5 %; halt errors a linear one. Grey cells: the model does not
+    exist there (e.g. Rizcallah's model with d2 > 0) or, for halt errors, the reference does
+    not halt within the window. The paper's stated ranges are outlined for orientation.
+
+    Arguments:
+        ds: the ``xarray.Dataset`` of :func:`dampax.error_map`.
+        metric: one of :data:`ERROR_MAP_METRICS`.
+        path: output file, e.g. ``"max_error.png"``.
+        dpi: resolution.
+
+    Returns:
+        ``path``, unchanged.
+    """
+    from matplotlib import colormaps, colors, patheffects
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch, Rectangle
+
+    if metric not in ERROR_MAP_METRICS:
+        raise ValueError(f"metric must be one of {list(ERROR_MAP_METRICS)}, got {metric!r}")
+    spec = ERROR_MAP_METRICS[metric]
+    models = [str(m) for m in np.asarray(ds["model"])]
+    d0 = np.asarray(ds["d0_ratio"], dtype=float)
+    d1 = np.asarray(ds["d1_ratio"], dtype=float)
+    d2 = np.asarray(ds["d2_ratio"], dtype=float)
+    phi0 = np.asarray(ds["phi0"], dtype=float)
+    # worst case over phi0; NaN as soon as one phi0 is NaN would hide too much: skip NaN
+    values = np.abs(np.asarray(ds[metric].transpose("model", "d1_ratio", "d0_ratio",
+                                                    "d2_ratio", "phi0"), dtype=float))
+    with np.errstate(invalid="ignore"):
+        all_nan = np.all(np.isnan(values), axis=-1)
+        worst = np.where(all_nan, np.nan, np.nanmax(np.where(np.isnan(values), -np.inf,
+                                                             values), axis=-1))
+    finite = worst[np.isfinite(worst)]
+    if spec["log"]:
+        top = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        vmax = 10.0 ** math.ceil(math.log10(max(top, 1e-3)))
+        vmin = max(vmax * 1e-3, 1e-6)
+        norm = colors.LogNorm(vmin=vmin, vmax=vmax, clip=True)
+        shown = np.where(np.isfinite(worst), np.clip(worst, vmin, vmax), np.nan)
+    else:
+        vmax = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        norm = colors.Normalize(vmin=0.0, vmax=vmax)
+        shown = worst
+
+    n_rows, n_cols = d1.size, len(models)
+    fig = Figure(figsize=(3.6 * n_cols + 1.4, 3.3 * n_rows + 1.5), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False, sharex=True,
+                                      sharey=True))
+    cmap = colormaps["viridis"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
+    xe, ye = _edges(d2), _edges(d0)
+    mesh = None
+    for r in range(n_rows):
+        for c, model in enumerate(models):
+            ax = axes[r, c]
+            ax.set_facecolor("0.82")
+            z = shown[c, r]
+            mesh = ax.pcolormesh(xe, ye, np.ma.masked_invalid(z), cmap=cmap, norm=norm,
+                                 shading="flat")
+            if spec["contours"] and d0.size > 1 and d2.size > 1:
+                zc = worst[c, r]
+                lo, hi = np.nanmin(zc, initial=np.inf), np.nanmax(zc, initial=-np.inf)
+                levels = [lv for lv in spec["contours"] if lo < lv < hi]
+                if levels:
+                    styles = [_CONTOUR_STYLES[spec["contours"].index(lv)] for lv in levels]
+                    cs = ax.contour(d2, d0, np.ma.masked_invalid(zc), levels=levels,
+                                    colors=[st[0] for st in styles], linewidths=1.8)
+                    cs.set(path_effects=[patheffects.withStroke(linewidth=3.2,
+                                                                foreground="black")])
+                    fmt = {lv: (f"{100 * lv:g} %" if spec["log"] else f"{lv:g}")
+                           for lv in levels}
+                    labels = ax.clabel(cs, fmt=fmt, fontsize=8, inline=True)
+                    for text in labels:
+                        text.set_color("white")
+                        text.set_fontweight("bold")
+                        text.set_path_effects([patheffects.withStroke(linewidth=2.2,
+                                                                      foreground="black")])
+            # the paper's combined range (Sec. V): d0 <= 0.03, d2 <= 0.25
+            ax.add_patch(Rectangle((0.0, 0.0), 0.25, 0.03, fill=False, edgecolor="black",
+                                   linestyle="--", linewidth=1.0, zorder=3))
+            title = ERROR_MAP_LABELS.get(model, model)
+            if n_rows > 1:
+                title += f"\n$d_1/\\omega_0$ = {d1[r]:.3g}"
+            ax.set_title(title, fontsize=9.5)
+            ax.set_xlim(xe[0], xe[-1])
+            ax.set_ylim(ye[0], ye[-1])
+            if r == n_rows - 1:
+                ax.set_xlabel(r"$d_2 A_0/\omega_0$ (quadratic)")
+            if c == 0:
+                ax.set_ylabel(r"$d_0/(\omega_0 A_0)$ (Coulomb)")
+    # log scale: values below the bottom (e.g. an exact model) are drawn in its colour; the
+    # triangle at the foot of the bar says so
+    bar = fig.colorbar(mesh, ax=axes, shrink=0.9, pad=0.01,
+                       extend="min" if spec["log"] else "neither")
+    bar.set_label(spec["label"] + (" (log scale)"
+                                   if spec["log"] else ""))
+    handles = [Patch(facecolor="0.82", edgecolor="0.5",
+                     label="not defined here" if spec["log"]
+                     else "not defined / the reference does not halt"),
+               Line2D([], [], color="black", linestyle="--",
+                      label=r"paper's combined range, $d_0 \leq 0.03$, $d_2 \leq 0.25$")]
+    for level, (color, _) in zip(spec["contours"], _CONTOUR_STYLES, strict=False):
+        text = f"{100 * level:g} %" if spec["log"] else f"{level:g}"
+        handles.append(Line2D([], [], color=color, linewidth=1.8, label=f"{text} contour",
+                              path_effects=[patheffects.withStroke(linewidth=3.2,
+                                                                   foreground="black")]))
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8.5,
+               frameon=False)
+    ref = ds.attrs.get("reference", "?")
+    ref_text = (f"diffrax reference (rtol {ds.attrs.get('reference_rtol', 0):g})"
+                if ref == "reference" else "exact half-swings")
+    fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
+                 f"against the {ref_text}, up to its halt or at most "
+                 f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11)
+    fig.savefig(path, dpi=dpi)
+    fig.clear()
+    return path

@@ -1,0 +1,541 @@
+"""Error maps: the analytic models against a reference over a grid of damping ratios.
+
+The motion depends only on d0/(w0 A0), d1/w0, d2 A0/w0 and phi0 (DESIGN section 1), so a map
+is computed at w0 = 1, A0 = 1 (m = k = 1, x0 = cos phi0, v0 = -sin phi0) and holds for every
+m, k and A0.
+
+How it runs: the grid is flattened and cut into steps of ``chunk_size`` points per local
+device. One compiled function, ``jit(shard_map(vmap(per_point)))``, evaluates a step: the
+reference and every model are solved per point and compared on a fixed time grid, in blocks of
+samples (a ``lax.scan``) that reduce the metrics on the fly, so only a few numbers per point
+leave the device and memory stays bounded by ``chunk_size`` whatever the grid and the number
+of periods. Every step has the same shape (the last is padded), so nothing recompiles. The
+step is sharded over all local devices (a 1-device mesh on one device: the same code path);
+on several hosts (after ``jax.distributed.initialize``) each process takes its share of the
+steps and the results are gathered at the end.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import math
+import operator
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._oscillator import Oscillator
+from ._solve import solve
+
+Array = jax.Array
+
+#: Model names of :func:`error_map` -> options of :func:`dampax.solve`.
+MODELS: dict[str, dict] = {
+    "matched": dict(method="ansatz"),
+    "undamped": dict(method="ansatz", phase="undamped"),
+    "matched_tail": dict(method="ansatz", tail="coulomb"),
+    "rizcallah": dict(method="rizcallah"),
+    "coulomb_exact": dict(method="coulomb_exact"),
+}
+DEFAULT_MODELS = ("matched", "undamped", "matched_tail", "rizcallah")
+#: Accepted references: the diffrax integrator of eq. 3, or the exact half-swings (D = 0 only).
+REFERENCES = ("reference", "coulomb_exact")
+#: Per-point metrics, in the order of the compiled function's output.
+METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_position_error")
+#: Without a halt the comparison window ends where the reference energy drops below this * E0.
+ENERGY_FLOOR = 1e-4
+_AXES = ("d0_ratio", "d1_ratio", "d2_ratio", "phi0")
+_G = 9.81
+_BLOCK = 128  # samples per scan step (memory per point: a few arrays of this length)
+
+_VARIABLE_ATTRS = {
+    "max_error": dict(long_name="max |x - x_ref| / A0 over the window", units="A0"),
+    "rms_error": dict(long_name="rms of (x - x_ref) / A0 over the window", units="A0"),
+    "energy_error": dict(long_name="max |E - E_ref| / E0 over the window", units="E0"),
+    "halt_time_error": dict(
+        long_name="halt time, model minus reference, in undamped periods (NaN where the "
+                  "reference does not halt within the window)", units="T0 = 2 pi / w0"),
+    "halt_position_error": dict(
+        long_name="halt position, model minus reference, in units of xc (NaN without friction "
+                  "or where the reference does not halt within the window)",
+        units="xc = mu g / w0^2"),
+    "valid": dict(long_name="the model exists at this point (its validity flag)"),
+    "reference_valid": dict(long_name="the reference solved without running out of its budget"),
+    "window": dict(long_name="length of the comparison window in undamped periods (to the "
+                             "reference's halt, or until its energy drops below "
+                             f"{ENERGY_FLOOR:g} E0, at most `periods`)", units="T0"),
+    "reference_halt_time": dict(long_name="halt time of the reference (NaN if it does not halt "
+                                          "within the window)", units="T0"),
+}
+_COORD_ATTRS = {
+    "model": dict(long_name="analytic model"),
+    "d0_ratio": dict(long_name="d0/(w0 A0), Coulomb (d0 = 2 mu g/(pi w0))", units="1"),
+    "d1_ratio": dict(long_name="d1/w0, viscous (d1 = b/(2m))", units="1"),
+    "d2_ratio": dict(long_name="d2 A0/w0, quadratic (d2 = 4 D w0/(3 pi m))", units="1"),
+    "phi0": dict(long_name="undamped initial phase, x0 = A0 cos(phi0), v0 = -w0 A0 sin(phi0)",
+                 units="rad"),
+}
+
+_TRACES = [0]
+
+
+def trace_count() -> int:
+    """How often the per-step function was traced (compiled) in this process (for tests)."""
+    return _TRACES[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Config:
+    """Everything static about the compiled per-step function."""
+
+    models: tuple[str, ...]
+    reference: str
+    n_samples: int  # samples at t = i T0 / samples_per_period, i < n_samples
+    samples_per_period: int
+    block: int
+    rtol: float
+    atol: float
+    max_swings: int
+    max_steps_per_swing: int
+
+    @property
+    def n_blocks(self) -> int:
+        return -(-self.n_samples // self.block)
+
+
+# ----------------------------------------------------------------------------------------------
+# one point
+
+
+def _oscillator(d0r, d1r, d2r, m, k, A0):
+    """Oscillator with the given ratios at mass m, stiffness k and amplitude A0 (eq. 21)."""
+    w0 = jnp.sqrt(k / m)
+    mu = d0r * w0 * A0 * math.pi * w0 / (2.0 * _G)
+    b = 2.0 * m * d1r * w0
+    D = 3.0 * math.pi * m * d2r / (4.0 * A0)
+    return Oscillator(m=m, k=k, mu=mu, b=b, D=D, g=_G)
+
+
+def _solve_reference(cfg: _Config, osc, x0, v0, t_end, A0, d1r, d2r):
+    if cfg.reference == "reference":
+        sol = solve(osc, x0, v0, method="reference", t_end=t_end, rtol=cfg.rtol,
+                    atol=cfg.atol, max_swings=cfg.max_swings,
+                    max_steps_per_swing=cfg.max_steps_per_swing)
+        valid = sol.valid
+    else:
+        sol = solve(osc, x0, v0, method="coulomb_exact")
+        valid = sol.valid & (d2r == 0.0) & (d1r < 1.0)
+    halted = jnp.isfinite(sol.halt_time) & (sol.halt_time <= t_end)
+    return sol, valid, halted
+
+
+def _per_point(cfg: _Config, row, units):
+    """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0)."""
+    d0r, d1r, d2r, phi0 = row[0], row[1], row[2], row[3]
+    m, k, A0 = units[0], units[1], units[2]
+    osc = _oscillator(d0r, d1r, d2r, m, k, A0)
+    w0 = osc.omega0
+    period = 2.0 * math.pi / w0
+    dt = period / cfg.samples_per_period
+    t_end = (cfg.n_samples - 1) * dt  # the last sample, computed as the samples are
+    x0 = A0 * jnp.cos(phi0)
+    v0 = -w0 * A0 * jnp.sin(phi0)
+    E0 = 0.5 * k * A0 * A0
+    xc = osc.xc
+
+    ref, ref_valid, halted = _solve_reference(cfg, osc, x0, v0, t_end, A0, d1r, d2r)
+    sols = [solve(osc, x0, v0, **MODELS[name]) for name in cfg.models]
+    valid = [sol.valid & ((d2r == 0.0) if name == "coulomb_exact" else True)
+             for name, sol in zip(cfg.models, sols, strict=True)]
+    t_halt = jnp.where(halted, ref.halt_time, jnp.inf)
+    n_mod = len(cfg.models)
+
+    def block(carry, j):
+        fallen, count, t_win, err_max, err_sq, e_max = carry
+        idx = j * cfg.block + jnp.arange(cfg.block)
+        t = idx * dt
+        inside = idx < cfg.n_samples
+        x_ref = ref.x(t)
+        e_ref = ref.energy(t)
+        below = inside & (e_ref < ENERGY_FLOOR * E0)
+        fallen_t = fallen | (jnp.cumsum(below) > 0)
+        win = inside & jnp.where(halted, t <= t_halt, ~fallen_t)
+        errs, e_errs = [], []
+        for sol in sols:
+            errs.append(jnp.abs(sol.x(t) - x_ref) / A0)
+            e_errs.append(jnp.abs(sol.energy(t) - e_ref) / E0)
+        err = jnp.where(win, jnp.stack(errs), 0.0)
+        e_err = jnp.where(win, jnp.stack(e_errs), 0.0)
+        carry = (fallen_t[-1], count + jnp.sum(win), jnp.maximum(t_win, jnp.max(
+            jnp.where(win, t, 0.0))), jnp.maximum(err_max, jnp.max(err, axis=1)),
+            err_sq + jnp.sum(err * err, axis=1), jnp.maximum(e_max, jnp.max(e_err, axis=1)))
+        return carry, None
+
+    zeros = jnp.zeros(n_mod)
+    init = (jnp.array(False), jnp.array(0), jnp.array(0.0), zeros, zeros, zeros)
+    (_, count, t_win, err_max, err_sq, e_max), _ = jax.lax.scan(
+        block, init, jnp.arange(cfg.n_blocks))
+    rms = jnp.sqrt(err_sq / jnp.maximum(count, 1))
+
+    rows = []
+    for j, sol in enumerate(sols):
+        dt_halt = jnp.where(halted, (sol.halt_time - ref.halt_time) / period, jnp.nan)
+        xc_safe = jnp.where(xc > 0.0, xc, 1.0)
+        dx_halt = jnp.where(halted & (xc > 0.0),
+                            (sol.halt_position - ref.halt_position) / xc_safe, jnp.nan)
+        ok = valid[j] & ref_valid
+        rows.append(jnp.where(ok, jnp.stack([err_max[j], rms[j], e_max[j], dt_halt, dx_halt]),
+                              jnp.nan))
+    metrics = jnp.stack(rows)  # (n_models, 5)
+    info = jnp.stack([ref_valid.astype(float), t_win / period,
+                      jnp.where(halted & ref_valid, ref.halt_time / period, jnp.nan)])
+    return metrics, jnp.stack(valid), info
+
+
+# ----------------------------------------------------------------------------------------------
+# the compiled step
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled(cfg: _Config, device_ids: tuple[int, ...]):
+    """jit(shard_map(vmap(per_point))) over a mesh of the given local devices, and the mesh."""
+    from jax.sharding import PartitionSpec as P
+
+    by_id = {d.id: d for d in jax.local_devices()}
+    devices = [by_id[i] for i in device_ids]
+    mesh = jax.make_mesh((len(devices),), ("points",), devices=devices,
+                         axis_types=(jax.sharding.AxisType.Explicit,))
+
+    def step(rows, units):
+        _TRACES[0] += 1  # runs once per trace, not per call
+        return jax.vmap(lambda r: _per_point(cfg, r, units))(rows)
+
+    sharded = jax.shard_map(step, mesh=mesh, in_specs=(P("points"), P()),
+                            out_specs=P("points"), check_vma=False)
+    return jax.jit(sharded), mesh
+
+
+# ----------------------------------------------------------------------------------------------
+# input checks
+
+
+def _axis(name: str, value, *, ratio: bool) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} must be a number or a 1-D sequence of numbers, got "
+                         f"{value!r}") from err
+    if arr.ndim == 0:
+        arr = arr.reshape(1)
+    if arr.ndim != 1:
+        raise ValueError(f"{name} must be a number or a 1-D sequence, got shape {arr.shape}")
+    if arr.size == 0:
+        raise ValueError(f"{name} is empty: give at least one value")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if ratio and np.any(arr < 0.0):
+        raise ValueError(f"{name} must be >= 0 (damping ratios cannot be negative), "
+                         f"got {value!r}")
+    return arr
+
+
+def _positive_int(name: str, value, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _check_models(models) -> tuple[str, ...]:
+    if isinstance(models, str):
+        models = (models,)
+    models = tuple(models)
+    if not models:
+        raise ValueError("models is empty: give at least one model name")
+    unknown = [m for m in models if m not in MODELS]
+    if unknown:
+        raise ValueError(f"models: unknown {unknown}; choose from {list(MODELS)}")
+    if len(set(models)) != len(models):
+        raise ValueError(f"models: each model at most once, got {list(models)}")
+    return models
+
+
+# ----------------------------------------------------------------------------------------------
+# the public function
+
+
+def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
+              models: Sequence[str] = DEFAULT_MODELS, periods: float = 20.0,
+              samples_per_period: int = 64, chunk_size: int = 128,
+              reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
+              progress: bool = True, _units=(1.0, 1.0, 1.0)):
+    """Errors of the analytic models against a reference over a grid of damping ratios.
+
+    Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
+    x0 = cos phi0, v0 = -sin phi0; mu, b, D from the ratios by eq. 21), so the map holds for
+    every m, k and A0. Model and reference are compared on the samples t = i T0 /
+    samples_per_period of a window that runs to the reference's halt or, when it does not halt,
+    until its energy drops below 1e-4 E0; at most ``periods`` undamped periods T0.
+
+    Arguments:
+        d0_ratio: d0/(w0 A0), Coulomb friction; a number or a 1-D sequence, >= 0.
+        d2_ratio: d2 A0/w0, quadratic drag; a number or a 1-D sequence, >= 0.
+        phi0: undamped initial phase(s) [rad] (phi0 + pi gives the mirror-image motion).
+        d1_ratio: d1/w0, viscous damping; a number or a 1-D sequence, >= 0.
+        models: names among "matched" (ansatz, matched phase, eqs. 22-23), "undamped" (ansatz,
+            undamped phase, eqs. 8-10), "matched_tail" (matched + exact Coulomb tail, eqs. 41,
+            52), "rizcallah" (only d1 = d2 = 0; NaN elsewhere), "coulomb_exact" (exact
+            half-swings; only d2 = 0).
+        periods: length of the time grid in undamped periods (the window's cap), > 0.
+        samples_per_period: samples per undamped period, >= 2.
+        chunk_size: grid points per device evaluated at once (bounds the memory), >= 1.
+        reference: "reference" (the diffrax integrator of eq. 3 with exact stick-slip) or
+            "coulomb_exact" (the exact half-swings, analytic and fast: valid only where
+            d2 = 0 and d1 < 1, NaN elsewhere).
+        rtol, atol: tolerances of the diffrax reference (at A0 = 1, w0 = 1).
+        progress: show a tqdm progress bar over the steps (on stderr; nothing else is printed).
+
+    Returns:
+        An ``xarray.Dataset`` with dims (model, d0_ratio, d1_ratio, d2_ratio, phi0) (a scalar
+        axis becomes a length-1 dim) and variables max_error (in A0), rms_error (in A0),
+        energy_error (in E0), halt_time_error (model minus reference, in periods),
+        halt_position_error (model minus reference, in xc), valid (the model exists there), and
+        per point reference_valid, window and reference_halt_time (in periods). Metrics are
+        NaN where the model or the reference is not valid. Settings are in ``attrs``; write it
+        with ``ds.to_netcdf(path)``.
+
+    Raises:
+        ValueError: naming the argument, for an empty, non-finite or negative axis, an unknown
+            model or reference, chunk_size < 1, periods <= 0 or samples_per_period < 2.
+    """
+    import xarray as xr
+    from tqdm.auto import tqdm
+
+    from . import __version__
+
+    axes = {"d0_ratio": _axis("d0_ratio", d0_ratio, ratio=True),
+            "d1_ratio": _axis("d1_ratio", d1_ratio, ratio=True),
+            "d2_ratio": _axis("d2_ratio", d2_ratio, ratio=True),
+            "phi0": _axis("phi0", phi0, ratio=False)}
+    models = _check_models(models)
+    if reference not in REFERENCES:
+        raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
+    chunk_size = _positive_int("chunk_size", chunk_size)
+    samples_per_period = _positive_int("samples_per_period", samples_per_period, 2)
+    try:
+        periods = float(periods)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"periods must be a number > 0, got {periods!r}") from err
+    if not (math.isfinite(periods) and periods > 0.0):
+        raise ValueError(f"periods must be a finite number > 0, got {periods!r}")
+    for name, tol in (("rtol", rtol), ("atol", atol)):
+        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+            raise ValueError(f"{name} must be a number > 0, got {tol!r}")
+    units = np.asarray(_units, dtype=float)
+    if units.shape != (3,) or not np.all(np.isfinite(units)) or np.any(units <= 0):
+        raise ValueError(f"_units must be (m, k, A0) > 0, got {_units!r}")
+
+    n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
+    cfg = _Config(models=models, reference=reference, n_samples=n_samples,
+                  samples_per_period=samples_per_period, block=min(_BLOCK, n_samples),
+                  rtol=float(rtol), atol=float(atol),
+                  max_swings=2 * math.ceil(periods) + 6, max_steps_per_swing=64)
+
+    shape = tuple(a.size for a in axes.values())
+    grid = np.stack([g.ravel() for g in np.meshgrid(*axes.values(), indexing="ij")], axis=-1)
+    n_points = grid.shape[0]
+
+    devices = jax.local_devices()
+    fn, mesh = _compiled(cfg, tuple(d.id for d in devices))
+    step = chunk_size * len(devices)
+    n_steps = -(-n_points // step)
+    n_proc, proc = jax.process_count(), jax.process_index()
+    per_proc = -(-n_steps // n_proc)
+    my_steps = range(proc * per_proc, min((proc + 1) * per_proc, n_steps))
+
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    rows_sharding = NamedSharding(mesh, P("points"))
+    units_dev = jax.device_put(units, NamedSharding(mesh, P()))
+    n_mod = len(models)
+    out_metrics = np.full((per_proc * step, n_mod, len(METRICS)), np.nan)
+    out_valid = np.zeros((per_proc * step, n_mod), dtype=bool)
+    out_info = np.full((per_proc * step, 3), np.nan)
+
+    def launch(s):
+        rows = grid[s * step:(s + 1) * step]
+        if rows.shape[0] < step:  # pad the last step: same shapes, no recompilation
+            rows = np.concatenate([rows, np.repeat(rows[:1], step - rows.shape[0], axis=0)])
+        return fn(jax.device_put(rows, rows_sharding), units_dev)
+
+    bar = tqdm(total=len(my_steps), desc="error map", unit="chunk",
+               disable=(not progress) or proc != 0)
+    try:
+        pending = None
+        for i, s in enumerate(my_steps):
+            current = (i, launch(s))  # dispatched asynchronously: overlaps the host copy below
+            if pending is not None:
+                _store(pending, step, out_metrics, out_valid, out_info)
+                bar.update(1)
+            pending = current
+        if pending is not None:
+            _store(pending, step, out_metrics, out_valid, out_info)
+            bar.update(1)
+    finally:
+        bar.close()
+
+    if n_proc > 1:
+        from jax.experimental import multihost_utils
+
+        out_metrics, out_valid, out_info = (
+            np.asarray(a).reshape((-1,) + a.shape[2:]) for a in multihost_utils.process_allgather(
+                (out_metrics, out_valid, out_info), tiled=False))
+    out_metrics = out_metrics[:n_points].reshape(shape + (n_mod, len(METRICS)))
+    out_valid = out_valid[:n_points].reshape(shape + (n_mod,))
+    out_info = out_info[:n_points].reshape(shape + (3,))
+
+    dims = ("model",) + _AXES
+    data = {}
+    for j, name in enumerate(METRICS):
+        data[name] = (dims, np.moveaxis(out_metrics[..., j], -1, 0), _VARIABLE_ATTRS[name])
+    data["valid"] = (dims, np.moveaxis(out_valid, -1, 0), _VARIABLE_ATTRS["valid"])
+    data["reference_valid"] = (_AXES, out_info[..., 0] > 0.5, _VARIABLE_ATTRS["reference_valid"])
+    data["window"] = (_AXES, out_info[..., 1], _VARIABLE_ATTRS["window"])
+    data["reference_halt_time"] = (_AXES, out_info[..., 2],
+                                   _VARIABLE_ATTRS["reference_halt_time"])
+    coords = {"model": ("model", list(models), _COORD_ATTRS["model"])}
+    for name, values in axes.items():
+        coords[name] = (name, values, _COORD_ATTRS[name])
+    attrs = {
+        "title": "dampax error map: analytic models against a reference",
+        "dampax_version": __version__,
+        "models": ", ".join(models),
+        "reference": reference,
+        "reference_description": (
+            "diffrax dopri8 integration of eq. 3, swing by swing with exact stick-slip"
+            if reference == "reference" else "exact Coulomb (+ viscous) half-swings (D = 0)"),
+        "reference_rtol": float(rtol) if reference == "reference" else 0.0,
+        "reference_atol": float(atol) if reference == "reference" else 0.0,
+        "reference_max_swings": cfg.max_swings,
+        "periods": periods,
+        "samples_per_period": samples_per_period,
+        "n_samples": n_samples,
+        "energy_floor": ENERGY_FLOOR,
+        "chunk_size": chunk_size,
+        "devices": f"{len(devices)} x {devices[0].platform}, {n_proc} process(es)",
+        "scaling": "dimensionless: w0 = 1, A0 = 1 (m = k = 1, x0 = cos phi0, v0 = -sin phi0); "
+                   "the errors hold for every m, k, A0",
+        "window": "the reference motion up to its halt, or until its energy falls below "
+                  f"{ENERGY_FLOOR:g} E0 when it does not halt; at most `periods` periods",
+    }
+    return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def _store(pending, step, out_metrics, out_valid, out_info):
+    i, (metrics, valid, info) = pending
+    sl = slice(i * step, (i + 1) * step)
+    out_metrics[sl] = np.asarray(metrics)
+    out_valid[sl] = np.asarray(valid)
+    out_info[sl] = np.asarray(info)
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers for the command line and the plots
+
+
+def parse_axis(text: str, name: str) -> np.ndarray:
+    """Grid axis from the command line: "START:STOP:N" (linspace, both ends), "a,b,c" or "a".
+
+    Numbers may be arithmetic with pi, e.g. "0:7*pi/8:8". ValueError names ``name``.
+    """
+    try:
+        parts = text.split(":")
+        if len(parts) == 3:
+            n = int(parts[2])
+            if n < 1:
+                raise ValueError("N must be >= 1")
+            return np.linspace(_number(parts[0]), _number(parts[1]), n)
+        if len(parts) == 1:
+            return np.array([_number(p) for p in parts[0].split(",")], dtype=float)
+        raise ValueError("expected START:STOP:N, a,b,c or a single number")
+    except (ValueError, SyntaxError, TypeError, ZeroDivisionError) as err:
+        raise ValueError(f"{name}: cannot read {text!r} ({err}); use START:STOP:N, "
+                         "a comma list or a number (pi allowed, e.g. 0:7*pi/8:8)") from None
+
+
+_OPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
+        ast.Div: operator.truediv, ast.USub: operator.neg, ast.UAdd: operator.pos}
+
+
+def _number(text: str) -> float:
+    """A float from simple arithmetic on numbers and ``pi`` (no names, no calls)."""
+    def ev(node):
+        if isinstance(node, ast.Expression):
+            return ev(node.body)
+        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)):
+            return float(node.value)
+        if isinstance(node, ast.Name) and node.id == "pi":
+            return math.pi
+        if isinstance(node, ast.BinOp) and type(node.op) in _OPS:
+            return _OPS[type(node.op)](ev(node.left), ev(node.right))
+        if isinstance(node, ast.UnaryOp) and type(node.op) in _OPS:
+            return _OPS[type(node.op)](ev(node.operand))
+        raise ValueError(f"not a number: {text.strip()!r}")
+
+    text = text.strip()
+    if text.lower() in ("nan", "inf", "-inf", "+inf"):
+        return float(text)
+    return ev(ast.parse(text, mode="eval"))
+
+
+def largest_ratio_below(ds, threshold: float, *, along: str, model: str,
+                        metric: str = "max_error") -> float | None:
+    """Largest value of axis ``along`` up to which ``metric`` stays below ``threshold``.
+
+    The other two ratio axes are held at 0 and the worst case over phi0 is taken; the scan
+    goes up the axis from its first value and stops before the first point at or above the
+    threshold (or where the model or the reference is not valid).
+
+    Returns:
+        The ratio; NaN when even the first point fails; None when the grid has no 0 on one of
+        the other ratio axes.
+    """
+    sel = {}
+    for axis in ("d0_ratio", "d1_ratio", "d2_ratio"):
+        if axis == along:
+            continue
+        zero = np.flatnonzero(np.asarray(ds[axis]) == 0.0)
+        if zero.size == 0:
+            return None
+        sel[axis] = int(zero[0])
+    da = ds[metric].sel(model=model).isel(sel)
+    worst = np.asarray(np.abs(da).max("phi0", skipna=False))
+    values = np.asarray(ds[along])
+    order = np.argsort(values)
+    ok = np.isfinite(worst[order]) & (worst[order] < threshold)
+    if not ok[0]:
+        return math.nan
+    bad = np.flatnonzero(~ok)
+    return float(values[order][-1] if bad.size == 0 else values[order][bad[0] - 1])
+
+
+def worst_in_box(ds, *, model: str, d0_max: float, d2_max: float,
+                 metric: str = "max_error") -> float:
+    """Largest ``metric`` over d0 <= d0_max, d2 <= d2_max, d1 = 0 and every phi0.
+
+    NaN when the grid has no such point, no d1 = 0, or the model is not valid everywhere
+    in that box.
+    """
+    d1 = np.asarray(ds["d1_ratio"])
+    if not np.any(d1 == 0.0):
+        return math.nan
+    box = ds[metric].sel(model=model).isel(d1_ratio=int(np.flatnonzero(d1 == 0.0)[0]))
+    box = box.where((box["d0_ratio"] <= d0_max) & (box["d2_ratio"] <= d2_max), drop=True)
+    values = np.abs(np.asarray(box, dtype=float))
+    if values.size == 0 or not np.all(np.isfinite(values)):
+        return math.nan
+    return float(values.max())

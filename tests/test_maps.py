@@ -1,0 +1,231 @@
+"""dampax.error_map: one point against scipy, devices, units, chunking, bad input, the CLI.
+
+The map with the diffrax reference compiles for ~40 s, so one map (the settings of
+``dampax errormap --quick``) is computed once and reused: by the CLI test (same settings, so the
+compiled step is reused) and by the invariance test (the units are traced, not static). The
+4-device run starts in a subprocess at the first test of this module and runs beside the rest.
+"""
+
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+from helpers import evaluate, ratios_to_constants, scipy_stick_slip
+
+import dampax as dp
+from dampax._cli import main
+from dampax._maps import error_map, trace_count
+
+# the settings of `dampax errormap --quick` (keep in step with dampax._cli.ERRORMAP_QUICK)
+QUICK = dict(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
+             d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
+             periods=10.0, samples_per_period=32, chunk_size=32, progress=False)
+MODELS = ("matched", "undamped", "matched_tail", "rizcallah")
+METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_position_error")
+
+FOUR_DEVICES = textwrap.dedent("""
+    import os, sys
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import math
+    import jax
+    import numpy as np
+    import dampax as dp
+    from dampax._maps import error_map
+    assert len(jax.devices()) == 4, jax.devices()
+    ds = error_map(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
+                   d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
+                   periods=10.0, samples_per_period=32, chunk_size=3, progress=False,
+                   models=("matched_tail",))
+    ds.to_netcdf(sys.argv[1], engine="scipy")
+""")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def four_devices(tmp_path_factory):
+    """The quick map on 4 (forced host) devices, 3 points per device per step, in a subprocess.
+
+    XLA_FLAGS must be set before jax is imported, hence the separate interpreter. Only the
+    matched + Coulomb tail model (it contains the plain ansatz) is mapped there, to halve the
+    compilation; every model is computed independently of the others.
+    """
+    path = tmp_path_factory.mktemp("devices") / "four.nc"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    proc = subprocess.Popen([sys.executable, "-c", FOUR_DEVICES, str(path)], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    yield proc, path
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def quick_map():
+    before = trace_count()
+    ds = error_map(**QUICK)
+    assert trace_count() == before + 1  # one compilation for all the steps
+    return ds
+
+
+def test_layout_and_attrs(quick_map, tmp_path):
+    ds = quick_map
+    assert ds["max_error"].dims == ("model", "d0_ratio", "d1_ratio", "d2_ratio", "phi0")
+    assert ds["max_error"].shape == (4, 4, 1, 4, 2)
+    assert list(ds["model"].values) == list(MODELS)
+    for name in METRICS + ("valid",):
+        assert name in ds and "long_name" in ds[name].attrs
+    assert ds["max_error"].attrs["units"] == "A0"
+    assert bool(ds["reference_valid"].all())
+    for key in ("periods", "samples_per_period", "dampax_version", "reference_rtol",
+                "reference_atol"):
+        assert key in ds.attrs
+    assert ds.attrs["dampax_version"] == dp.__version__
+    # Rizcallah's model exists only without quadratic drag; the others everywhere here
+    valid = ds["valid"]
+    assert bool(valid.sel(model="rizcallah", d2_ratio=0.0).all())
+    assert not bool(valid.sel(model="rizcallah").isel(d2_ratio=slice(1, None)).any())
+    assert bool(np.isnan(ds["max_error"].sel(model="rizcallah").isel(d2_ratio=1)).all())
+    assert bool(valid.sel(model=["matched", "undamped", "matched_tail"]).all())
+    # no friction: no halt position error; no damping at all: every model exact
+    assert bool(np.isnan(ds["halt_position_error"].sel(d0_ratio=0.0)).all())
+    assert float(ds["max_error"].sel(d0_ratio=0.0, d2_ratio=0.0).max()) < 1e-8
+    # the quick grid's damped points all stop or fade within the window
+    assert float(ds["window"].max()) <= 10.0 + 1e-9
+    # netCDF round trip with the scipy engine
+    path = tmp_path / "map.nc"
+    ds.to_netcdf(path, engine="scipy")
+    back = xr.load_dataset(path, engine="scipy")
+    xr.testing.assert_allclose(back, ds)
+
+
+def test_point_matches_scipy_in_paper_units(quick_map):
+    """One map point recomputed for the paper's block (m = 1, k = 30, A0 = 0.2) with scipy."""
+    d0r, d2r, phi0 = float(QUICK["d0_ratio"][1]), float(QUICK["d2_ratio"][1]), math.pi / 2
+    m, k, A0 = 1.0, 30.0, 0.2
+    w0 = math.sqrt(k / m)
+    mu, b, D = ratios_to_constants(d0r, 0.0, d2r, m=m, k=k, A0=A0)
+    x0, v0 = A0 * math.cos(phi0), -w0 * A0 * math.sin(phi0)
+    period = 2 * math.pi / w0
+    t = np.arange(int(QUICK["periods"] * QUICK["samples_per_period"]) + 1) * (
+        period / QUICK["samples_per_period"])
+    segments, _, rest = scipy_stick_slip(m, k, mu, b, D, x0, v0, t[-1])
+    x_ref, v_ref = evaluate(segments, rest, t)
+    if rest is not None:
+        window = t <= rest[0]
+    else:
+        energy = 0.5 * k * x_ref**2 + 0.5 * m * v_ref**2
+        window = np.cumsum(energy < 1e-4 * 0.5 * k * A0**2) == 0
+    sol = dp.solve(dp.Oscillator(m=m, k=k, mu=mu, b=b, D=D), x0, v0, method="ansatz")
+    expected = np.max(np.abs(np.asarray(sol.x(t[window])) - x_ref[window])) / A0
+    got = float(quick_map["max_error"].sel(model="matched", d0_ratio=d0r, d2_ratio=d2r,
+                                           phi0=phi0).squeeze())
+    assert got == pytest.approx(expected, rel=0.02)
+    assert 1e-3 < got < 0.2  # a damped point, not a trivial one
+
+
+def test_same_map_on_four_devices(quick_map, four_devices):
+    proc, path = four_devices
+    _, err = proc.communicate(timeout=400)
+    assert proc.returncode == 0, err
+    four = xr.load_dataset(path, engine="scipy")
+    assert four.attrs["devices"].startswith("4 x cpu")
+    one = quick_map.sel(model=["matched_tail"])
+    for name in METRICS + ("window", "reference_halt_time"):
+        a, b = np.asarray(one[name]), np.asarray(four[name])
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12, err_msg=name)
+    for name in ("valid", "reference_valid"):
+        np.testing.assert_array_equal(np.asarray(one[name]), np.asarray(four[name]))
+
+
+def test_same_map_in_other_units(quick_map):
+    """m = 2 kg, k = 50 N/m, A0 = 0.3 m with the same ratios: the same dimensionless map."""
+    before = trace_count()
+    other = error_map(**QUICK, _units=(2.0, 50.0, 0.3))
+    assert trace_count() == before  # the units are traced: no recompilation
+    for name in METRICS + ("window",):
+        a, b = np.asarray(quick_map[name]), np.asarray(other[name])
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b), err_msg=name)
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-8, err_msg=name)
+
+
+CHUNKED = dict(d0_ratio=[0.0, 0.02, 0.05], d1_ratio=[0.0, 0.1], d2_ratio=0.0,
+               phi0=[0.0, 1.0, 2.5], models=("matched", "coulomb_exact"),
+               reference="coulomb_exact", periods=3.0, samples_per_period=16, progress=False)
+
+
+def test_chunk_size_does_not_change_the_map():
+    before = trace_count()
+    small = error_map(**CHUNKED, chunk_size=3)  # 6 steps
+    assert trace_count() == before + 1  # one trace for every step, the padded one included
+    again = error_map(**{**CHUNKED, "phi0": [0.5, 1.5, 3.0]}, chunk_size=3)
+    assert trace_count() == before + 1  # new values, same shapes: reused
+    big = error_map(**CHUNKED, chunk_size=64)  # one padded step
+    assert trace_count() == before + 2
+    for name in METRICS:
+        np.testing.assert_allclose(np.asarray(small[name]), np.asarray(big[name]), rtol=0,
+                                   atol=1e-12, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(small["valid"]), np.asarray(big["valid"]))
+    assert not np.allclose(np.asarray(small["max_error"]), np.asarray(again["max_error"]),
+                           equal_nan=True)
+    # the exact half-swings against themselves; the matched ansatz is exact without damping
+    assert float(np.nanmax(small["max_error"].sel(model="coulomb_exact"))) < 1e-12
+    assert float(small["max_error"].sel(model="matched", d0_ratio=0.0, d1_ratio=0.0).max()) \
+        < 1e-12
+
+
+@pytest.mark.parametrize("change, name", [
+    (dict(d0_ratio=[]), "d0_ratio"),
+    (dict(d2_ratio=[0.1, -0.2]), "d2_ratio"),
+    (dict(d1_ratio=-1e-3), "d1_ratio"),
+    (dict(phi0=[0.0, math.nan]), "phi0"),
+    (dict(d0_ratio=[0.0, math.inf]), "d0_ratio"),
+    (dict(phi0=[[0.0, 1.0]]), "phi0"),
+    (dict(models=("matched", "exact")), "models"),
+    (dict(models=()), "models"),
+    (dict(chunk_size=0), "chunk_size"),
+    (dict(chunk_size=2.5), "chunk_size"),
+    (dict(periods=0.0), "periods"),
+    (dict(samples_per_period=1), "samples_per_period"),
+    (dict(reference="euler"), "reference"),
+])
+def test_bad_grid_input_names_the_argument(change, name):
+    kwargs = dict(d0_ratio=0.01, d2_ratio=0.1, phi0=0.0, progress=False) | change
+    with pytest.raises(ValueError, match=rf"^{name}\b"):
+        error_map(**kwargs)
+
+
+def test_cli_quick(quick_map, tmp_path, capsys):
+    out_dir = tmp_path / "maps"
+    before = trace_count()
+    assert main(["errormap", "--quick", "--out", str(out_dir), "--no-progress"]) == 0
+    assert trace_count() == before  # the same settings as quick_map: compiled once
+    captured = capsys.readouterr()
+    ds = xr.load_dataset(out_dir / "errormap.nc", engine="scipy")
+    xr.testing.assert_allclose(ds, quick_map)
+    pngs = sorted(p.name for p in out_dir.glob("*.png"))
+    assert pngs == sorted(f"{m}.png" for m in METRICS)
+    for png in pngs:
+        assert (out_dir / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    out = captured.out
+    for model in MODELS:
+        assert any(line.split()[:1] == [model] for line in out.splitlines()), out
+    assert "0.5 (III)" in out and "0.05 (IV)" in out and "d0<=0.03,d2<=0.25" in out
+    # the undamped (no-damping) corner is exact, so every row starts at d2 = 0 or above
+    row = next(line.split() for line in out.splitlines() if line.split()[:1] == ["matched"])
+    assert float(row[1]) >= 0.0
+
+
+def test_cli_bad_axis_exits_2(tmp_path, capsys):
+    assert main(["errormap", "--d0", "0:0.1", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("dampax: error: --d0")
+    assert main(["errormap", "--d2=-0.1,0.2", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("dampax: error: --d2")
+    assert main(["errormap", "--models", "matched,foo", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("dampax: error: --models")
+    assert not any(Path(tmp_path).iterdir())
