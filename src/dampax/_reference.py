@@ -29,6 +29,7 @@ import math
 
 import diffrax as dfx
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -76,7 +77,7 @@ def _event_cond(t, y, args, **kwargs):
 
 def _lincomb(weights, ks):
     """sum_i w_i k_i for a list of (x, v) pairs; zero weights skipped."""
-    pairs = [(float(w), k) for w, k in zip(weights, ks) if w != 0.0]
+    pairs = [(float(w), k) for w, k in zip(weights, ks, strict=False) if w != 0.0]
     out = []
     for i in range(2):
         acc = None
@@ -94,7 +95,7 @@ def _stages(tableau, vf, t0, y0, h, *, last: bool):
     here it is f(y1) and not needed for y1.
     """
     ks = [vf(t0, y0)]
-    rows = list(zip(tableau.c, tableau.a_lower))
+    rows = list(zip(tableau.c, tableau.a_lower, strict=True))
     if not last:
         rows = rows[:-1]
     mul, add = jax.lax.mul, jax.lax.add
@@ -436,7 +437,23 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
         )
         return new, out
 
-    final, out = jax.lax.scan(body, carry0, None, length=max_swings)
+    out_shape = jax.eval_shape(body, carry0, None)[1]
+
+    def skip(c, _):
+        # Every element of the (vmapped) batch is done: no solve. What an inactive slot of
+        # `body` would give.
+        out = {key: jnp.full(out_shape[key].shape, jnp.inf, out_shape[key].dtype)
+               for key in ("seg_t0", "seg_ts", "seg_xs", "seg_vs")}
+        out.update(seg_n=jnp.zeros((), out_shape["seg_n"].dtype), seg_s=c["s"],
+                   fired=jnp.zeros((), dtype=bool), t_sw=zero, x_sw=zero)
+        return c, out
+
+    def slot(c, _):
+        # unvmap_any keeps the predicate unbatched under vmap (as diffrax does), so this stays
+        # a real branch: slots after every element has finished cost nothing.
+        return jax.lax.cond(eqxi.unvmap_any(c["active"]), body, skip, c, None)
+
+    final, out = jax.lax.scan(slot, carry0, None, length=max_swings)
 
     exhausted = final["active"]
     status = jnp.where(final["failed"], _STATUS_SOLVER,
