@@ -31,24 +31,31 @@ def _fmt(value: float, digits: int, *, inf: str = "inf", nan: str = "-") -> str:
     return "0" if text in ("-0", "0") else text
 
 
-def _add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+def add_oscillator_arguments(parser: argparse.ArgumentParser, *, mu: float = 0.0,
+                             D: float = 0.0,
+                             start_title: str = "initial state (default: the papers' block)"):
+    """Options --m --k --mu --b --D --g --x0 --v0 shared by the subcommands."""
     osc = parser.add_argument_group("oscillator (m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|)")
     osc.add_argument("--m", type=float, default=1.0, help="mass [kg] (default: %(default)s)")
     osc.add_argument("--k", type=float, default=30.0,
                      help="spring stiffness [N/m] (default: %(default)s)")
-    osc.add_argument("--mu", type=float, default=0.0,
+    osc.add_argument("--mu", type=float, default=mu,
                      help="Coulomb friction coefficient (default: %(default)s)")
     osc.add_argument("--b", type=float, default=0.0,
                      help="viscous damping [kg/s] (default: %(default)s)")
-    osc.add_argument("--D", type=float, default=0.0,
+    osc.add_argument("--D", type=float, default=D,
                      help="quadratic drag [kg/m] (default: %(default)s)")
     osc.add_argument("--g", type=float, default=9.81,
                      help="gravitational acceleration [m/s^2] (default: %(default)s)")
-    start = parser.add_argument_group("initial state (default: the papers' block)")
+    start = parser.add_argument_group(start_title)
     start.add_argument("--x0", type=float, default=0.2,
                        help="initial displacement [m] (default: %(default)s)")
     start.add_argument("--v0", type=float, default=0.0,
                        help="initial velocity [m/s] (default: %(default)s)")
+
+
+def _add_solve_arguments(parser: argparse.ArgumentParser) -> None:
+    add_oscillator_arguments(parser)
     out = parser.add_argument_group("output")
     out.add_argument("--turning", type=int, default=6, metavar="N",
                      help="turning points of the matched ansatz to print (default: %(default)s)")

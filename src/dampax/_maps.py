@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import Oscillator
+from ._oscillator import Oscillator, check_choices
 from ._solve import solve
 
 Array = jax.Array
@@ -250,17 +250,7 @@ def _positive_int(name: str, value, minimum: int = 1) -> int:
 
 
 def _check_models(models) -> tuple[str, ...]:
-    if isinstance(models, str):
-        models = (models,)
-    models = tuple(models)
-    if not models:
-        raise ValueError("models is empty: give at least one model name")
-    unknown = [m for m in models if m not in MODELS]
-    if unknown:
-        raise ValueError(f"models: unknown {unknown}; choose from {list(MODELS)}")
-    if len(set(models)) != len(models):
-        raise ValueError(f"models: each model at most once, got {list(models)}")
-    return models
+    return check_choices("models", models, MODELS)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -42,6 +42,19 @@ def check_finite(name: str, value) -> None:
             raise ValueError(f"{name} must be finite, got {value!r}")
 
 
+def check_choices(name: str, values, choices) -> tuple[str, ...]:
+    """Validate a non-empty list of distinct names from ``choices``; ValueError naming ``name``."""
+    values = (values,) if isinstance(values, str) else tuple(values)
+    if not values:
+        raise ValueError(f"{name} is empty: give at least one of {list(choices)}")
+    unknown = [v for v in values if v not in choices]
+    if unknown:
+        raise ValueError(f"{name}: unknown {unknown}; choose from {list(choices)}")
+    if len(set(values)) != len(values):
+        raise ValueError(f"{name}: each name at most once, got {list(values)}")
+    return values
+
+
 def _check_field(name: str, value, *, positive: bool) -> None:
     check_finite(name, value)
     if not is_concrete(value):

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import Oscillator, check_finite, is_concrete
+from ._oscillator import Oscillator, check_choices, check_finite, is_concrete
 from ._solve import METHODS, solve
 
 Array = jax.Array
@@ -372,23 +372,9 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``dampax sensitivity`` (register with run in dampax._cli.SUBCOMMANDS)."""
-    osc = parser.add_argument_group("oscillator (m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|)")
-    osc.add_argument("--m", type=float, default=1.0, help="mass [kg] (default: %(default)s)")
-    osc.add_argument("--k", type=float, default=30.0,
-                     help="spring stiffness [N/m] (default: %(default)s)")
-    osc.add_argument("--mu", type=float, default=0.05,
-                     help="Coulomb friction coefficient (default: %(default)s)")
-    osc.add_argument("--b", type=float, default=0.0,
-                     help="viscous damping [kg/s] (default: %(default)s)")
-    osc.add_argument("--D", type=float, default=1.0,
-                     help="quadratic drag [kg/m] (default: %(default)s)")
-    osc.add_argument("--g", type=float, default=9.81,
-                     help="gravitational acceleration [m/s^2] (default: %(default)s)")
-    start = parser.add_argument_group("initial state")
-    start.add_argument("--x0", type=float, default=0.2,
-                       help="initial displacement [m] (default: %(default)s)")
-    start.add_argument("--v0", type=float, default=0.0,
-                       help="initial velocity [m/s] (default: %(default)s)")
+    from ._cli import add_oscillator_arguments
+
+    add_oscillator_arguments(parser, mu=0.05, D=1.0, start_title="initial state")
     what = parser.add_argument_group("sensitivities")
     what.add_argument("--wrt", default="mu,D", metavar="NAMES",
                       help=f"comma-separated parameters to differentiate with respect to, from "
@@ -429,14 +415,7 @@ def run(args: argparse.Namespace) -> int:
     from ._plot import MODELS
 
     names = _check_wrt(_split(args.wrt))
-    models = _split(args.models)
-    if not models:
-        raise ValueError("--models: name at least one model")
-    unknown = [k for k in models if k not in MODELS]
-    if unknown:
-        raise ValueError(f"--models: unknown {unknown}; choose from {list(MODELS)}")
-    if len(set(models)) != len(models):
-        raise ValueError(f"--models: names must not repeat, got {models}")
+    models = check_choices("--models", _split(args.models), MODELS)
     if args.samples < 2:
         raise ValueError(f"--samples must be >= 2, got {args.samples}")
     if not 1 <= args.digits <= 17:
