@@ -8,6 +8,17 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
+from ._fit import ArrayFit as ArrayFit  # noqa: E402
+from ._fit import FitResult as FitResult  # noqa: E402
+from ._fit import ModelComparison as ModelComparison  # noqa: E402
+from ._fit import compare_envelope_models as compare_envelope_models  # noqa: E402
+from ._fit import compare_models as compare_models  # noqa: E402
+from ._fit import example_trace as example_trace  # noqa: E402
+from ._fit import fit as fit  # noqa: E402
+from ._fit import fit_arrays as fit_arrays  # noqa: E402
+from ._fit import fit_envelope as fit_envelope  # noqa: E402
+from ._fit import initial_guess as initial_guess  # noqa: E402
+from ._fit import residual_function as residual_function  # noqa: E402
 from ._maps import error_map as error_map  # noqa: E402
 from ._oscillator import Oscillator as Oscillator  # noqa: E402
 from ._oscillator import damping_coefficients as damping_coefficients  # noqa: E402
@@ -17,5 +28,7 @@ from ._sensitivity import plot_sensitivity as plot_sensitivity  # noqa: E402
 from ._sensitivity import sensitivity as sensitivity  # noqa: E402
 from ._solve import solve as solve  # noqa: E402
 from ._solve import turning_points as turning_points  # noqa: E402
+from ._trace import Trace as Trace  # noqa: E402
+from ._trace import load_trace as load_trace  # noqa: E402
 
 __version__ = "0.1.0"

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._fit import add_arguments as _add_fit_arguments
+from ._fit import run as _run_fit
 from ._sensitivity import add_arguments as _add_sensitivity_arguments
 from ._sensitivity import run as _run_sensitivity
 
@@ -359,6 +361,7 @@ SUBCOMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
     "solve": (_add_solve_arguments, _run_solve),
     "errormap": (_add_errormap_arguments, _run_errormap),
     "sensitivity": (_add_sensitivity_arguments, _run_sensitivity),
+    "fit": (_add_fit_arguments, _run_fit),
 }
 
 

@@ -1,0 +1,298 @@
+"""Reading measured free-decay traces from text files: :func:`load_trace` -> :class:`Trace`.
+
+Real exports are messy: comma, semicolon, tab or whitespace separators, a header line or none,
+Windows line ends, comment lines, separator lines ("-----"), empty trailing fields, a time
+column that a data logger writes in buffers (many rows share one stamp). The reader accepts
+all of that, and it never guesses silently: a row whose time or position cannot be read is
+dropped and counted (``Trace.n_dropped``), and a file without usable rows is an error that
+names the file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from pathlib import Path
+
+import jax
+import numpy as np
+
+__all__ = ["Trace", "load_trace"]
+
+# candidate separators in the order they are tried when delimiter=None; None = whitespace
+_DELIMITERS = (";", "\t", ",", None)
+_SEPARATOR_LINE = re.compile(r"^[\s\-=_*~+|#.:]{3,}$")
+_CLOCK = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2}(?:\.\d*)?)$")
+_SAMPLE_LINES = 200  # lines used to choose the delimiter and the header
+
+
+@dataclasses.dataclass(frozen=True)
+class Trace:
+    """A measured trace x(t): two float arrays and where they came from.
+
+    A pytree (``t`` and ``x`` are its leaves; the rest is static metadata), so it passes
+    through ``jax.jit`` and ``jax.tree_util`` functions.
+
+    Attributes:
+        t: sample times [s], float64 array.
+        x: positions (times ``scale``), float64 array of the same length.
+        n_dropped: data rows that could not be read (text or nothing in the time or position
+            column, too few fields, non-finite numbers) and were left out.
+        source: the file it was read from ("" if built by hand).
+        time_column: name (or "#index") of the time column; "sample index" when time was
+            rebuilt from ``rate`` alone.
+        position_column: name (or "#index") of the position column.
+        rate: the sample rate [1/s] used to rebuild time, or None when time was read as is.
+        n_rows: data rows in the file (read or dropped).
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    n_dropped: int = 0
+    source: str = ""
+    time_column: str = ""
+    position_column: str = ""
+    rate: float | None = None
+    n_rows: int = 0
+
+    def __len__(self) -> int:
+        return int(np.shape(self.t)[0])
+
+    def __repr__(self) -> str:
+        n = len(self)
+        span = f"{float(self.t[0]):g} .. {float(self.t[-1]):g} s" if n else "empty"
+        src = f", source={self.source!r}" if self.source else ""
+        rate = f", rate={self.rate:.6g}" if self.rate is not None else ""
+        return f"Trace({n} samples, t = {span}, n_dropped={self.n_dropped}{rate}{src})"
+
+
+jax.tree_util.register_dataclass(
+    Trace, data_fields=["t", "x"],
+    meta_fields=["n_dropped", "source", "time_column", "position_column", "rate", "n_rows"])
+
+
+def _number(field: str, decimal_comma: bool) -> float:
+    """A float from one field; clock times H:MM:SS(.fff) become seconds. NaN if unreadable."""
+    text = field.strip().strip('"').strip("'").strip()
+    if not text:
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    if decimal_comma and text.count(",") == 1 and "." not in text:
+        try:
+            return float(text.replace(",", "."))
+        except ValueError:
+            return math.nan
+    clock = _CLOCK.match(text)
+    if clock:
+        h, m, s = clock.groups()
+        return 3600.0 * int(h) + 60.0 * int(m) + float(s)
+    return math.nan
+
+
+def _split(line: str, delimiter: str | None) -> list[str]:
+    if delimiter is None:
+        return line.split()
+    return [f.strip() for f in line.split(delimiter)]
+
+
+def _content_lines(text: str) -> list[tuple[int, str]]:
+    """(line number, line) of every line that is not empty, a comment or a separator line."""
+    out = []
+    for i, raw in enumerate(text.splitlines()):
+        line = raw.strip().lstrip("\ufeff")
+        if not line or line.startswith("#") or line.startswith("%"):
+            continue
+        if _SEPARATOR_LINE.match(line) and not any(ch.isdigit() for ch in line):
+            continue
+        out.append((i + 1, line))
+    return out
+
+
+def _choose_delimiter(lines: list[str]) -> str | None:
+    """The separator giving the most lines with >= 2 fields and a consistent field count."""
+    best, best_score = None, (-1, -1)
+    for delim in _DELIMITERS:
+        counts = [len(_split(line, delim)) for line in lines]
+        multi = [c for c in counts if c >= 2]
+        if not multi:
+            continue
+        common = max(set(multi), key=multi.count)
+        score = (len(multi), multi.count(common))
+        if score > best_score:
+            best, best_score = delim, score
+    return best
+
+
+def _is_header(fields: list[str], decimal_comma: bool) -> bool:
+    """A line is a header when it has text and no field is a number (a data row with text in
+    one column is a row to drop, not a header)."""
+    filled = [f for f in fields if f.strip()]
+    return bool(filled) and all(math.isnan(_number(f, decimal_comma)) for f in filled)
+
+
+def _normalise(name: str) -> str:
+    return re.sub(r"\s+", " ", name.strip().strip('"').strip("'")).lower()
+
+
+def _strip_unit(name: str) -> str:
+    return re.sub(r"\s*[\(\[].*?[\)\]]\s*$", "", name).strip()
+
+
+def _column(spec, names: list[str] | None, n_fields: int, what: str, path: str) -> int:
+    """Index of a column given by index (int or digit string) or by header name."""
+    if isinstance(spec, (int, np.integer)) and not isinstance(spec, bool):
+        index = int(spec)
+    elif isinstance(spec, str) and re.fullmatch(r"-?\d+", spec.strip()):
+        index = int(spec.strip())
+    elif isinstance(spec, str):
+        if names is None:
+            raise ValueError(f"{path}: {what} column {spec!r} given by name, but the file has "
+                             "no header line; give the column index instead")
+        wanted = _normalise(spec)
+        normal = [_normalise(n) for n in names]
+        stripped = [_strip_unit(n) for n in normal]
+        for candidates in (normal, stripped):
+            if wanted in candidates:
+                return candidates.index(wanted)
+        if _strip_unit(wanted) in stripped:
+            return stripped.index(_strip_unit(wanted))
+        raise ValueError(f"{path}: no {what} column named {spec!r}; the header has "
+                         f"{', '.join(repr(n) for n in names)}")
+    else:
+        raise ValueError(f"{what} must be a column name or index, got {spec!r}")
+    if not -n_fields <= index < n_fields:
+        raise ValueError(f"{path}: {what} column index {index} is out of range; the file has "
+                         f"{n_fields} columns")
+    return index % n_fields
+
+
+def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
+               scale: float = 1.0) -> Trace:
+    """Read a measured trace x(t) from a delimited text file.
+
+    Accepts comma, semicolon, tab or whitespace separated columns, with or without a header
+    line, CRLF or LF line ends, comment lines (``#``), separator lines (``-----``), empty
+    trailing fields, decimal commas in semicolon/tab/space separated files and clock-time
+    stamps ``HH:MM:SS.fff`` (read as seconds).
+
+    Arguments:
+        path: the file.
+        time: the time column, by header name or index (default: the first column). Ignored
+            when ``rate`` is a number: time is then rebuilt from the sample index.
+        position: the position column, by name or index (default: the second column, or the
+            only one when ``rate`` is a number and the file has a single column).
+        rate: None (read time as is); a sample rate [1/s] (time = t_first + i / rate with i
+            the data-row index, dropped rows included; t_first = 0 without a time column);
+            or "auto" for buffered time stamps (many rows share one stamp): the rate is
+            (rows - 1) / (last stamp - first stamp), from the first and last readable stamps
+            and the rows between them, and time is rebuilt from the row index.
+        delimiter: the separator; None detects ";", tab, "," or whitespace.
+        scale: factor applied to the positions (e.g. ``math.pi / 180`` for degrees).
+
+    Returns:
+        A :class:`Trace` with float64 ``t`` and ``x``; ``n_dropped`` counts the rows left out.
+
+    Raises:
+        ValueError: the file has no data, only one column (and no ``rate``), no usable rows
+            (every row has text or nothing in the chosen columns), an unknown column name,
+            an index out of range, or a bad ``rate``. The message names the file.
+        OSError: the file cannot be read.
+    """
+    path_str = str(path)
+    raw = Path(path).read_bytes()
+    text = raw.decode("utf-8-sig", errors="replace")
+    lines = _content_lines(text)
+    if not lines:
+        raise ValueError(f"{path_str}: no data (the file is empty or holds only comments)")
+    if rate is not None and not (rate == "auto" or (
+            isinstance(rate, (int, float)) and not isinstance(rate, bool)
+            and math.isfinite(rate) and rate > 0)):
+        raise ValueError(f"rate must be a positive number or 'auto', got {rate!r}")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale != 0):
+        raise ValueError(f"scale must be a finite non-zero number, got {scale!r}")
+
+    sample = [line for _, line in lines[:_SAMPLE_LINES]]
+    if delimiter is None:
+        delim = _choose_delimiter(sample)
+    elif delimiter in (" ", "whitespace", "space"):
+        delim = None
+    elif delimiter in ("tab", "\\t"):
+        delim = "\t"
+    else:
+        delim = delimiter
+    decimal_comma = delim != ","
+    first = _split(lines[0][1], delim)
+    header = _is_header(first, decimal_comma)
+    names = first if header else None
+    body = lines[1:] if header else lines
+    counts = [len(_split(line, delim)) for _, line in body[:_SAMPLE_LINES]] or [len(first)]
+    n_fields = max(len(first), max(set(counts), key=counts.count))
+
+    from_rate = rate is not None and rate != "auto"
+    if n_fields < 2 and not from_rate:
+        raise ValueError(f"{path_str}: only one column (delimiter "
+                         f"{'whitespace' if delim is None else repr(delim)}); a trace needs a "
+                         "time and a position column, or pass rate=<samples per second> to "
+                         "build time from the sample index")
+    if position is None:
+        position = 1 if n_fields >= 2 else 0
+    i_pos = _column(position, names, n_fields, "position", path_str)
+    use_time = not from_rate or time is not None
+    i_time = _column(0 if time is None else time, names, n_fields, "time", path_str) \
+        if use_time else None
+    if i_time is not None and i_time == i_pos:
+        raise ValueError(f"{path_str}: the time and position columns are the same "
+                         f"(column {i_pos})")
+
+    n_rows = len(body)
+    times = np.full(n_rows, np.nan)
+    xs = np.full(n_rows, np.nan)
+    for r, (_, line) in enumerate(body):
+        fields = _split(line, delim)
+        if i_pos < len(fields):
+            xs[r] = _number(fields[i_pos], decimal_comma)
+        if i_time is not None and i_time < len(fields):
+            times[r] = _number(fields[i_time], decimal_comma)
+    finite_x = np.isfinite(xs)
+    finite_t = np.isfinite(times) if i_time is not None else np.ones(n_rows, bool)
+    index = np.arange(n_rows, dtype=float)
+
+    rate_used = None
+    if rate == "auto":
+        ok_t = np.flatnonzero(finite_t)
+        if ok_t.size < 2 or times[ok_t[-1]] <= times[ok_t[0]]:
+            raise ValueError(f"{path_str}: rate='auto' needs at least two different readable "
+                             "time stamps")
+        rate_used = float((ok_t[-1] - ok_t[0]) / (times[ok_t[-1]] - times[ok_t[0]]))
+        t = times[ok_t[0]] + (index - ok_t[0]) / rate_used
+        keep = finite_x
+    elif from_rate:
+        rate_used = float(rate)
+        t0 = 0.0
+        if i_time is not None:
+            ok_t = np.flatnonzero(finite_t)
+            t0 = float(times[ok_t[0]]) if ok_t.size else 0.0
+        t = t0 + index / rate_used
+        keep = finite_x
+    else:
+        t = times
+        keep = finite_x & finite_t
+    n_keep = int(np.sum(keep))
+    if n_keep == 0:
+        cols = f"column {i_pos}" if i_time is None else f"columns {i_time} and {i_pos}"
+        raise ValueError(f"{path_str}: no usable rows: none of the {n_rows} data rows has "
+                         f"numbers in {cols} (text, empty fields or a wrong delimiter?)")
+
+    def label(i):
+        if i is None:
+            return "sample index"
+        return names[i].strip() if names is not None and i < len(names) else f"#{i}"
+
+    return Trace(t=np.asarray(t[keep], dtype=float),
+                 x=np.asarray(xs[keep], dtype=float) * float(scale),
+                 n_dropped=n_rows - n_keep, source=path_str, time_column=label(i_time),
+                 position_column=label(i_pos), rate=rate_used, n_rows=n_rows)
