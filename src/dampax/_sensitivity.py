@@ -118,14 +118,7 @@ def _check_wrt(wrt) -> tuple[str, ...]:
     except TypeError:
         raise ValueError(f"wrt must be a sequence of names from {PARAMETERS}, "
                          f"got {wrt!r}") from None
-    if not names:
-        raise ValueError(f"wrt must name at least one of {PARAMETERS}")
-    unknown = [n for n in names if n not in PARAMETERS]
-    if unknown:
-        raise ValueError(f"wrt: unknown name(s) {unknown}; choose from {PARAMETERS}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"wrt: names must not repeat, got {names}")
-    return names
+    return check_choices("wrt", names, PARAMETERS)
 
 
 def _check_ts(ts) -> Array:
