@@ -140,6 +140,31 @@ def test_rizcallah_other_kappas_decay_rates(kappa):
     np.testing.assert_allclose(np.abs(x), 0.2 - d * t, rtol=1e-12)
 
 
+
+@pytest.mark.parametrize("kappa", [math.pi / 2, math.sqrt(2)])
+@pytest.mark.parametrize("ratio", [0.02, 0.025, 0.03, 0.045])
+def test_rizcallah_halt_when_turning_points_jump_over_the_band(kappa, ratio):
+    # kappa > 4/pi: |x_n| = x0 - n (kappa pi/2) xc drops by more than the band's width per half
+    # period; the model halts in the band if a turning point lands there, else at the one
+    # nearest the band before the envelope's zero, and never with NaN
+    mu, _, _ = ratios_to_constants(ratio)
+    xc = mu * 9.81 / 30.0
+    sol = dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=mu), 0.2, 0.0, method="rizcallah",
+                   kappa=kappa)
+    step = kappa * math.pi / 2 * xc
+    n = np.arange(1, 200)
+    xn = 0.2 - n * step  # signed envelope at the turning points n pi / w0
+    inside = np.flatnonzero(np.abs(xn) <= xc)
+    before_zero = np.flatnonzero(xn > 0)
+    last = before_zero[-1]
+    cands = n[: last + 2]
+    pick = (inside[0] if inside.size and inside[0] <= last + 1
+            else int(np.argmin(np.abs(xn[: last + 2]))))
+    assert float(sol.halt_time) == pytest.approx(cands[pick] * math.pi / W0, rel=1e-12)
+    assert abs(float(sol.halt_position)) == pytest.approx(abs(xn[pick]), abs=1e-12)
+    assert bool(sol.valid)
+    assert np.all(np.isfinite(np.asarray(sol.x(np.linspace(0.0, 10.0, 50)))))
+
 @pytest.mark.parametrize("b_ratio", [0.0, 0.03])
 def test_coulomb_exact_against_scipy(b_ratio):
     rng = np.random.default_rng(1)

@@ -23,6 +23,8 @@ from ._maps import error_map as error_map  # noqa: E402
 from ._oscillator import Oscillator as Oscillator  # noqa: E402
 from ._oscillator import damping_coefficients as damping_coefficients  # noqa: E402
 from ._oscillator import from_ratios as from_ratios  # noqa: E402
+from ._reproduce import paper_numbers as paper_numbers  # noqa: E402
+from ._reproduce import reproduce as reproduce  # noqa: E402
 from ._sensitivity import Sensitivity as Sensitivity  # noqa: E402
 from ._sensitivity import plot_sensitivity as plot_sensitivity  # noqa: E402
 from ._sensitivity import sensitivity as sensitivity  # noqa: E402

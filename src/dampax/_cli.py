@@ -354,6 +354,50 @@ def _run_errormap(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_reproduce_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", default="reproduce", metavar="DIR",
+                        help="output folder (default: %(default)s)")
+    parser.add_argument("--figures", default="all", metavar="LIST",
+                        help="figures to draw: numbers 2-21, ranges (8-10), 'rizcallah', "
+                             "'all' or 'none', comma-separated (default: %(default)s)")
+    parser.add_argument("--no-numbers", action="store_true",
+                        help="skip numbers.csv / numbers.md")
+    parser.add_argument("--format", default="png", metavar="EXT",
+                        help="image format: png, pdf, svg, ... (default: %(default)s)")
+    parser.add_argument("--dpi", type=int, default=110, help="resolution (default: %(default)s)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _run_reproduce(args: argparse.Namespace) -> int:
+    """Redraw Figures 2-21 of Lelas & Pezer and Rizcallah's comparison; recompute quoted numbers."""
+    import time
+
+    from ._reproduce import reproduce, select_figures
+
+    if args.dpi <= 0:
+        raise ValueError(f"--dpi must be > 0, got {args.dpi}")
+    select_figures(args.figures)  # fail on a bad list before any work
+    start = time.perf_counter()
+    res = reproduce(args.out, figures=args.figures, numbers=not args.no_numbers,
+                    fmt=args.format, dpi=args.dpi, progress=not args.no_progress)
+    elapsed = time.perf_counter() - start
+    print(f"{PROG} reproduce: {len(res.figures)} figures"
+          + (" and numbers.csv, numbers.md" if res.numbers_md else "")
+          + f" in {Path(args.out)} ({elapsed:.0f} s)")
+    if res.numbers:
+        counts = {s: sum(r.status == s for r in res.numbers)
+                  for s in ("ok", "explained", "MISMATCH")}
+        print(f"  {len(res.numbers)} quoted values: {counts['ok']} within the printed rounding, "
+              f"{counts['explained']} known discrepancies of the papers' text (see numbers.md), "
+              f"{counts['MISMATCH']} mismatched")
+        for r in res.numbers:
+            if r.status == "MISMATCH":
+                print(f"  MISMATCH: {r.source}: {r.quantity}: paper {r.quoted}, "
+                      f"dampax {r.computed:.6g}")
+        return 1 if counts["MISMATCH"] else 0
+    return 0
+
+
 #: name -> (add_arguments(parser), run(args) -> exit status); the first docstring line of
 #: ``run`` is the subcommand's help.
 SUBCOMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
@@ -362,6 +406,7 @@ SUBCOMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
     "errormap": (_add_errormap_arguments, _run_errormap),
     "sensitivity": (_add_sensitivity_arguments, _run_sensitivity),
     "fit": (_add_fit_arguments, _run_fit),
+    "reproduce": (_add_reproduce_arguments, _run_reproduce),
 }
 
 

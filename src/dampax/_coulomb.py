@@ -336,7 +336,8 @@ class RizcallahSolution(_PiecewiseSolution):
 
     Rizcallah (2019) replaces the friction force by its first harmonic kappa mu m g
     sin(w0 t + phi0); d = kappa mu g/(2 w0). The halt is the first turning point with
-    |x| <= xc (the exact solution's criterion).
+    |x| <= xc (the exact solution's criterion); where the turning points jump over the band
+    (kappa > 4/pi), the turning point nearest the band before the envelope's zero.
     """
 
     amplitude0: Array
@@ -468,8 +469,17 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     inside = (ts > eps) & (jnp.abs(xs) <= xc_)
     first = jnp.argmax(inside)
     found = jnp.any(inside)
-    t_h = jnp.where(found, ts[first], jnp.inf)
-    x_h = jnp.where(found, xs[first], jnp.nan)
+    # kappa > 4/pi: the envelope loses kappa (pi/2) xc per half period, more than the band's
+    # width 2 xc, so the turning points can jump over the band; the model then stops at the
+    # turning point nearest the band, up to the first one after its envelope's zero A0/d
+    # (after that its swings grow: Rizcallah's "unphysical artifact")
+    t_zero = jnp.where(halts, A0_ / jnp.where(halts, d_, 1.0), jnp.inf)
+    t_lim = jnp.min(jnp.where((ts > eps) & (ts >= t_zero), ts, jnp.inf))
+    near = (ts > eps) & (ts <= t_lim) & jnp.isfinite(ts)
+    nearest = jnp.argmin(jnp.where(near, jnp.abs(xs), jnp.inf))
+    t_h = jnp.where(found, ts[first], jnp.where(jnp.any(near), ts[nearest], jnp.inf))
+    x_h = jnp.where(found, xs[first], jnp.where(jnp.any(near), xs[nearest], jnp.nan))
+    found = found | jnp.any(near)
     # a start at rest inside the band stays there
     stuck = (v0 == 0.0) & (jnp.abs(x0) <= xc)
     t_h = jnp.where(stuck, 0.0, t_h)
