@@ -281,3 +281,29 @@ def test_batched_oscillator_fields():
     amps = jax.vmap(lambda mu, D: dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=mu, D=D), 0.2,
                                            0.0).amplitude)(osc.mu, osc.D)
     assert amps.shape == (3,) and np.all(np.isfinite(amps))
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_array_fields_without_vmap(model):
+    # an Oscillator with array fields: the plain ansatz broadcasts (same numbers as a loop);
+    # the piecewise models ask for jax.vmap with a ValueError (not a shape error deep inside)
+    mu = jnp.array([0.0, 0.02, 0.05])
+    D = jnp.zeros(3) if model in COULOMB_ONLY else jnp.array([0.0, 1.0, 2.0])
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=mu, D=D)
+    opts = MODELS[model]
+    if model not in ("matched", "undamped"):
+        with pytest.raises(ValueError, match="jax.vmap"):
+            dp.solve(osc, 0.2, 0.0, **opts)
+        return
+    sol = dp.solve(osc, 0.2, 0.0, **opts)
+    t, x = dp.turning_points(sol, 3)
+    assert t.shape == (3, 3)
+    for i in range(3):
+        one = dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=float(mu[i]), D=float(D[i])), 0.2, 0.0,
+                       **opts)
+        assert float(sol.x(0.7)[i]) == pytest.approx(float(one.x(0.7)), rel=1e-12)
+        amplitude = jnp.broadcast_to(sol.amplitude, (3,))[i]  # A0 for the undamped phase
+        assert float(amplitude) == pytest.approx(float(one.amplitude), rel=1e-12)
+        t1, x1 = dp.turning_points(one, 3)
+        np.testing.assert_allclose(t[i], t1, rtol=1e-12)
+        np.testing.assert_allclose(x[i], x1, rtol=1e-12)

@@ -140,7 +140,10 @@ def matched_amplitude(cphi, sphi, e0, e1, e2, *, steps=16, newton=3):
         (y, h, valid): y = A/A0, h = y sin(phi) and the validity flag. First derivatives of y are
         exact (implicit function theorem through a final Newton step).
     """
-    args = tuple(jnp.asarray(v, dtype=float) for v in (cphi, sphi, e0, e1, e2))
+    # broadcast first: the scan's carry takes the shape of the whole batch (an Oscillator with
+    # array fields and a scalar start, or the other way round)
+    args = tuple(jnp.broadcast_arrays(*(jnp.asarray(v, dtype=float)
+                                        for v in (cphi, sphi, e0, e1, e2))))
     const = jax.lax.stop_gradient(args)
     ds = 1.0 / steps
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ansatz import solve_ansatz
+from ._ansatz import AnsatzSolution, solve_ansatz
 from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
 from ._oscillator import Oscillator, check_finite, is_concrete
 
@@ -57,6 +58,13 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         raise ValueError(f"options {sorted(options)} apply to method='reference' only")
     check_finite("x0", x0)
     check_finite("v0", v0)
+    piecewise = method in ("rizcallah", "coulomb_exact") or tail is not None
+    if piecewise and any(np.ndim(a) for a in jax.tree_util.tree_leaves((osc, x0, v0))):
+        name = f"method={method!r}" + (f", tail={tail!r}" if tail else "")
+        raise ValueError(
+            f"{name}: array-valued oscillator fields or initial states are not broadcast by "
+            "this piecewise model; map over them with jax.vmap(lambda ...: dp.solve(...)) "
+            "(the plain ansatz and the reference accept arrays directly)")
     eager = is_concrete(osc, x0, v0)
     if eager and method == "rizcallah":
         _require(np.all(np.asarray(osc.b) == 0) and np.all(np.asarray(osc.D) == 0),
@@ -113,4 +121,16 @@ def turning_points(sol, n: int):
     Returns:
         (t, x), two arrays of shape (n,).
     """
+    if isinstance(sol, AnsatzSolution):
+        # an ansatz solved for array fields: its leaves broadcast to a batch shape; map the
+        # per-trajectory search over it
+        leaves = [a for a in jax.tree_util.tree_leaves(sol) if isinstance(a, jax.Array)]
+        shape = jnp.broadcast_shapes(*(a.shape for a in leaves))
+        if shape:
+            size = math.prod(shape)
+            flat = jax.tree_util.tree_map(
+                lambda a: jnp.broadcast_to(a, shape).reshape(size)
+                if isinstance(a, jax.Array) else a, sol)
+            t, x = jax.vmap(lambda s: s.turning_points(int(n)))(flat)
+            return t.reshape(shape + (int(n),)), x.reshape(shape + (int(n),))
     return sol.turning_points(int(n))
