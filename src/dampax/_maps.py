@@ -302,7 +302,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             model or reference, chunk_size < 1, periods <= 0 or samples_per_period < 2.
     """
     import xarray as xr
-    from tqdm.auto import tqdm
+    from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
 
     from . import __version__
 

@@ -904,7 +904,7 @@ def reproduce(out, *, figures: str | Sequence[str] | None = None, numbers: bool 
     by_name = {f.name: f for f in FIGURES}
     written: dict[str, Path] = {}
     steps = list(names) + (["numbers"] if numbers else [])
-    from tqdm.auto import tqdm
+    from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
 
     bar = tqdm(steps, desc="reproduce", unit="item", disable=not progress, leave=True)
     rows: list[Number] = []
