@@ -170,8 +170,12 @@ ALL_FIGURES = tuple(f.name for f in FIGURES) + RIZCALLAH_FIGURES
 
 
 @eqx.filter_jit
-def _evaluate(osc, x0, v0, t, options, n_turning: int):
-    sol = solve(osc, x0, v0, **dict(options))
+def _evaluate(osc, x0, v0, t, options: tuple, n_turning: int):
+    """x, E on t, turning points and halt of one model; ``options`` static, t_end traced."""
+    options = dict(options)
+    if options.get("method") == "reference":
+        options["t_end"] = jnp.asarray(REFERENCE_T_END)
+    sol = solve(osc, x0, v0, **options)
     return (sol.x(t), sol.energy(t), turning_points(sol, n_turning), sol.halt_time,
             sol.halt_position)
 
@@ -201,35 +205,15 @@ class _Cases:
         if key not in self._cache:
             osc = paper_oscillator(d0_ratio, d2_ratio)
             x0, v0 = STARTS[start]
-            opts = tuple(options)
-            if dict(opts).get("method") == "reference":
-                opts = opts + (("t_end", jnp.asarray(REFERENCE_T_END)),)
             if t.size > GRID:
                 raise ValueError(f"t: at most {GRID} samples, got {t.size}")
             # one grid length for every call: one compilation per model, not per grid
             padded = np.concatenate([t, np.full(GRID - t.size, t[-1])])
             out = _evaluate(osc, jnp.asarray(x0), jnp.asarray(v0), jnp.asarray(padded),
-                            _Static(opts), self.n_turning)
+                            tuple(options), self.n_turning)
             x, e, (tt, tx), tau, xh = jax.tree_util.tree_map(np.asarray, out)
             self._cache[key] = Curve(x[: t.size], e[: t.size], tt, tx, float(tau), float(xh))
         return self._cache[key]
-
-
-class _Static:
-    """Solve options as one hashable static argument; arrays among them stay traced."""
-
-    def __init__(self, options):
-        self.static = tuple((k, v) for k, v in options if not isinstance(v, jax.Array))
-        self.arrays = {k: v for k, v in options if isinstance(v, jax.Array)}
-
-    def __iter__(self):
-        yield from self.static
-        yield from self.arrays.items()
-
-
-jax.tree_util.register_pytree_node(
-    _Static, lambda s: (tuple(s.arrays.values()), (s.static, tuple(s.arrays))),
-    lambda aux, leaves: _Static(aux[0] + tuple(zip(aux[1], leaves, strict=True))))
 
 
 _REFERENCE = (("method", "reference"),)
