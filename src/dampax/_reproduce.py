@@ -787,17 +787,20 @@ def write_numbers(rows: Sequence[Number], out: Path) -> tuple[Path, Path]:
         "| # | source | quantity | paper | dampax | difference | unit | status |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    notes = []
+    notes: dict[str, list[int]] = {}  # note -> rows (one note often covers t and x)
     for i, r in enumerate(rows, 1):
         diff = "" if math.isnan(r.value) else f"{r.difference:+.2g}"
         status = r.status
         if r.note:
-            notes.append(f"{i}. {r.note}")
-            status += f" ({i})" if r.status != "ok" else ""
+            notes.setdefault(r.note, []).append(i)
+            status += f" (note {list(notes).index(r.note) + 1})" if r.status != "ok" else ""
         lines.append(f"| {i} | {r.source} | {r.quantity} | {r.quoted} | {_fmt(r.computed)} | "
                      f"{diff} | {r.unit} | {status} |")
     if notes:
-        lines += ["", "Notes (by row):", ""] + notes
+        lines += ["", "Notes:", ""]
+        for j, (note, at) in enumerate(notes.items(), 1):
+            where = ("rows " if len(at) > 1 else "row ") + ", ".join(map(str, at))
+            lines.append(f"{j}. ({where}) {note}")
     md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return csv_path, md_path
 
