@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._oscillator import Oscillator, damping_coefficients, from_ratios
-from ._plot import MODELS
+from ._plot import MODELS, default_t_end
 from ._solve import solve, turning_points
 
 A0 = 0.2  # m, the amplitude of every case in both papers' comparisons
@@ -225,14 +225,14 @@ def _red_options(panel: Panel) -> tuple:
 
 
 def _panel_t_end(cases: _Cases, panel: Panel) -> float:
-    """The panel's time span: its own, else half a period past the latest halt (5 s if none)."""
+    """The panel's time span: its own, else :func:`default_t_end` of the models drawn."""
     if panel.t_end is not None:
         return panel.t_end
     probe = np.linspace(0.0, REFERENCE_T_END, 9)
     halts = [cases.curve(*panel.case, opts, probe).halt_time
              for opts in (_REFERENCE, _red_options(panel), _UNDAMPED)]
-    finite = [h for h in halts if math.isfinite(h)]
-    return min(max(finite) + 0.5 * T0, REFERENCE_T_END) if finite else 5.0
+    osc = paper_oscillator(panel.d0_ratio, panel.d2_ratio)
+    return min(default_t_end(osc, halts), REFERENCE_T_END)
 
 
 def _ratio_title(panel: Panel) -> str:
