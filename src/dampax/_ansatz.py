@@ -1,7 +1,7 @@
 """The ansatz x(t) = A f(t) cos(w0 t + phi) of Lelas & Pezer (Part I), eqs. 8-24, 36-54.
 
 f solves the Riccati equation f' = -(a f^2 + b' f + c), f(0) = 1 (eq. 20), with a = d2 A,
-b' = d1, c = d0 / A. Its five closed forms (DESIGN 2.3) are one Moebius expression
+b' = d1, c = d0 / A. Its five closed forms (docs/DESIGN.md, section 2.3) are one Moebius expression
 
     f(t) = (1 - (c + b'/2) T(t)) / (1 + (a + b'/2) T(t)),   T(t) = tanh(q t) / q,
 
@@ -17,7 +17,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._oscillator import Oscillator, damping_coefficients, initial_amplitude_phase, jit_method
+from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
+from ._solution import RESULTS, AbstractSolution, first_failure
 
 Array = jax.Array
 
@@ -57,7 +58,7 @@ def _atanc(Q, x):
 
 
 def halt_time(a, bp, c):
-    """Halt time tau with f(tau) = 0 for f' = -(a f^2 + b' f + c), f(0) = 1 (DESIGN 2.3).
+    """Halt time tau with f(tau) = 0 for f' = -(a f^2 + b' f + c), f(0) = 1 (eq. 20).
 
     Arguments:
         a, bp, c: the Riccati coefficients a = d2 A, b' = d1, c = d0 / A (all >= 0).
@@ -80,7 +81,7 @@ def halt_time(a, bp, c):
 
 
 def decay(t, a, bp, c, tau=None):
-    """Amplitude factor f(t) of eq. 20 in closed form for any a, b', c >= 0 (DESIGN 2.3).
+    """Amplitude factor f(t) of eq. 20 in closed form for any a, b', c >= 0 (eqs. 28, 45).
 
     Arguments:
         t: time(s) >= 0.
@@ -181,13 +182,14 @@ def matched_amplitude(cphi, sphi, e0, e1, e2, *, steps=16, newton=3):
 # the solution object
 
 
-class AnsatzSolution(eqx.Module):
+class AnsatzSolution(AbstractSolution):
     """x(t) = A f(t) cos(w0 t + phi) of eq. 11, zero after the halt time tau (eq. 37).
 
     ``matched=True``: A and phi from eqs. 22-23, velocity eq. 12, energy eq. 15.
     ``matched=False``: the earlier approach, A = A0, phi = phi0 (eq. 8), velocity without the
     f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
-    Where no admissible amplitude exists, ``valid`` is False and the values are NaN.
+    Where no admissible amplitude exists, ``result`` is ``RESULTS.no_amplitude`` (``valid``
+    False) and the values are NaN.
     """
 
     A: Array  # amplitude, finite even where invalid (see ``amplitude``)
@@ -197,9 +199,8 @@ class AnsatzSolution(eqx.Module):
     bp: Array
     c: Array
     halt_time: Array
-    m: Array
-    k: Array
-    valid: Array
+    osc: Oscillator
+    result: RESULTS
     matched: bool = eqx.field(static=True)
 
     @property
@@ -249,8 +250,8 @@ class AnsatzSolution(eqx.Module):
     def energy(self, t) -> Array:
         """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
         if self.matched:
-            return 0.5 * self.k * self.x(t) ** 2 + 0.5 * self.m * self.v(t) ** 2
-        return self._mask(0.5 * self.m * (self.omega0 * self.A * self.f(t)) ** 2)
+            return self.osc.energy(self.x(t), self.v(t))
+        return self._mask(0.5 * self.osc.m * (self.omega0 * self.A * self.f(t)) ** 2)
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
@@ -322,7 +323,7 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     if phase not in ("matched", "undamped"):
         raise ValueError(f"phase must be 'matched' or 'undamped', got {phase!r}")
     w0 = osc.omega0
-    d0, d1, d2 = damping_coefficients(osc)
+    d0, d1, d2 = osc.damping_coefficients
     A0, phi0 = initial_amplitude_phase(osc, x0, v0)
     at_rest = A0 == 0.0
     A0_safe = jnp.where(at_rest, 1.0, A0)
@@ -345,7 +346,8 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     bp = d1 + 0.0 * a
     tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
-                          halt_time=tau, m=osc.m, k=osc.k, valid=valid,
+                          halt_time=tau, osc=osc,
+                          result=first_failure((~valid, RESULTS.no_amplitude)),
                           matched=phase == "matched")
 
 

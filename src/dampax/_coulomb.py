@@ -1,8 +1,8 @@
 """Exact Coulomb (+ viscous) half-swings, the Coulomb tail of the ansatz, and Rizcallah's model.
 
-Half-swing map (DESIGN 2.4, 2.6): from rest at x_j with |x_j| > xc the block swings about the
-shifted centre sgn(x_j) xc. With viscous damping gamma = b/(2m) the swing is a damped cosine of
-half period pi/wd, wd = sqrt(w0^2 - gamma^2), and with rho = exp(-gamma pi/wd) the turning
+Half-swing map (docs/DESIGN.md 2.4, 2.6): from rest at x_j with |x_j| > xc the block swings
+about the shifted centre sgn(x_j) xc. With viscous damping gamma = b/(2m) the swing is a damped
+cosine of half period pi/wd, wd = sqrt(w0^2 - gamma^2), and with rho = exp(-gamma pi/wd) the turning
 points obey |x_(j+1)| = rho (|x_j| - xc) - xc, i.e. e_j - e* = rho^j (e_0 - e*) with
 e* = -xc (1 + rho)/(1 - rho). Position and velocity at any t, the number of swings and the rest
 point are therefore closed-form: no loop over swings, jit/vmap/grad-safe.
@@ -18,6 +18,7 @@ import jax.numpy as jnp
 
 from ._ansatz import AnsatzSolution, _atanc
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
+from ._solution import RESULTS, AbstractSolution, first_failure, result_where
 
 Array = jax.Array
 
@@ -34,8 +35,8 @@ def compact(ts, xs, ok, n: int):
     return out_t, out_x
 
 
-class _PiecewiseSolution(eqx.Module):
-    """x(t), v(t) and energy(t) of a model that defines ``_state(t) -> (x, v)``, m and k."""
+class _PiecewiseSolution(AbstractSolution):
+    """x(t), v(t) and energy(t) of a model that defines ``_state(t) -> (x, v)`` and ``osc``."""
 
     @jit_method
     def x(self, t) -> Array:
@@ -50,8 +51,7 @@ class _PiecewiseSolution(eqx.Module):
     @jit_method
     def energy(self, t) -> Array:
         """Energy k x^2/2 + m v^2/2 (eq. 4)."""
-        x, v = self._state(t)
-        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+        return self.osc.energy(*self._state(t))
 
 
 class SwingSolution(_PiecewiseSolution):
@@ -71,9 +71,8 @@ class SwingSolution(_PiecewiseSolution):
     gamma: Array
     omega0: Array
     omegad: Array
-    m: Array
-    k: Array
-    valid: Array
+    osc: Oscillator
+    result: RESULTS
 
     @property
     def half_period(self):
@@ -153,20 +152,21 @@ class SwingSolution(_PiecewiseSolution):
         return jnp.where(ok, ts, jnp.nan), jnp.where(ok, xs, jnp.nan)
 
 
-def swings_from(t_s, x_s, v_s, *, xc, gamma, omega0, m, k) -> SwingSolution:
-    """Exact Coulomb (+ viscous) motion from the state (t_s, x_s, v_s); DESIGN 2.4 and 2.6.
+def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
+    """Exact Coulomb (+ viscous) motion from the state (t_s, x_s, v_s); docs/DESIGN.md 2.4, 2.6.
 
     Arguments:
+        osc: the oscillator; its D is not used (the caller checks D = 0 where it matters).
+            Needs underdamping, b < 2 sqrt(k m) (else ``RESULTS.overdamped``).
         t_s, x_s, v_s: start time and state.
-        xc: half-width of the sticking band mu g / w0^2.
-        gamma: viscous rate b/(2m) (< w0: underdamped; else ``valid`` is False).
-        omega0, m, k: the oscillator.
 
     Returns:
         A :class:`SwingSolution`.
     """
     t_s, x_s, v_s, xc, gamma, w0 = (jnp.asarray(v, dtype=float)
-                                    for v in (t_s, x_s, v_s, xc, gamma, omega0))
+                                    for v in (t_s, x_s, v_s, osc.xc, osc.gamma, osc.omega0))
+    result = first_failure((~(jnp.isfinite(x_s) & jnp.isfinite(v_s)), RESULTS.nonfinite_state),
+                           (~(gamma < w0), RESULTS.overdamped))
     valid = (gamma < w0) & jnp.isfinite(x_s) & jnp.isfinite(v_s)
     wd = jnp.sqrt(jnp.where(valid, w0 * w0 - gamma * gamma, 1.0))
     moving = v_s != 0.0
@@ -195,25 +195,26 @@ def swings_from(t_s, x_s, v_s, *, xc, gamma, omega0, m, k) -> SwingSolution:
         jnp.where(e0 <= xc, 0.0, jnp.where(halts, jnp.ceil(j_star - 1e-9), jnp.inf)))
     return SwingSolution(t_start=t_s, x_start=x_s, v_start=v_s, t1=t1, x1=x1,
                          n_swings=n_swings, xc=xc, gamma=gamma, omega0=w0, omegad=wd,
-                         m=jnp.asarray(m, dtype=float), k=jnp.asarray(k, dtype=float),
-                         valid=valid)
+                         osc=osc, result=result)
 
 
 def solve_coulomb_exact(osc: Oscillator, x0, v0) -> SwingSolution:
     """Exact solution of eq. 3 with sliding friction (and viscous damping), D = 0.
 
     Half-swing by half-swing from any initial state, including a start at rest inside the
-    sticking band (the block stays there). Exact for mu >= 0, 0 <= b < 2 sqrt(k m), D = 0.
+    sticking band (the block stays there). Exact for mu >= 0, 0 <= b < 2 sqrt(k m), D = 0;
+    with D != 0 ``result`` is ``RESULTS.no_drag``.
     """
-    return swings_from(0.0, x0, v0, xc=osc.xc, gamma=osc.gamma, omega0=osc.omega0,
-                       m=osc.m, k=osc.k)
+    sol = swings_from(osc, 0.0, x0, v0)
+    return eqx.tree_at(lambda s: s.result, sol,
+                       result_where(sol.valid & (osc.D != 0.0), RESULTS.no_drag, sol.result))
 
 
 # ----------------------------------------------------------------------------------------------
 # the ansatz with the exact Coulomb tail (eqs. 41, 52, 54)
 
 
-class TailSolution(eqx.Module):
+class TailSolution(AbstractSolution):
     """The ansatz up to a turning point (t_s, x_s), the exact Coulomb (+ viscous) motion after.
 
     Eqs. 41 and 52 (``back=0``: the last turning point with |x| > xc) and 54 (``back=1``: the
@@ -235,8 +236,11 @@ class TailSolution(eqx.Module):
         return self.ansatz.phase
 
     @property
-    def valid(self):
-        return self.ansatz.valid & self.tail.valid & self.found
+    def result(self) -> RESULTS:
+        """The ansatz's reason, else the tail's, else whether the switch point was found."""
+        return first_failure((~self.ansatz.valid, self.ansatz.result),
+                             (~self.tail.valid, self.tail.result),
+                             (~self.found, RESULTS.tail_not_bracketed))
 
     @property
     def halt_time(self):
@@ -265,8 +269,8 @@ class TailSolution(eqx.Module):
 
     @jit_method
     def energy(self, t) -> Array:
-        """Energy k x^2/2 + m v^2/2 of the piecewise motion."""
-        return 0.5 * self.ansatz.k * self.x(t) ** 2 + 0.5 * self.ansatz.m * self.v(t) ** 2
+        """Energy k x^2/2 + m v^2/2 (eq. 4) of the piecewise motion."""
+        return self.ansatz.osc.energy(self.x(t), self.v(t))
 
     @eqx.filter_jit
     def turning_points(self, n: int):
@@ -316,10 +320,8 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
     x_s = sol.x(t_s)
     never = xc_ <= 0.0  # no Coulomb friction: the ansatz holds for all t
     t_switch = jnp.where(never, jnp.inf, jnp.where(from_start, 0.0, t_s))
-    tail = swings_from(jnp.where(from_start, 0.0, t_s),
-                       jnp.where(from_start, x0, x_s),
-                       jnp.where(from_start, v0, 0.0),
-                       xc=xc, gamma=osc.gamma, omega0=osc.omega0, m=osc.m, k=osc.k)
+    tail = swings_from(osc, jnp.where(from_start, 0.0, t_s), jnp.where(from_start, x0, x_s),
+                       jnp.where(from_start, v0, 0.0))
     # estimate window must bracket the last admissible turning point
     bracketed = (~ok[-1]) & (ok[back] | (n_lo <= n_first) | from_start)
     n_before = jnp.where(from_start | never, jnp.where(never, 10**9, 0), n_s_safe - n_first + 1)
@@ -328,7 +330,7 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
 
 
 # ----------------------------------------------------------------------------------------------
-# Rizcallah's sinusoidal friction (DESIGN 2.5)
+# Rizcallah's sinusoidal friction (docs/DESIGN.md 2.5)
 
 
 class RizcallahSolution(_PiecewiseSolution):
@@ -347,9 +349,8 @@ class RizcallahSolution(_PiecewiseSolution):
     xc: Array
     halt_time: Array
     halt_position: Array
-    m: Array
-    k: Array
-    valid: Array
+    osc: Oscillator
+    result: RESULTS
 
     def _free(self, t):
         t = jnp.asarray(t, dtype=float)
@@ -452,10 +453,10 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     v0 = jnp.asarray(v0, dtype=float)
     d = kappa * osc.mu * osc.g / (2.0 * w0)
     xc = osc.xc
-    valid = (osc.b == 0.0) & (osc.D == 0.0)
+    coulomb = (osc.b == 0.0) & (osc.D == 0.0)
     proto = RizcallahSolution(amplitude0=A0, phase0=phi0, omega0=w0, d=d, xc=xc,
                               halt_time=jnp.inf + 0.0 * A0, halt_position=jnp.nan + 0.0 * A0,
-                              m=osc.m, k=osc.k, valid=valid)
+                              osc=osc, result=first_failure((~coulomb, RESULTS.coulomb_only)))
     # the envelope A0 - d t reaches xc near t*; search the turning points around it
     frozen = jax.lax.stop_gradient((A0, phi0, w0, d, xc))
     A0_, ph_, w0_, d_, xc_ = frozen
@@ -487,5 +488,6 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     t_h = jnp.where(halts | stuck, t_h, jnp.inf)
     x_h = jnp.where(halts | stuck, x_h, jnp.nan)
     bracketed = found | stuck | ~halts
-    return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.valid), proto,
-                       (t_h, x_h, valid & bracketed))
+    result = first_failure((~coulomb, RESULTS.coulomb_only), (~bracketed, RESULTS.halt_not_found))
+    return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.result), proto,
+                       (t_h, x_h, result))

@@ -120,8 +120,91 @@ class Oscillator(eqx.Module):
         return self.b / (2.0 * self.m)
 
     def energy(self, x, v) -> Array:
-        """Mechanical energy k x^2/2 + m v^2/2 (eq. 4)."""
+        """Mechanical energy k x^2/2 + m v^2/2 (eq. 4); every solution's energy(t) uses it.
+
+        Arguments:
+            x, v: displacement [m] and velocity [m/s] (arrays broadcast with the fields).
+
+        Returns:
+            E [J].
+        """
         return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+
+    @property
+    def damping_coefficients(self) -> tuple[Array, Array, Array]:
+        """(d0, d1, d2) of the amplitude equation, eq. 21 (see :func:`damping_from_constants`)."""
+        return damping_from_constants(self.mu, self.b, self.D, w0=self.omega0, m=self.m,
+                                      g=self.g)
+
+    @classmethod
+    def from_damping(cls, d0, d1, d2, *, m=1.0, k=1.0, g=9.81) -> Oscillator:
+        """The oscillator of mass m, stiffness k whose eq.-21 coefficients are (d0, d1, d2).
+
+        Arguments:
+            d0 [m/s], d1 [1/s], d2 [1/(m s)]: the damping coefficients, >= 0.
+            m, k, g: mass [kg], stiffness [N/m], gravitational acceleration [m/s^2].
+
+        Returns:
+            An Oscillator with mu, b, D from eq. 21 inverted.
+        """
+        w0 = math.sqrt(k / m) if is_concrete(m, k) and np.ndim(m) == np.ndim(k) == 0 \
+            else jnp.sqrt(k / m)
+        mu, b, D = constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)
+        return cls(m=m, k=k, mu=mu, b=b, D=D, g=g)
+
+    def __repr__(self) -> str:
+        return _repr_fields(self, ("m", "k", "mu", "b", "D", "g"))
+
+
+def _value_text(value) -> str:
+    """A field's value for repr: the number for a scalar, a short array otherwise."""
+    if isinstance(value, jax.core.Tracer):
+        return f"<traced {value.dtype}{list(value.shape)}>"
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        return repr(arr.item())
+    return np.array2string(arr, precision=6, threshold=8, separator=", ")
+
+
+def _repr_fields(obj, names) -> str:
+    """``Type(name=value, ...)`` with the values shown (equinox would print ``f64[]``)."""
+    body = ", ".join(f"{n}={_value_text(getattr(obj, n))}" for n in names)
+    return f"{type(obj).__name__}({body})"
+
+
+def damping_from_constants(mu, b, D, *, w0, m, g):
+    """Eq. 21: d0 = 2 mu g / (pi w0), d1 = b / (2 m), d2 = 4 D w0 / (3 pi m).
+
+    The one place eq. 21 is written; :attr:`Oscillator.damping_coefficients` and the fits
+    (with a fitted w0) call it.
+
+    Arguments:
+        mu, b, D: friction coefficient, viscous [kg/s] and quadratic [kg/m] constants.
+        w0: undamped angular frequency [rad/s]; m: mass [kg]; g: [m/s^2].
+
+    Returns:
+        (d0, d1, d2).
+    """
+    d0 = 2.0 * mu * g / (math.pi * w0)
+    d1 = b / (2.0 * m)
+    d2 = 4.0 * D * w0 / (3.0 * math.pi * m)
+    return d0, d1, d2
+
+
+def constants_from_damping(d0, d1, d2, *, w0, m, g):
+    """Eq. 21 inverted: mu = pi w0 d0 / (2 g), b = 2 m d1, D = 3 pi m d2 / (4 w0).
+
+    Arguments:
+        d0, d1, d2: the damping coefficients of eq. 21.
+        w0: undamped angular frequency [rad/s]; m: mass [kg]; g: [m/s^2].
+
+    Returns:
+        (mu, b, D).
+    """
+    mu = d0 * math.pi * w0 / (2.0 * g)
+    b = 2.0 * m * d1
+    D = 3.0 * math.pi * m * d2 / (4.0 * w0)
+    return mu, b, D
 
 
 def damping_coefficients(osc: Oscillator) -> tuple[Array, Array, Array]:
@@ -135,11 +218,7 @@ def damping_coefficients(osc: Oscillator) -> tuple[Array, Array, Array]:
     Returns:
         (d0, d1, d2), each broadcast like the oscillator's fields.
     """
-    w0 = osc.omega0
-    d0 = 2.0 * osc.mu * osc.g / (math.pi * w0)
-    d1 = osc.b / (2.0 * osc.m)
-    d2 = 4.0 * osc.D * w0 / (3.0 * math.pi * osc.m)
-    return d0, d1, d2
+    return osc.damping_coefficients
 
 
 def initial_amplitude_phase(osc: Oscillator, x0, v0) -> tuple[Array, Array]:
@@ -165,14 +244,18 @@ def from_ratios(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30.0, A0=0
                 g=9.81) -> Oscillator:
     """Oscillator whose dimensionless damping ratios are the given ones.
 
-    d0_ratio = d0/(w0 A0), d1_ratio = d1/w0, d2_ratio = d2 A0/w0 (DESIGN section 1); inverts
-    eq. 21 for mu, b and D at the given m, k and reference amplitude A0.
+    d0_ratio = d0/(w0 A0), d1_ratio = d1/w0, d2_ratio = d2 A0/w0 (docs/DESIGN.md section 1);
+    eq. 21 inverted for mu, b and D at the given m, k and reference amplitude A0.
+
+    Arguments:
+        d0_ratio, d1_ratio, d2_ratio: the ratios (numbers or arrays, >= 0).
+        m, k: mass [kg] and stiffness [N/m]; A0: the reference amplitude [m]; g [m/s^2].
+
+    Returns:
+        An :class:`Oscillator` (array fields for array ratios).
     """
     w0 = math.sqrt(k / m)
     d0 = jnp.asarray(d0_ratio, dtype=float) * w0 * A0
     d1 = jnp.asarray(d1_ratio, dtype=float) * w0
     d2 = jnp.asarray(d2_ratio, dtype=float) * w0 / A0
-    mu = d0 * math.pi * w0 / (2.0 * g)
-    b = 2.0 * m * d1
-    D = 3.0 * math.pi * m * d2 / (4.0 * w0)
-    return Oscillator(m=m, k=k, mu=mu, b=b, D=D, g=g)
+    return Oscillator.from_damping(d0, d1, d2, m=m, k=k, g=g)

@@ -1,4 +1,4 @@
-"""Reference solution of eq. 3 by diffrax, swing by swing (DESIGN section 2.6).
+"""Reference solution of eq. 3 by diffrax, swing by swing (docs/DESIGN.md section 2.6).
 
 Inside a swing sgn(v) = s is constant, so the equation of motion
 
@@ -36,6 +36,7 @@ import numpy as np
 import optimistix as optx
 
 from ._oscillator import Oscillator, check_finite, is_concrete
+from ._solution import RESULTS, AbstractSolution, first_failure
 
 Array = jax.Array
 
@@ -52,10 +53,6 @@ _DT0_W0 = 0.25
 _DEFAULT_PERIODS = 25.0
 # Newton steps (re-taken Runge--Kutta steps) held fixed before the last, differentiable one.
 _NEWTON_ITERS = 1
-
-_STATUS_OK = 0
-_STATUS_BUDGET = 1
-_STATUS_SOLVER = 2
 
 
 def _vector_field(t, y, args):
@@ -222,7 +219,7 @@ def _evaluate(sol: ReferenceSolution, t):
     return fn(sol, t)
 
 
-class ReferenceSolution(eqx.Module):
+class ReferenceSolution(AbstractSolution):
     """Numerical reference solution of eq. 3 (see `solve_reference`).
 
     Attributes:
@@ -234,9 +231,10 @@ class ReferenceSolution(eqx.Module):
             block does not stop within [0, t_end] (always for mu = 0; for mu > 0 `halted` is
             then False and the block was still moving at t_end).
         halt_position: position of the final stop; NaN where it does not stop.
-        valid: False when the budget (max_swings x max_steps_per_swing) ran out, or the ODE
-            solver failed, before t_end or the halt: the solution then covers only [0, t_cover].
-        status: 0 ok, 1 budget ran out, 2 the ODE solver failed.
+        result: ``RESULTS.successful``; ``RESULTS.max_swings_reached`` when the budget
+            (max_swings x max_steps_per_swing) ran out, or ``RESULTS.solver_failed`` when the
+            ODE solver failed, before t_end or the halt: the solution then covers only
+            [0, t_cover]. ``valid`` is ``result == RESULTS.successful``.
         n_swings: number of swings (intervals of motion with constant sgn(v)).
         swing_times: end times of the swings, i.e. the turning points (v = 0, t > 0), the rest
             point last when the block halts. Length max_swings, NaN-padded.
@@ -257,8 +255,7 @@ class ReferenceSolution(eqx.Module):
     halted: Array
     halt_time: Array
     halt_position: Array
-    valid: Array
-    status: Array
+    result: RESULTS
     n_swings: Array
     swing_times: Array
     turning_x: Array
@@ -311,9 +308,9 @@ class ReferenceSolution(eqx.Module):
         """
         x, v = _evaluate(self, jnp.asarray(t, dtype=float))
         shape = self.batch_shape + (1,) * (x.ndim - len(self.batch_shape))
-        k = jnp.reshape(jnp.broadcast_to(self.osc.k, self.batch_shape), shape)
-        m = jnp.reshape(jnp.broadcast_to(self.osc.m, self.batch_shape), shape)
-        return 0.5 * k * x**2 + 0.5 * m * v**2
+        osc = jax.tree_util.tree_map(
+            lambda a: jnp.reshape(jnp.broadcast_to(a, self.batch_shape), shape), self.osc)
+        return osc.energy(x, v)
 
     def turning_points(self, n: int) -> tuple[Array, Array]:
         """The first n turning points (t_n, x_n): v = 0 at t_n > 0, the rest point last.
@@ -455,9 +452,8 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
 
     final, out = jax.lax.scan(slot, carry0, None, length=max_swings)
 
-    exhausted = final["active"]
-    status = jnp.where(final["failed"], _STATUS_SOLVER,
-                       jnp.where(exhausted, _STATUS_BUDGET, _STATUS_OK))
+    result = first_failure((final["failed"], RESULTS.solver_failed),
+                           (final["active"], RESULTS.max_swings_reached))
     halted = final["halted"]
     slot = jnp.where(out["fired"], jnp.cumsum(out["fired"]) - 1, max_swings)
     nan_row = jnp.full((max_swings,), jnp.nan)
@@ -465,7 +461,7 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
         osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted,
         halt_time=jnp.where(halted, final["t_halt"], jnp.inf),
         halt_position=jnp.where(halted, final["x_halt"], jnp.nan),
-        valid=status == _STATUS_OK, status=status, n_swings=final["n_swings"],
+        result=result, n_swings=final["n_swings"],
         swing_times=nan_row.at[slot].set(out["t_sw"], mode="drop"),
         turning_x=nan_row.at[slot].set(out["x_sw"], mode="drop"),
         t_cover=jnp.where(halted, jnp.inf, final["t"]),
@@ -555,14 +551,8 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
     sol = _solve_jit(osc, x0, v0, t_end, rtol=float(rtol), atol=float(atol),
                      max_swings=int(max_swings), max_steps_per_swing=int(max_steps_per_swing),
                      solver_name=solver, root_finder=root_finder, adjoint=adjoint)
-    if is_concrete(sol.status):
-        status = np.asarray(sol.status)
-        if np.any(status == _STATUS_BUDGET):
-            raise ValueError(
-                "solve_reference ran out of its budget before t_end or the halt: increase "
-                f"max_swings (now {max_swings}) or max_steps_per_swing (now "
-                f"{max_steps_per_swing}), or shorten t_end")
-        if np.any(status == _STATUS_SOLVER):
-            raise ValueError("solve_reference: the ODE solver failed (non-finite state or step "
-                             "size too small); check the oscillator's parameters")
+    if is_concrete(sol.result._value) and sol.message:
+        budget = bool(np.any(np.asarray(sol.result == RESULTS.max_swings_reached)))
+        raise ValueError(sol.message + (f" (now max_swings = {max_swings}, max_steps_per_swing"
+                                        f" = {max_steps_per_swing})" if budget else ""))
     return sol

@@ -11,19 +11,18 @@ import numpy as np
 
 from ._ansatz import AnsatzSolution, solve_ansatz
 from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
+from ._models import METHODS
 from ._oscillator import Oscillator, check_finite, is_concrete
-
-METHODS = ("ansatz", "rizcallah", "coulomb_exact", "reference")
-
-
-def _require(cond: bool, message: str) -> None:
-    if not cond:
-        raise ValueError(message)
 
 
 def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matched",
-          tail: str | None = None, back: int = 0, kappa: float = 4.0 / math.pi, **options):
+          tail: str | None = None, back: int = 0, kappa: float = 4.0 / math.pi,
+          throw: bool = False, **options):
     """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
+
+    The models and their options are listed in ``dampax._models.MODELS`` (the registry every
+    command reads): "matched" is ``method="ansatz"``, "undamped" adds ``phase="undamped"``,
+    "matched_tail" adds ``tail="coulomb"``.
 
     Arguments:
         osc: the :class:`Oscillator`.
@@ -36,15 +35,21 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             exact Coulomb (+ viscous) motion from the last turning point with |x| > xc.
         back: with tail="coulomb": start the tail this many turning points earlier (eq. 54: 1).
         kappa: rizcallah only: 4/pi (least squares), pi/2 (impulse) or sqrt(2) (rms).
+        throw: under ``jit``/``vmap``, raise the failure's message at run time
+            (``equinox.error_if``, as ``diffrax.diffeqsolve(throw=True)``) instead of
+            returning ``valid = False`` and NaN. Eager calls always raise ValueError.
         **options: reference only: t_end, rtol, atol, max_swings, ...
 
     Returns:
-        A solution pytree with ``x(t)``, ``v(t)``, ``energy(t)``, ``halt_time``,
-        ``halt_position``, ``valid`` (and ``amplitude``, ``phase`` for the ansatz).
+        A solution (a subclass of ``AbstractSolution``) with ``x(t)``, ``v(t)``,
+        ``energy(t)``, ``halt_time``, ``halt_position``, ``result`` (a ``RESULTS`` member: why
+        it failed and what to do), ``valid`` (``result`` is successful), and ``amplitude``,
+        ``phase`` for the ansatz.
 
     Called eagerly, invalid input (non-finite x0/v0, a model that does not exist for these
-    parameters, e.g. no admissible amplitude of eq. 22) raises ValueError naming the reason;
-    under jit/vmap the solution carries ``valid = False`` and NaN values instead.
+    parameters, e.g. no admissible amplitude of eq. 22) raises ValueError with the result's
+    message, which names the parameter; under jit/vmap the solution carries ``result`` (and
+    ``valid = False``) with NaN values instead, or raises with ``throw=True``.
     """
     if not isinstance(osc, Oscillator):
         raise TypeError(f"osc must be a dampax.Oscillator, got {type(osc).__name__}")
@@ -66,14 +71,6 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             "this piecewise model; map over them with jax.vmap(lambda ...: dp.solve(...)) "
             "(the plain ansatz and the reference accept arrays directly)")
     eager = is_concrete(osc, x0, v0)
-    if eager and method == "rizcallah":
-        _require(np.all(np.asarray(osc.b) == 0) and np.all(np.asarray(osc.D) == 0),
-                 "b, D: Rizcallah's model is for Coulomb damping only (b = D = 0)")
-    if eager and method == "coulomb_exact":
-        _require(np.all(np.asarray(osc.D) == 0),
-                 "D: the exact half-swing solution has no quadratic drag (D must be 0)")
-        _require(np.all(np.asarray(osc.gamma) < np.asarray(osc.omega0)),
-                 "b: the exact half-swing solution needs underdamping, b < 2 sqrt(k m)")
     if method == "reference":
         from ._reference import solve_reference
 
@@ -83,15 +80,10 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         v0 = jnp.asarray(v0, dtype=float)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
                               back=int(back), kappa=float(kappa))
-    if eager and method == "ansatz" and not np.all(np.asarray(
-            sol.ansatz.valid if tail else sol.valid)):
-        raise ValueError(
-            "x0, v0: no admissible amplitude A of eq. 22 for this oscillator and initial "
-            "state (the root branch connected to A0 ends in a fold; e.g. d2 |x0| >= w0 for "
-            "quadratic damping): the matched ansatz does not exist here")
-    if eager and not np.all(np.asarray(sol.valid)):
-        raise ValueError(f"method={method!r}: the model could not be evaluated for these "
-                         f"parameters (validity flag is False)")
+    if eager and is_concrete(sol.result._value) and sol.message:
+        raise ValueError(sol.message)
+    if throw:
+        sol = sol.result.error_if(sol, ~sol.valid)
     return sol
 
 

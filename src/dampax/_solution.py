@@ -1,0 +1,117 @@
+"""Why a solution failed (:class:`RESULTS`) and the base every solution shares.
+
+As in diffrax, a solution carries ``result``, a member of one enumeration whose message says
+what went wrong and what to do about it. ``valid`` is ``result == RESULTS.successful``; under
+``jit`` and ``vmap`` an invalid solution holds NaN values and its reason, and
+``dampax.solve(..., throw=True)`` raises that reason at run time (``equinox.error_if``), even
+inside ``jit``. Called eagerly, ``dampax.solve`` raises a ``ValueError`` with the message.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._oscillator import _value_text
+
+Array = jax.Array
+
+
+class RESULTS(eqx.Enumeration):
+    """Outcome of a solve: ``successful`` or the reason the model gives no values here.
+
+    Each member's message names the cause and the fix.
+    """
+
+    successful = ""
+    nonfinite_state = "x0, v0: the initial state must be finite"
+    no_amplitude = (
+        "x0, v0: no admissible amplitude A of eq. 22 for this oscillator and initial state "
+        "(the root branch connected to A0 ends in a fold; e.g. d2 |x0| >= w0 for quadratic "
+        "damping): the matched ansatz does not exist here; use method='reference'")
+    coulomb_only = ("b, D: Rizcallah's model is for Coulomb damping only (b = D = 0); use "
+                    "method='ansatz' or 'reference'")
+    no_drag = ("D: the exact half-swing solution has no quadratic drag (D must be 0); use "
+               "method='reference'")
+    overdamped = ("b: the exact half-swings need underdamping, b < 2 sqrt(k m); use "
+                  "method='reference'")
+    tail_not_bracketed = (
+        "the Coulomb tail's search window did not bracket the last turning point outside the "
+        "band |x| <= xc; use method='reference'")
+    halt_not_found = (
+        "Rizcallah's model: no turning point near the band |x| <= xc was found in the search "
+        "window; use method='reference'")
+    max_swings_reached = (
+        "the reference ran out of its budget before t_end or the halt: increase max_swings or "
+        "max_steps_per_swing, or shorten t_end")
+    solver_failed = ("the reference's ODE solver failed (non-finite state or step size too "
+                     "small); check the oscillator's parameters")
+
+
+def result_where(pred, a: RESULTS, b: RESULTS) -> RESULTS:
+    """``a`` where ``pred`` holds, else ``b``; elementwise for an array ``pred``.
+
+    (``RESULTS.where`` takes only a scalar predicate; solutions of an Oscillator with array
+    fields carry an array of results.)
+    """
+    return eqx.tree_at(lambda r: r._value, a, jnp.where(pred, a._value, b._value))
+
+
+def first_failure(*checks: tuple[Array, RESULTS]) -> RESULTS:
+    """The result of a list of (failed, reason) checks: the first reason that holds.
+
+    Arguments:
+        checks: pairs of a boolean (array) that is True where the check fails and the
+            :class:`RESULTS` member to report then, most fundamental first.
+
+    Returns:
+        ``RESULTS.successful`` where no check fails, else the first failing check's reason.
+    """
+    out = RESULTS.successful
+    for failed, reason in reversed(checks):
+        out = result_where(failed, reason, out)
+    return out
+
+
+def is_successful(result: RESULTS) -> Array:
+    """True where ``result`` is ``RESULTS.successful`` (the solution's ``valid``)."""
+    return result == RESULTS.successful
+
+
+def message(result: RESULTS) -> str:
+    """The message of a concrete result: the first failure's, or "" when all succeeded."""
+    values = np.asarray(result._value).ravel()
+    failed = values[values != np.asarray(RESULTS.successful._value)]
+    if failed.size == 0:
+        return ""
+    return RESULTS[eqx.tree_at(lambda r: r._value, RESULTS.successful, jnp.asarray(failed[0]))]
+
+
+class AbstractSolution(eqx.Module):
+    """What every solution of :func:`dampax.solve` offers.
+
+    Subclasses provide ``result`` (a :class:`RESULTS`, a field or a property), ``x(t)``,
+    ``v(t)``, ``energy(t)``, ``halt_time``, ``halt_position`` and ``turning_points(n)``.
+    """
+
+    @property
+    def valid(self) -> Array:
+        """True where the model gives values (``result`` is successful); else they are NaN."""
+        return is_successful(self.result)
+
+    @property
+    def message(self) -> str:
+        """Why the solution is not valid ("" when it is), for a concrete solution."""
+        return message(self.result)
+
+    def __repr__(self) -> str:
+        names = [n for n in ("amplitude", "phase", "halt_time", "halt_position")
+                 if hasattr(type(self), n) or n in self.__dataclass_fields__]
+        body = [f"{n}={_value_text(getattr(self, n))}" for n in names]
+        if isinstance(self.result._value, jax.core.Tracer):
+            body.append("result=<traced>")
+        else:
+            body.append(f"result={self.message or 'successful'!r}")
+        return f"{type(self).__name__}({', '.join(body)})"
