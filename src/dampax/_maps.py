@@ -1,6 +1,6 @@
 """Error maps: the analytic models against a reference over a grid of damping ratios.
 
-The motion depends only on d0/(w0 A0), d1/w0, d2 A0/w0 and phi0 (DESIGN section 1), so a map
+The motion depends only on d0/(w0 A0), d1/w0, d2 A0/w0 and phi0 (docs/DESIGN.md section 1), so a map
 is computed at w0 = 1, A0 = 1 (m = k = 1, x0 = cos phi0, v0 = -sin phi0) and holds for every
 m, k and A0.
 
@@ -28,19 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import Oscillator, check_choices
+from ._models import ANALYTIC, MODELS, check_models
+from ._oscillator import from_ratios
 from ._solve import solve
 
 Array = jax.Array
 
-#: Model names of :func:`error_map` -> options of :func:`dampax.solve`.
-MODELS: dict[str, dict] = {
-    "matched": dict(method="ansatz"),
-    "undamped": dict(method="ansatz", phase="undamped"),
-    "matched_tail": dict(method="ansatz", tail="coulomb"),
-    "rizcallah": dict(method="rizcallah"),
-    "coulomb_exact": dict(method="coulomb_exact"),
-}
 DEFAULT_MODELS = ("matched", "undamped", "matched_tail", "rizcallah")
 #: Accepted references: the diffrax integrator of eq. 3, or the exact half-swings (D = 0 only).
 REFERENCES = ("reference", "coulomb_exact")
@@ -49,27 +42,29 @@ METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_po
 #: Without a halt the comparison window ends where the reference energy drops below this * E0.
 ENERGY_FLOOR = 1e-4
 _AXES = ("d0_ratio", "d1_ratio", "d2_ratio", "phi0")
-_G = 9.81
 _BLOCK = 128  # samples per scan step (memory per point: a few arrays of this length)
 
+# CF conventions: dimensionless variables have units "1"; the normalisation is in long_name
 _VARIABLE_ATTRS = {
-    "max_error": dict(long_name="max |x - x_ref| / A0 over the window", units="A0"),
-    "rms_error": dict(long_name="rms of (x - x_ref) / A0 over the window", units="A0"),
-    "energy_error": dict(long_name="max |E - E_ref| / E0 over the window", units="E0"),
+    "max_error": dict(long_name="max |x - x_ref| / A0 over the window", units="1"),
+    "rms_error": dict(long_name="rms of (x - x_ref) / A0 over the window", units="1"),
+    "energy_error": dict(long_name="max |E - E_ref| / E0 over the window (E0 = k A0^2 / 2)",
+                         units="1"),
     "halt_time_error": dict(
-        long_name="halt time, model minus reference, in undamped periods (NaN where the "
-                  "reference does not halt within the window)", units="T0 = 2 pi / w0"),
+        long_name="halt time, model minus reference, in undamped periods T0 = 2 pi / w0 (NaN "
+                  "where the reference does not halt within the window)", units="1"),
     "halt_position_error": dict(
-        long_name="halt position, model minus reference, in units of xc (NaN without friction "
-                  "or where the reference does not halt within the window)",
-        units="xc = mu g / w0^2"),
+        long_name="halt position, model minus reference, in units of xc = mu g / w0^2 (NaN "
+                  "without friction or where the reference does not halt within the window)",
+        units="1"),
     "valid": dict(long_name="the model exists at this point (its validity flag)"),
     "reference_valid": dict(long_name="the reference solved without running out of its budget"),
     "window": dict(long_name="length of the comparison window in undamped periods (to the "
                              "reference's halt, or until its energy drops below "
-                             f"{ENERGY_FLOOR:g} E0, at most `periods`)", units="T0"),
-    "reference_halt_time": dict(long_name="halt time of the reference (NaN if it does not halt "
-                                          "within the window)", units="T0"),
+                             f"{ENERGY_FLOOR:g} E0, at most `periods`)", units="1"),
+    "reference_halt_time": dict(long_name="halt time of the reference in undamped periods T0 "
+                                          "(NaN if it does not halt within the window)",
+                                units="1"),
 }
 _COORD_ATTRS = {
     "model": dict(long_name="analytic model"),
@@ -79,14 +74,6 @@ _COORD_ATTRS = {
     "phi0": dict(long_name="undamped initial phase, x0 = A0 cos(phi0), v0 = -w0 A0 sin(phi0)",
                  units="rad"),
 }
-
-_TRACES = [0]
-
-
-def trace_count() -> int:
-    """How often the per-step function was traced (compiled) in this process (for tests)."""
-    return _TRACES[0]
-
 
 @dataclasses.dataclass(frozen=True)
 class _Config:
@@ -111,33 +98,22 @@ class _Config:
 # one point
 
 
-def _oscillator(d0r, d1r, d2r, m, k, A0):
-    """Oscillator with the given ratios at mass m, stiffness k and amplitude A0 (eq. 21)."""
-    w0 = jnp.sqrt(k / m)
-    mu = d0r * w0 * A0 * math.pi * w0 / (2.0 * _G)
-    b = 2.0 * m * d1r * w0
-    D = 3.0 * math.pi * m * d2r / (4.0 * A0)
-    return Oscillator(m=m, k=k, mu=mu, b=b, D=D, g=_G)
-
-
-def _solve_reference(cfg: _Config, osc, x0, v0, t_end, A0, d1r, d2r):
+def _solve_reference(cfg: _Config, osc, x0, v0, t_end):
     if cfg.reference == "reference":
         sol = solve(osc, x0, v0, method="reference", t_end=t_end, rtol=cfg.rtol,
                     atol=cfg.atol, max_swings=cfg.max_swings,
                     max_steps_per_swing=cfg.max_steps_per_swing)
-        valid = sol.valid
-    else:
-        sol = solve(osc, x0, v0, method="coulomb_exact")
-        valid = sol.valid & (d2r == 0.0) & (d1r < 1.0)
+    else:  # exact half-swings: valid only where D = 0 and b < 2 sqrt(k m) (its result says)
+        sol = solve(osc, x0, v0, **MODELS[cfg.reference].solve_options)
     halted = jnp.isfinite(sol.halt_time) & (sol.halt_time <= t_end)
-    return sol, valid, halted
+    return sol, sol.valid, halted
 
 
-def _per_point(cfg: _Config, row, units):
-    """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0)."""
+def _per_point(cfg: _Config, row):
+    """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0), w0 = A0 = 1."""
     d0r, d1r, d2r, phi0 = row[0], row[1], row[2], row[3]
-    m, k, A0 = units[0], units[1], units[2]
-    osc = _oscillator(d0r, d1r, d2r, m, k, A0)
+    m, k, A0 = 1.0, 1.0, 1.0
+    osc = from_ratios(d0r, d1r, d2r, m=m, k=k, A0=A0)
     w0 = osc.omega0
     period = 2.0 * math.pi / w0
     dt = period / cfg.samples_per_period
@@ -147,10 +123,9 @@ def _per_point(cfg: _Config, row, units):
     E0 = 0.5 * k * A0 * A0
     xc = osc.xc
 
-    ref, ref_valid, halted = _solve_reference(cfg, osc, x0, v0, t_end, A0, d1r, d2r)
-    sols = [solve(osc, x0, v0, **MODELS[name]) for name in cfg.models]
-    valid = [sol.valid & ((d2r == 0.0) if name == "coulomb_exact" else True)
-             for name, sol in zip(cfg.models, sols, strict=True)]
+    ref, ref_valid, halted = _solve_reference(cfg, osc, x0, v0, t_end)
+    sols = [solve(osc, x0, v0, **MODELS[name].solve_options) for name in cfg.models]
+    valid = [sol.valid for sol in sols]
     t_halt = jnp.where(halted, ref.halt_time, jnp.inf)
     n_mod = len(cfg.models)
 
@@ -210,12 +185,11 @@ def _compiled(cfg: _Config, device_ids: tuple[int, ...]):
     mesh = jax.make_mesh((len(devices),), ("points",), devices=devices,
                          axis_types=(jax.sharding.AxisType.Explicit,))
 
-    def step(rows, units):
-        _TRACES[0] += 1  # runs once per trace, not per call
-        return jax.vmap(lambda r: _per_point(cfg, r, units))(rows)
+    def step(rows):
+        return jax.vmap(lambda r: _per_point(cfg, r))(rows)
 
-    sharded = jax.shard_map(step, mesh=mesh, in_specs=(P("points"), P()),
-                            out_specs=P("points"), check_vma=False)
+    sharded = jax.shard_map(step, mesh=mesh, in_specs=P("points"), out_specs=P("points"),
+                            check_vma=False)
     return jax.jit(sharded), mesh
 
 
@@ -249,10 +223,6 @@ def _positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
-def _check_models(models) -> tuple[str, ...]:
-    return check_choices("models", models, MODELS)
-
-
 # ----------------------------------------------------------------------------------------------
 # the public function
 
@@ -261,7 +231,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               models: Sequence[str] = DEFAULT_MODELS, periods: float = 20.0,
               samples_per_period: int = 64, chunk_size: int = 128,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
-              progress: bool = True, _units=(1.0, 1.0, 1.0)):
+              progress: bool = True):
     """Errors of the analytic models against a reference over a grid of damping ratios.
 
     Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
@@ -275,7 +245,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         d2_ratio: d2 A0/w0, quadratic drag; a number or a 1-D sequence, >= 0.
         phi0: undamped initial phase(s) [rad] (phi0 + pi gives the mirror-image motion).
         d1_ratio: d1/w0, viscous damping; a number or a 1-D sequence, >= 0.
-        models: names among "matched" (ansatz, matched phase, eqs. 22-23), "undamped" (ansatz,
+        models: analytic models of the registry (``dampax._models.MODELS``): "matched"
+            (ansatz, matched phase, eqs. 22-23), "undamped" (ansatz,
             undamped phase, eqs. 8-10), "matched_tail" (matched + exact Coulomb tail, eqs. 41,
             52), "rizcallah" (only d1 = d2 = 0; NaN elsewhere), "coulomb_exact" (exact
             half-swings; only d2 = 0).
@@ -310,7 +281,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             "d1_ratio": _axis("d1_ratio", d1_ratio, ratio=True),
             "d2_ratio": _axis("d2_ratio", d2_ratio, ratio=True),
             "phi0": _axis("phi0", phi0, ratio=False)}
-    models = _check_models(models)
+    models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
     chunk_size = _positive_int("chunk_size", chunk_size)
@@ -324,9 +295,6 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
-    units = np.asarray(_units, dtype=float)
-    if units.shape != (3,) or not np.all(np.isfinite(units)) or np.any(units <= 0):
-        raise ValueError(f"_units must be (m, k, A0) > 0, got {_units!r}")
 
     n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
     cfg = _Config(models=models, reference=reference, n_samples=n_samples,
@@ -350,7 +318,6 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     from jax.sharding import PartitionSpec as P
 
     rows_sharding = NamedSharding(mesh, P("points"))
-    units_dev = jax.device_put(units, NamedSharding(mesh, P()))
     n_mod = len(models)
     out_metrics = np.full((per_proc * step, n_mod, len(METRICS)), np.nan)
     out_valid = np.zeros((per_proc * step, n_mod), dtype=bool)
@@ -360,7 +327,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         rows = grid[s * step:(s + 1) * step]
         if rows.shape[0] < step:  # pad the last step: same shapes, no recompilation
             rows = np.concatenate([rows, np.repeat(rows[:1], step - rows.shape[0], axis=0)])
-        return fn(jax.device_put(rows, rows_sharding), units_dev)
+        return fn(jax.device_put(rows, rows_sharding))
 
     bar = tqdm(total=len(my_steps), desc="error map", unit="chunk",
                disable=(not progress) or proc != 0)
@@ -401,7 +368,13 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     for name, values in axes.items():
         coords[name] = (name, values, _COORD_ATTRS[name])
     attrs = {
+        "Conventions": "CF-1.10",
         "title": "dampax error map: analytic models against a reference",
+        "source": f"dampax {__version__} (jax {jax.__version__})",
+        "history": f"{_now()} dampax.error_map(d0_ratio=<{axes['d0_ratio'].size} values>, "
+                   f"d1_ratio=<{axes['d1_ratio'].size}>, d2_ratio=<{axes['d2_ratio'].size}>, "
+                   f"phi0=<{axes['phi0'].size}>, models={list(models)}, periods={periods:g}, "
+                   f"samples_per_period={samples_per_period}, reference={reference!r})",
         "dampax_version": __version__,
         "models": ", ".join(models),
         "reference": reference,
@@ -423,6 +396,13 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
                   f"{ENERGY_FLOOR:g} E0 when it does not halt; at most `periods` periods",
     }
     return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def _now() -> str:
+    """The current UTC time, ISO 8601 to the second (for the netCDF ``history``)."""
+    import datetime
+
+    return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
 def _store(pending, step, out_metrics, out_valid, out_info):

@@ -1,253 +1,25 @@
-"""Solve every applicable model once and plot x(t) and E(t) in the papers' colour code.
+"""Figures: x(t) and E(t) of several models, error-map heat maps, sensitivities.
 
-The models of one oscillator and initial state are solved and summarised by compiled code
-(:func:`run_models`), so the command-line tool and the plots share one evaluation; the
-figure is drawn with matplotlib's object API on the Agg canvas (no display, no pyplot state).
+This module only draws: what it draws was computed elsewhere (``_summary.run_models``,
+``error_map``, ``sensitivity``). Lines follow the model registry's styles (the papers' colour
+code); figures use matplotlib's object API on the Agg canvas (no display, no pyplot state).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping
 
-import equinox as eqx
-import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import Oscillator, check_finite, damping_coefficients
-from ._solve import solve, turning_points
-
-
-@dataclasses.dataclass(frozen=True)
-class ModelSpec:
-    """One model of :func:`dampax.solve`: options, when it applies, and how it is drawn."""
-
-    label: str
-    options: tuple[tuple[str, object], ...]
-    applies: Callable[[Oscillator], bool]
-    color: str
-    linestyle: str | tuple
-    linewidth: float = 1.4
-    zorder: float = 2.0
+from ._models import MODELS
+from ._oscillator import Oscillator
+from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
+from ._summary import ModelRun, damping_ratios
 
 
 def _scalar(x) -> float:
     return float(np.asarray(x))
-
-
-def _has_friction(osc: Oscillator) -> bool:
-    return _scalar(osc.mu) > 0.0
-
-
-def _coulomb_only(osc: Oscillator) -> bool:
-    return _has_friction(osc) and _scalar(osc.b) == 0.0 and _scalar(osc.D) == 0.0
-
-
-def _exact_applies(osc: Oscillator) -> bool:
-    return (_has_friction(osc) and _scalar(osc.D) == 0.0
-            and _scalar(osc.gamma) < _scalar(osc.omega0))
-
-
-#: The models in table and legend order. ``reference`` is the diffrax integrator of eq. 3.
-MODELS: dict[str, ModelSpec] = {
-    "matched": ModelSpec("matched ansatz (eqs. 22-23)", (("method", "ansatz"),),
-                         lambda osc: True, "tab:red", "-", 2.0, 3.0),
-    "undamped": ModelSpec("undamped-phase ansatz (eqs. 8-10)",
-                          (("method", "ansatz"), ("phase", "undamped")),
-                          lambda osc: True, "tab:blue", "-", 1.6, 2.5),
-    "tail": ModelSpec("matched + Coulomb tail (eq. 41)",
-                      (("method", "ansatz"), ("tail", "coulomb")),
-                      _has_friction, "tab:green", "-.", 1.6, 2.8),
-    "rizcallah": ModelSpec("Rizcallah, sinusoidal friction", (("method", "rizcallah"),),
-                           _coulomb_only, "tab:orange", (0, (5, 2)), 1.4, 2.2),
-    "coulomb_exact": ModelSpec("exact half-swings (D = 0)", (("method", "coulomb_exact"),),
-                               _exact_applies, "tab:purple", (0, (8, 3, 2, 3)), 1.4, 2.1),
-    "reference": ModelSpec("reference (diffrax)", (("method", "reference"),),
-                           lambda osc: True, "black", ":", 2.0, 4.0),
-}
-
-
-@dataclasses.dataclass
-class ModelResult:
-    """Solution and summary of one model; ``error`` says why it is missing (then no solution)."""
-
-    name: str
-    solution: object | None
-    halt_time: float = math.nan
-    halt_position: float = math.nan
-    turning_t: np.ndarray | None = None
-    turning_x: np.ndarray | None = None
-    error: str | None = None
-
-    @property
-    def label(self) -> str:
-        return MODELS[self.name].label
-
-
-@dataclasses.dataclass
-class ModelRun:
-    """Everything :func:`run_models` computed for one oscillator and initial state."""
-
-    osc: Oscillator
-    x0: float
-    v0: float
-    results: dict[str, ModelResult]
-    t_end: float
-    notes: list[str]
-
-    def ok(self) -> dict[str, ModelResult]:
-        """The models that could be solved, in table order."""
-        return {k: r for k, r in self.results.items() if r.error is None}
-
-
-def applicable_models(osc: Oscillator, *, reference: bool = True) -> tuple[str, ...]:
-    """Names of the models that apply to this oscillator, in table order.
-
-    Arguments:
-        osc: a scalar :class:`~dampax.Oscillator`.
-        reference: include the reference integrator.
-
-    Returns:
-        A tuple of keys of :data:`MODELS`: both ansatz phases always; the Coulomb tail when
-        mu > 0; Rizcallah's model when mu > 0 and b = D = 0; the exact half-swings when mu > 0,
-        D = 0 and b < 2 sqrt(k m); the reference when asked for.
-    """
-    names = tuple(k for k, spec in MODELS.items() if k != "reference" and spec.applies(osc))
-    return names + (("reference",) if reference else ())
-
-
-# One compiled program per model (name and n_turning are static), reused for every oscillator
-# and initial state: a second call with other numbers costs no compilation.
-
-
-@eqx.filter_jit
-def _solve_one(osc, x0, v0, name: str, n_turning: int):
-    sol = solve(osc, x0, v0, **dict(MODELS[name].options))
-    return sol, _summarize(sol, n_turning)
-
-
-@eqx.filter_jit
-def _summarize(sol, n_turning: int):
-    return sol.halt_time, sol.halt_position, sol.valid, turning_points(sol, n_turning)
-
-
-@eqx.filter_jit
-def _curves(sol, t):
-    return sol.x(t), sol.energy(t)
-
-
-def _why_invalid(osc, x0, v0, name: str) -> str:
-    """dampax's own reason for an invalid model, from an eager solve."""
-    try:
-        solve(osc, x0, v0, **dict(MODELS[name].options))
-    except ValueError as err:
-        return str(err)
-    return "the model could not be evaluated for these parameters"
-
-
-def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:
-    """Time span of a plot: half an undamped period past the latest finite halt time.
-
-    Arguments:
-        osc: the oscillator (its undamped period T0 = 2 pi / w0 sets the margin).
-        halt_times: halt times [s] of the models; inf / nan entries are ignored.
-
-    Returns:
-        t_end [s]: latest finite halt + T0/2, at most 100 T0; 6 T0 when nothing halts.
-    """
-    period = 2.0 * math.pi / _scalar(osc.omega0)
-    finite = [t for t in halt_times if math.isfinite(t)]
-    if not finite:
-        return 6.0 * period
-    return min(max(finite) + 0.5 * period, 100.0 * period)
-
-
-def run_models(osc: Oscillator, x0: float, v0: float, *, models: Sequence[str] | None = None,
-               n_turning: int = 6, t_end: float | None = None) -> ModelRun:
-    """Solve and summarise several models of one oscillator with compiled code.
-
-    The analytic models are solved under ``jax.jit``, one compiled program per model that is
-    reused for other numbers (much faster than eager evaluation); a model that comes out
-    invalid is solved again eagerly to report dampax's reason. The reference integrator
-    (``dampax._reference``) is imported lazily and skipped, with a note, when it is missing or
-    not implemented yet.
-
-    Arguments:
-        osc: a scalar :class:`~dampax.Oscillator`.
-        x0, v0: initial displacement [m] and velocity [m/s].
-        models: keys of :data:`MODELS`; default :func:`applicable_models`.
-        n_turning: how many turning points to compute per model.
-        t_end: time span [s] (reference integration, plots); default :func:`default_t_end`.
-
-    Returns:
-        A :class:`ModelRun`; ``results[name].error`` holds the reason a model is missing.
-    """
-    if np.ndim(osc.m) or any(np.ndim(v) for v in (osc.k, osc.mu, osc.b, osc.D, osc.g)):
-        raise ValueError("osc: plots and summaries need a scalar Oscillator, not a batch")
-    check_finite("x0", x0)
-    check_finite("v0", v0)
-    x0, v0 = float(x0), float(v0)
-    if n_turning < 0:
-        raise ValueError(f"n_turning must be >= 0, got {n_turning}")
-    if t_end is not None and not (math.isfinite(t_end) and t_end > 0.0):
-        raise ValueError(f"t_end must be a finite time > 0, got {t_end}")
-    names = applicable_models(osc) if models is None else tuple(models)
-    unknown = [k for k in names if k not in MODELS]
-    if unknown:
-        raise ValueError(f"models: unknown {unknown}; choose from {list(MODELS)}")
-    analytic = tuple(k for k in names if k != "reference")
-    notes: list[str] = []
-    results: dict[str, ModelResult] = {}
-    for k in analytic:
-        sol, (tau, x_h, valid, (tt, tx)) = _solve_one(osc, jnp.asarray(x0), jnp.asarray(v0),
-                                                      k, n_turning)
-        if bool(valid):
-            results[k] = ModelResult(k, sol, _scalar(tau), _scalar(x_h),
-                                     np.asarray(tt), np.asarray(tx))
-        else:
-            results[k] = ModelResult(k, None, error=_why_invalid(osc, x0, v0, k))
-    if t_end is None:
-        t_end = default_t_end(osc, [r.halt_time for r in results.values() if r.error is None])
-    if "reference" in names:
-        results["reference"] = _run_reference(osc, x0, v0, t_end, n_turning, notes)
-    results = {k: results[k] for k in MODELS if k in results}
-    return ModelRun(osc, x0, v0, results, float(t_end), notes)
-
-
-def _run_reference(osc, x0, v0, t_end, n_turning, notes) -> ModelResult:
-    try:
-        import dampax._reference  # noqa: F401  (written separately; may not exist yet)
-
-        sol = solve(osc, x0, v0, method="reference", t_end=t_end)
-    except (ImportError, NotImplementedError) as err:
-        why = f"{type(err).__name__}: {err}"
-        notes.append(f"reference integrator not available, skipped ({why})")
-        return ModelResult("reference", None, error="not available")
-    except (ValueError, RuntimeError) as err:  # e.g. its step budget ran out before t_end
-        notes.append(f"reference integrator failed, skipped: {err}")
-        return ModelResult("reference", None, error=str(err))
-    tau, x_h, _, (tt, tx) = _summarize(sol, n_turning)
-    return ModelResult("reference", sol, _scalar(tau), _scalar(x_h), np.asarray(tt),
-                       np.asarray(tx))
-
-
-def damping_ratios(osc: Oscillator, x0: float, v0: float) -> tuple[float, float, float]:
-    """The dimensionless ratios d0/(w0 A0), d1/w0, d2 A0/w0 (DESIGN section 1).
-
-    Arguments:
-        osc: a scalar oscillator.
-        x0, v0: initial state; A0 = sqrt(x0^2 + (v0/w0)^2).
-
-    Returns:
-        (d0/(w0 A0), d1/w0, d2 A0/w0); the first is inf (nan without friction) when A0 = 0.
-    """
-    w0 = _scalar(osc.omega0)
-    d0, d1, d2 = (_scalar(d) for d in damping_coefficients(osc))
-    A0 = math.hypot(x0, v0 / w0)
-    r0 = d0 / (w0 * A0) if A0 > 0 else (math.inf if d0 > 0 else math.nan)
-    return r0, d1 / w0, d2 * A0 / w0
 
 
 def _grid(osc: Oscillator, t_end: float, n_points: int | None) -> np.ndarray:
@@ -277,17 +49,14 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
 
     osc, x0, v0 = run.osc, run.x0, run.v0
     t = _grid(osc, run.t_end, n_points)
-    curves = {k: tuple(map(np.asarray, _curves(r.solution, jnp.asarray(t))))
-              for k, r in run.ok().items()}
+    curves = run.curves(t)
 
     fig = Figure(figsize=(12.0, 4.8), layout="constrained")
     ax_x, ax_e = fig.subplots(1, 2)
     for k in MODELS:
         if k not in curves:
             continue
-        spec = MODELS[k]
-        style = dict(color=spec.color, linestyle=spec.linestyle, linewidth=spec.linewidth,
-                     zorder=spec.zorder, label=spec.label)
+        style = MODELS[k].style
         ax_x.plot(t, curves[k][0], **style)
         ax_e.plot(t, curves[k][1], **style)
     xc = _scalar(osc.xc)
@@ -317,33 +86,6 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
     return path
 
 
-def plot_solutions(osc: Oscillator, x0: float, v0: float, path, *, t_end: float | None = None,
-                   models: Sequence[str] | None = None, n_points: int | None = None):
-    """Solve the applicable models and save a two-panel plot of x(t) and E(t).
-
-    Models that cannot be solved (or the reference integrator, while it is missing) are left
-    out with a note on stderr.
-
-    Arguments:
-        osc: a scalar :class:`~dampax.Oscillator`.
-        x0, v0: initial displacement [m] and velocity [m/s].
-        path: output file, e.g. ``"fig.png"``.
-        t_end: time span [s]; default :func:`default_t_end` (a bit past the latest halt).
-        models: keys of :data:`MODELS` to draw; default :func:`applicable_models`.
-        n_points: samples of the time grid (default ~120 per undamped period).
-
-    Returns:
-        ``path``, unchanged.
-    """
-    run = run_models(osc, x0, v0, models=models, n_turning=0, t_end=t_end)
-    for note in run.notes:
-        print(f"dampax: note: {note}", file=sys.stderr)
-    for r in run.results.values():
-        if r.error is not None and r.name != "reference":
-            print(f"dampax: note: {r.label} left out: {r.error}", file=sys.stderr)
-    return plot_results(run, path, n_points=n_points)
-
-
 # ----------------------------------------------------------------------------------------------
 # error maps (dampax.error_map): heat maps of d0 ratio against d2 ratio
 
@@ -362,16 +104,6 @@ ERROR_MAP_METRICS: dict[str, dict] = {
                                 label=r"|halt position error| [$x_c$]", log=False,
                                 contours=()),
 }
-
-#: Panel titles of the error-map models.
-ERROR_MAP_LABELS = {
-    "matched": "matched ansatz (eqs. 22-23)",
-    "undamped": "undamped-phase ansatz (eqs. 8-10)",
-    "matched_tail": "matched + Coulomb tail (eqs. 41, 52)",
-    "rizcallah": "Rizcallah (Coulomb only: d2 = d1 = 0)",
-    "coulomb_exact": "exact half-swings (D = 0)",
-}
-
 
 # contour line colours (each with a black outline), by level
 _CONTOUR_STYLES = (("white", "1 %"), ("red", "5 %"))
@@ -500,7 +232,7 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
             # the paper's combined range (Sec. V): d0 <= 0.03, d2 <= 0.25
             ax.add_patch(Rectangle((0.0, 0.0), 0.25, 0.03, fill=False, edgecolor="black",
                                    linestyle="--", linewidth=1.0, zorder=3))
-            title = ERROR_MAP_LABELS.get(model, model)
+            title = MODELS[model].label if model in MODELS else model
             if n_rows > 1:
                 title += f"\n$d_1/\\omega_0$ = {d1[r]:.3g}"
             ax.set_title(title, fontsize=9.5)
@@ -534,6 +266,105 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
     fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
                  f"against the {ref_text}, up to its halt or at most "
                  f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11)
+    fig.savefig(path, dpi=dpi)
+    fig.clear()
+    return path
+
+
+# ----------------------------------------------------------------------------------------------
+# sensitivities (dampax.sensitivity): d x(t)/d theta per parameter
+
+
+_EXTRA_COLORS = ("tab:cyan", "tab:olive", "tab:pink", "tab:brown", "tab:gray")
+
+
+def _style(key: str, n_other: int) -> dict:
+    """Line style of a model: the registry's (the papers' colours) for its names."""
+    if key in MODELS:
+        return MODELS[key].style
+    return dict(color=_EXTRA_COLORS[n_other % len(_EXTRA_COLORS)],
+                linestyle=("-", "--", "-.")[n_other % 3], linewidth=1.5, zorder=2.0, label=key)
+
+
+def axis_label(name: str) -> str:
+    """y-axis label of d x/d name with its unit, e.g. 'dx/dD [m per kg/m]'."""
+    unit = UNITS[name]
+    sym = _SYMBOLS[name]
+    per = f"m per {unit}" if unit else "m"
+    return rf"$\partial x / \partial {sym}$  [{per}]"
+
+
+def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | None = None,
+                     dpi: int = 120):
+    """Plot d x(t)/d theta of several models, one panel per parameter, and save the figure.
+
+    Arguments:
+        results: model name -> unbatched :class:`Sensitivity` over a 1-d grid ``ts``. The keys
+            of the model registry (``dampax._models.MODELS``) are drawn in the papers'
+            colours (matched ansatz solid
+            red, reference black dotted, ...); any other key gets its own colour and is its
+            own legend label. The panels are the union of the results' ``wrt``, in order.
+        path: output file; the format follows the suffix (e.g. ``.png``).
+        title: figure title (default: none).
+        dpi: resolution of raster output.
+
+    Returns:
+        ``path``, unchanged.
+
+    Each panel marks the halt time of each model that halts by a thin vertical line in the
+    model's colour (x has a kink there: the derivative jumps to 0, or to the rest position's).
+    """
+    from matplotlib.figure import Figure  # Agg canvas; no pyplot, no display needed
+
+    if not results:
+        raise ValueError("results: nothing to plot")
+    for key, r in results.items():
+        if not isinstance(r, Sensitivity) or np.ndim(r.ts) != 1 or np.ndim(r.dhalt_time) != 1:
+            raise ValueError(f"results[{key!r}]: need an unbatched Sensitivity over a 1-d ts")
+    names: list[str] = []
+    for r in results.values():
+        names += [n for n in r.wrt if n not in names]
+    n = len(names)
+    ncols = 1 if n <= 3 else 2
+    nrows = math.ceil(n / ncols)
+    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2),
+                 layout="constrained")
+    axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
+    styles, n_other = {}, 0
+    for key in results:
+        styles[key] = _style(key, n_other)
+        n_other += styles[key]["label"] == key
+    t_max = max(float(np.max(np.asarray(r.ts))) for r in results.values())
+    for ax, name in zip(axes[:n], names, strict=True):
+        for key, r in results.items():
+            if name not in r.wrt:
+                continue
+            st = styles[key]
+            ax.plot(np.asarray(r.ts), np.asarray(r.of(name)["x"]), **st)
+            tau = float(np.asarray(r.halt_time))
+            if math.isfinite(tau) and tau <= t_max:
+                ax.axvline(tau, color=st["color"], linestyle="--", linewidth=0.8, alpha=0.6,
+                           zorder=1.0)
+        ax.axhline(0.0, color="0.8", linewidth=0.6, zorder=0.5)
+        ax.set_ylabel(axis_label(name))
+        ax.set_title(rf"sensitivity to ${_SYMBOLS[name]}$", fontsize=10)
+        ax.grid(True, alpha=0.3)
+        ax.set_xlim(0.0, t_max)
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    for ax in axes[max(n - ncols, 0):n]:
+        ax.set_xlabel("t [s]")
+        ax.xaxis.set_tick_params(labelbottom=True)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if any(math.isfinite(float(np.asarray(r.halt_time))) for r in results.values()):
+        from matplotlib.lines import Line2D
+
+        handles.append(Line2D([], [], color="0.4", linestyle="--", linewidth=0.8))
+        labels.append("halt time")
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
+               fontsize=9, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=11)
     fig.savefig(path, dpi=dpi)
     fig.clear()
     return path

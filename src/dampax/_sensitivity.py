@@ -7,24 +7,24 @@ is the default: a handful of parameters against many outputs (x and E at every t
 whole evaluation is compiled once per (method, options, wrt, shape of ts) and re-used for new
 numbers; it runs under ``jax.vmap`` for a grid of parameters.
 
-:func:`plot_sensitivity` draws d x(t)/d theta of several models, one panel per parameter, and
-:func:`add_arguments` / :func:`run` are the ``dampax sensitivity`` subcommand.
+:func:`dampax.plot_sensitivity` (in ``_plot``) draws d x(t)/d theta of several models, and
+``dampax._cli.sensitivity`` is the ``dampax sensitivity`` command.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._models import METHODS
 from ._oscillator import Oscillator, check_choices, check_finite, is_concrete
-from ._solve import METHODS, solve
+from ._solution import RESULTS, is_successful, message
+from ._solve import solve
 
 Array = jax.Array
 
@@ -63,7 +63,8 @@ class Sensitivity(eqx.Module):
         dhalt_time: d halt_time/d theta, shape (len(wrt),); NaN where halt_time is not finite.
         halt_position: where it comes to rest [m] (0 for the plain ansatz); NaN if never.
         dhalt_position: d halt_position/d theta, shape (len(wrt),); NaN where it never halts.
-        valid: the model's validity flag (False: NaN values, e.g. no admissible amplitude).
+        result: the model's ``RESULTS`` member (why it failed: NaN values, e.g. no admissible
+            amplitude); ``valid`` is ``result == RESULTS.successful``.
         wrt: the parameter names (static).
 
     Under ``jax.vmap`` every array gains the batch axes in front (dx: batch + (len(wrt),) +
@@ -79,8 +80,13 @@ class Sensitivity(eqx.Module):
     dhalt_time: Array
     halt_position: Array
     dhalt_position: Array
-    valid: Array
+    result: RESULTS
     wrt: tuple[str, ...] = eqx.field(static=True)
+
+    @property
+    def valid(self) -> Array:
+        """The model's validity flag (``result`` is successful)."""
+        return is_successful(self.result)
 
     def index(self, name: str) -> int:
         """Row of ``name`` in the derivative arrays (ValueError naming wrt if absent)."""
@@ -110,7 +116,7 @@ class Sensitivity(eqx.Module):
         return {name: self.of(name) for name in self.wrt}
 
 
-def _check_wrt(wrt) -> tuple[str, ...]:
+def check_wrt(wrt) -> tuple[str, ...]:
     if isinstance(wrt, str):
         wrt = (wrt,)
     try:
@@ -147,16 +153,16 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options):
         o = Oscillator(**{f: values[f] for f in FIELDS})
         sol = solve(o, values["x0"], values["v0"], method=method, **options)
         out = (sol.x(ts), sol.energy(ts), sol.halt_time, sol.halt_position)
-        return out, (out, sol.valid)
+        return out, (out, sol.result)
 
     jac = jax.jacfwd if mode == "forward" else jax.jacrev
-    d, ((x, e, tau, xh), valid) = jac(outputs, has_aux=True)(theta)
+    d, ((x, e, tau, xh), result) = jac(outputs, has_aux=True)(theta)
     dx, de, dtau, dxh = (jnp.moveaxis(a, -1, 0) for a in d)
     # the halt time and position have no derivative where the model never halts
     dtau = jnp.where(jnp.isfinite(tau), dtau, jnp.nan)
     dxh = jnp.where(jnp.isfinite(xh), dxh, jnp.nan)
     return Sensitivity(ts=ts, x=x, dx=dx, energy=e, denergy=de, halt_time=tau, dhalt_time=dtau,
-                       halt_position=xh, dhalt_position=dxh, valid=valid, wrt=wrt)
+                       halt_position=xh, dhalt_position=dxh, result=result, wrt=wrt)
 
 
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
@@ -218,7 +224,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     """
     if not isinstance(osc, Oscillator):
         raise TypeError(f"osc must be a dampax.Oscillator, got {type(osc).__name__}")
-    names = _check_wrt(wrt)
+    names = check_wrt(wrt)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if mode not in _MODES:
@@ -247,219 +253,8 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     elif t_end is not None:
         options["t_end"] = t_end  # dampax.solve names the misplaced option
     result = _evaluate(osc, x0, v0, ts, t_end, names, method, mode, options)
-    if is_concrete(result.valid) and not np.all(np.asarray(result.valid)):
-        # dampax.solve called eagerly gives the reason (it raises ValueError)
-        if t_end is not None:
-            options["t_end"] = t_end
-        solve(osc, x0, v0, method=method, **options)
-        raise ValueError(f"method={method!r}: the model could not be evaluated for these "
-                         "parameters (validity flag is False)")
+    if is_concrete(result.result._value) and not np.all(np.asarray(result.valid)):
+        raise ValueError(f"method={method!r}: {message(result.result)}")
     return result
 
 
-# ----------------------------------------------------------------------------------------------
-# plot
-
-
-_EXTRA_COLORS = ("tab:cyan", "tab:olive", "tab:pink", "tab:brown", "tab:gray")
-
-
-def _style(key: str, n_other: int) -> dict:
-    """Line style of a model: the papers' colours for the keys of dampax._plot.MODELS."""
-    from ._plot import MODELS
-
-    spec = MODELS.get(key)
-    if spec is not None:
-        return dict(color=spec.color, linestyle=spec.linestyle, linewidth=spec.linewidth,
-                    zorder=spec.zorder, label=spec.label)
-    return dict(color=_EXTRA_COLORS[n_other % len(_EXTRA_COLORS)],
-                linestyle=("-", "--", "-.")[n_other % 3], linewidth=1.5, zorder=2.0, label=key)
-
-
-def axis_label(name: str) -> str:
-    """y-axis label of d x/d name with its unit, e.g. 'dx/dD [m per kg/m]'."""
-    unit = UNITS[name]
-    sym = _SYMBOLS[name]
-    per = f"m per {unit}" if unit else "m"
-    return rf"$\partial x / \partial {sym}$  [{per}]"
-
-
-def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | None = None,
-                     dpi: int = 120):
-    """Plot d x(t)/d theta of several models, one panel per parameter, and save the figure.
-
-    Arguments:
-        results: model name -> unbatched :class:`Sensitivity` over a 1-d grid ``ts``. The keys
-            of ``dampax._plot.MODELS`` are drawn in the papers' colours (matched ansatz solid
-            red, reference black dotted, ...); any other key gets its own colour and is its
-            own legend label. The panels are the union of the results' ``wrt``, in order.
-        path: output file; the format follows the suffix (e.g. ``.png``).
-        title: figure title (default: none).
-        dpi: resolution of raster output.
-
-    Returns:
-        ``path``, unchanged.
-
-    Each panel marks the halt time of each model that halts by a thin vertical line in the
-    model's colour (x has a kink there: the derivative jumps to 0, or to the rest position's).
-    """
-    from matplotlib.figure import Figure  # Agg canvas; no pyplot, no display needed
-
-    if not results:
-        raise ValueError("results: nothing to plot")
-    for key, r in results.items():
-        if not isinstance(r, Sensitivity) or np.ndim(r.ts) != 1 or np.ndim(r.dhalt_time) != 1:
-            raise ValueError(f"results[{key!r}]: need an unbatched Sensitivity over a 1-d ts")
-    names: list[str] = []
-    for r in results.values():
-        names += [n for n in r.wrt if n not in names]
-    n = len(names)
-    ncols = 1 if n <= 3 else 2
-    nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2),
-                 layout="constrained")
-    axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
-    styles, n_other = {}, 0
-    for key in results:
-        styles[key] = _style(key, n_other)
-        n_other += styles[key]["label"] == key
-    t_max = max(float(np.max(np.asarray(r.ts))) for r in results.values())
-    for ax, name in zip(axes[:n], names, strict=True):
-        for key, r in results.items():
-            if name not in r.wrt:
-                continue
-            st = styles[key]
-            ax.plot(np.asarray(r.ts), np.asarray(r.of(name)["x"]), **st)
-            tau = float(np.asarray(r.halt_time))
-            if math.isfinite(tau) and tau <= t_max:
-                ax.axvline(tau, color=st["color"], linestyle="--", linewidth=0.8, alpha=0.6,
-                           zorder=1.0)
-        ax.axhline(0.0, color="0.8", linewidth=0.6, zorder=0.5)
-        ax.set_ylabel(axis_label(name))
-        ax.set_title(rf"sensitivity to ${_SYMBOLS[name]}$", fontsize=10)
-        ax.grid(True, alpha=0.3)
-        ax.set_xlim(0.0, t_max)
-    for ax in axes[n:]:
-        ax.set_visible(False)
-    for ax in axes[max(n - ncols, 0):n]:
-        ax.set_xlabel("t [s]")
-        ax.xaxis.set_tick_params(labelbottom=True)
-    handles, labels = axes[0].get_legend_handles_labels()
-    if any(math.isfinite(float(np.asarray(r.halt_time))) for r in results.values()):
-        from matplotlib.lines import Line2D
-
-        handles.append(Line2D([], [], color="0.4", linestyle="--", linewidth=0.8))
-        labels.append("halt time")
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
-               fontsize=9, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    fig.savefig(path, dpi=dpi)
-    fig.clear()
-    return path
-
-
-# ----------------------------------------------------------------------------------------------
-# command line: ``dampax sensitivity``
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dampax sensitivity`` (register with run in dampax._cli.SUBCOMMANDS)."""
-    from ._cli import add_oscillator_arguments
-
-    add_oscillator_arguments(parser, mu=0.05, D=1.0, start_title="initial state")
-    what = parser.add_argument_group("sensitivities")
-    what.add_argument("--wrt", default="mu,D", metavar="NAMES",
-                      help=f"comma-separated parameters to differentiate with respect to, from "
-                           f"{','.join(PARAMETERS)} (default: %(default)s)")
-    what.add_argument("--models", default="matched,reference", metavar="NAMES",
-                      help="comma-separated models: matched, undamped, tail, rizcallah, "
-                           "coulomb_exact, reference (default: %(default)s)")
-    what.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
-                      help="time span of the plot (default: half an undamped period past the "
-                           "matched ansatz's halt, 2 to 12 periods; 4 periods if it never halts)")
-    what.add_argument("--samples", type=int, default=400, metavar="N",
-                      help="time samples of the plot (default: %(default)s)")
-    out = parser.add_argument_group("output")
-    out.add_argument("--digits", type=int, default=4, metavar="N",
-                     help="significant digits printed (default: %(default)s)")
-    out.add_argument("--plot", metavar="FILE.png", default="sensitivity.png",
-                     help="where to save the plot of dx/dtheta (default: %(default)s)")
-
-
-def _split(text: str) -> list[str]:
-    return [s.strip() for s in text.split(",") if s.strip()]
-
-
-def _default_t_end(osc: Oscillator, x0: float, v0: float) -> float:
-    period = 2.0 * math.pi / float(np.asarray(osc.omega0))
-    try:
-        tau = float(np.asarray(solve(osc, x0, v0, method="ansatz").halt_time))
-    except ValueError:
-        tau = math.inf
-    if not math.isfinite(tau):
-        return 4.0 * period
-    return min(max(2.0 * period, tau + 0.5 * period), 12.0 * period)
-
-
-def run(args: argparse.Namespace) -> int:
-    """Print how the halt time and position depend on the parameters; plot d x(t)/d theta."""
-    from ._cli import PROG, _check_plot_path, _fmt
-    from ._plot import MODELS
-
-    names = _check_wrt(_split(args.wrt))
-    models = check_choices("--models", _split(args.models), MODELS)
-    if args.samples < 2:
-        raise ValueError(f"--samples must be >= 2, got {args.samples}")
-    if not 1 <= args.digits <= 17:
-        raise ValueError(f"--digits must be between 1 and 17, got {args.digits}")
-    if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0.0):
-        raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end}")
-    _check_plot_path(args.plot)
-    osc = Oscillator(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g)
-    check_finite("x0", args.x0)
-    check_finite("v0", args.v0)
-    for k in models:
-        if not MODELS[k].applies(osc):
-            raise ValueError(f"--models: {k} ({MODELS[k].label}) does not apply to this "
-                             "oscillator (see dampax solve --help)")
-    t_end = args.t_end if args.t_end is not None else _default_t_end(osc, args.x0, args.v0)
-    ts = np.linspace(0.0, t_end, args.samples)
-
-    results: dict[str, Sensitivity] = {}
-    for k in models:
-        results[k] = sensitivity(osc, args.x0, args.v0, ts, wrt=names,
-                                 **dict(MODELS[k].options))
-
-    d = args.digits
-    print(f"{PROG} sensitivity: m = {args.m:g} kg, k = {args.k:g} N/m, mu = {args.mu:g}, "
-          f"b = {args.b:g} kg/s, D = {args.D:g} kg/m, g = {args.g:g} m/s^2, "
-          f"x0 = {args.x0:g} m, v0 = {args.v0:g} m/s")
-    print()
-    labels = {k: MODELS[k].label for k in models}
-    width = max(max(len(s) for s in labels.values()), len("model"))
-    print(f"  {'model':<{width}}  {'halt time [s]':>13}  {'halt position [m]':>17}")
-    for k, r in results.items():
-        print(f"  {labels[k]:<{width}}  "
-              f"{_fmt(float(np.asarray(r.halt_time)), d, inf='never'):>13}  "
-              f"{_fmt(float(np.asarray(r.halt_position)), d):>17}")
-    print()
-    print("  derivatives per unit of the parameter ('-' where the model never halts):")
-    print(f"  {'parameter':<14}  {'model':<{width}}  {'d halt time [s]':>15}  "
-          f"{'d halt position [m]':>19}")
-    for name in names:
-        unit = UNITS[name] or "1"
-        first = f"{name} [{unit}]"
-        for k, r in results.items():
-            g = r.of(name)
-            print(f"  {first:<14}  {labels[k]:<{width}}  "
-                  f"{_fmt(float(np.asarray(g['halt_time'])), d):>15}  "
-                  f"{_fmt(float(np.asarray(g['halt_position'])), d):>19}")
-            first = ""
-    title = (rf"m = {args.m:g} kg, k = {args.k:g} N/m, $\mu$ = {args.mu:g}, b = {args.b:g} kg/s, "
-             rf"D = {args.D:g} kg/m, $x_0$ = {args.x0:g} m, $v_0$ = {args.v0:g} m/s")
-    path = plot_sensitivity(results, args.plot, title=title)
-    print()
-    print(f"  plot written to {path}")
-    sys.stdout.flush()
-    return 0

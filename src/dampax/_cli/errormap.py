@@ -1,0 +1,181 @@
+"""``dampax errormap``: the analytic models against the reference over a grid of ratios."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .._maps import DEFAULT_MODELS, largest_ratio_below, worst_in_box
+from .._models import ANALYTIC, MODELS, check_models
+from ._common import PROG, fmt
+
+#: Grid and settings of ``dampax errormap`` (a few minutes on 2 cores with the reference) and
+#: of ``--quick`` (a smoke run). The grids include d0 = 0 and d2 = 0 for the summary table.
+ERRORMAP_DEFAULTS = dict(d0="0:0.1:16", d1="0", d2="0:0.75:16", phi0="0:7*pi/8:8",
+                         periods=20.0, samples_per_period=64, chunk_size=128)
+ERRORMAP_QUICK = dict(d0="0:0.1:4", d1="0", d2="0:0.75:4", phi0="0,pi/2",
+                      periods=10.0, samples_per_period=32, chunk_size=32)
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``dampax errormap``."""
+    grid = parser.add_argument_group(
+        "grid of dimensionless ratios (START:STOP:N = N values, both ends included; or a "
+        "comma list; pi allowed, e.g. 0:7*pi/8:8; write a negative start as --phi0=-pi:0:5)")
+    d = ERRORMAP_DEFAULTS
+    q = ERRORMAP_QUICK
+    grid.add_argument("--d0", metavar="START:STOP:N",
+                      help=f"Coulomb ratio d0/(w0 A0) (default: {d['d0']}; quick: {q['d0']})")
+    grid.add_argument("--d2", metavar="START:STOP:N",
+                      help=f"quadratic ratio d2 A0/w0 (default: {d['d2']}; quick: {q['d2']})")
+    grid.add_argument("--phi0", metavar="START:STOP:N",
+                      help=f"initial phase [rad] (default: {d['phi0']}; quick: {q['phi0']}; "
+                           "phi0 + pi gives the mirror-image motion)")
+    grid.add_argument("--d1", metavar="START:STOP:N",
+                      help=f"viscous ratio d1/w0 (default: {d['d1']})")
+    grid.add_argument("--quick", action="store_true",
+                      help="a 4 x 4 x 2 smoke run over 10 periods (explicit options win)")
+    run = parser.add_argument_group("models and reference")
+    run.add_argument("--models", default=",".join(DEFAULT_MODELS),
+                     help=f"comma list of {', '.join(ANALYTIC)} (default: %(default)s)")
+    run.add_argument("--reference", default="reference", choices=("reference", "coulomb_exact"),
+                     help="diffrax integration of eq. 3, or the exact half-swings (D = 0 only, "
+                          "fast) (default: %(default)s)")
+    run.add_argument("--periods", type=float,
+                     help=f"time window cap in undamped periods (default: {d['periods']:g}; "
+                          f"quick: {q['periods']:g})")
+    run.add_argument("--samples-per-period", type=int, metavar="N",
+                     help=f"time samples per period (default: {d['samples_per_period']}; "
+                          f"quick: {q['samples_per_period']})")
+    run.add_argument("--chunk-size", type=int, metavar="N",
+                     help=f"grid points per device evaluated at once; bounds the memory "
+                          f"(default: {d['chunk_size']})")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out", default="errormap", metavar="DIR",
+                     help="folder for errormap.nc and the heat maps (default: %(default)s)")
+    out.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _ratio_text(value) -> str:
+    if value is None:
+        return "n/a"
+    return fmt(value, 3, nan="none")
+
+
+def _defined_along(ds, model: str, along: str) -> bool:
+    """Whether the model is valid beyond the first point of ``along`` (other ratios at 0)."""
+    sel = {}
+    for axis in ("d0_ratio", "d1_ratio", "d2_ratio"):
+        if axis != along:
+            zero = np.flatnonzero(np.asarray(ds[axis]) == 0.0)
+            if zero.size == 0:
+                return True
+            sel[axis] = int(zero[0])
+    valid = np.asarray(ds["valid"].sel(model=model).isel(sel).all("phi0"))
+    return valid.size < 2 or bool(np.any(valid[1:]))
+
+
+def _print_errormap_summary(ds) -> None:
+    """Per model: the largest d2 (at d0 = 0) and d0 (at d2 = 0) with max error < 1 % / 5 %."""
+
+    def step(axis: str) -> str:
+        values = np.unique(np.asarray(ds[axis], dtype=float))
+        return fmt(float(np.min(np.diff(values))), 3) if values.size > 1 else "-"
+
+    models = [str(m) for m in np.asarray(ds["model"])]
+    w = max(13, *(len(m) for m in models))
+    group = 8 + 1 + 8 + 1 + 14
+    print("  Largest ratio up to which max |x - x_ref| / A0 stays below 1 % and 5 % for every "
+          "phi0 (d1/w0 = 0),")
+    print(f"  on grid steps of {step('d2_ratio')} in d2 A0/w0 and {step('d0_ratio')} in "
+          "d0/(w0 A0); beside the paper's stated ranges (section):")
+    print()
+    print(f"  {'':<{w}}  {'d2 A0/w0 at d0 = 0':^{group}}  {'d0/(w0 A0) at d2 = 0':^{group}}  "
+          f"{'worst max error':>17}")
+    print(f"  {'model':<{w}}  {'< 1 %':>8} {'< 5 %':>8} {'paper':>14}  {'< 1 %':>8} "
+          f"{'< 5 %':>8} {'paper':>14}  {'d0<=0.03,d2<=0.25':>17}")
+    for model in models:
+        cells = []
+        for along in ("d2_ratio", "d0_ratio"):
+            defined = _defined_along(ds, model, along)
+            for level in (0.01, 0.05):
+                value = largest_ratio_below(ds, level, along=along, model=model)
+                cells.append(_ratio_text(value) if defined else "-")
+        paper = MODELS[model].paper_ranges
+        box = worst_in_box(ds, model=model, d0_max=0.03 + 1e-12, d2_max=0.25 + 1e-12)
+        box_text = "-" if math.isnan(box) else f"{100 * box:.2g} %"
+        print(f"  {model:<{w}}  {cells[0]:>8} {cells[1]:>8} {paper[0]:>14}  "
+              f"{cells[2]:>8} {cells[3]:>8} {paper[1]:>14}  {box_text:>17}")
+    print()
+    for line in (
+            "paper (Lelas & Pezer, Part I): quadratic damping, matched ansatz \"excellent\" up to",
+            "d2 A0/w0 = 0.5 (III); Coulomb damping, matched + Coulomb tail up to d0/(w0 A0) = "
+            "0.05 (IV;",
+            "* the plain ansatz there \"until the last few half-periods\"); combined damping, "
+            "good for",
+            "d0/(w0 A0) <= 0.03 with d2 A0/w0 <= 0.25 (V; last column: the worst grid point in "
+            "that box);",
+            "undamped-phase ansatz (earlier approach) for d0/(w0 A0) <~ 0.03, d2 A0/w0 <~ 0.1 "
+            "(eq. 25).",
+            "\"none\": not even the first grid value; \"-\": the model is not defined there; "
+            "\"n/a\": no 0 on",
+            "the other axis of the grid."):
+        print(f"  {line}")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Error maps of the analytic models against the reference over a grid of damping ratios."""
+    import time
+
+    from .._maps import _axis, error_map, parse_axis
+    from .._plot import ERROR_MAP_METRICS, plot_error_map
+
+    preset = ERRORMAP_QUICK if args.quick else ERRORMAP_DEFAULTS
+
+    def pick(name):
+        value = getattr(args, name)
+        return preset[name] if value is None else value
+
+    axes = {}
+    for flag, name, ratio in (("--d0", "d0", True), ("--d1", "d1", True), ("--d2", "d2", True),
+                              ("--phi0", "phi0", False)):
+        axes[name] = _axis(flag, parse_axis(pick(name), flag), ratio=ratio)
+    models = check_models(args.models, "--models", allowed=ANALYTIC)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
+    periods = pick("periods")
+    spp = pick("samples_per_period")
+    chunk = pick("chunk_size")
+    for flag, value, low in (("--periods", periods, 0.0), ("--samples-per-period", spp, 1),
+                             ("--chunk-size", chunk, 0)):
+        if not (math.isfinite(value) and value > low):
+            raise ValueError(f"{flag} must be > {low:g}, got {value}")
+    out.mkdir(parents=True, exist_ok=True)
+
+    n = int(np.prod([a.size for a in axes.values()]))
+    print(f"{PROG} errormap: {n} points ({axes['d0'].size} d0 x {axes['d1'].size} d1 x "
+          f"{axes['d2'].size} d2 x {axes['phi0'].size} phi0), models {', '.join(models)}; "
+          f"reference: {args.reference}; window <= {periods:g} periods, {spp} samples/period")
+    start = time.perf_counter()
+    ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
+                   phi0=axes["phi0"], models=models, periods=periods, samples_per_period=spp,
+                   chunk_size=chunk, reference=args.reference, progress=not args.no_progress)
+    elapsed = time.perf_counter() - start
+    bad_ref = int((~ds["reference_valid"]).sum())
+    if bad_ref:
+        print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
+              "not defined there); their metrics are NaN", file=sys.stderr)
+    path_nc = out / "errormap.nc"
+    ds.to_netcdf(path_nc, engine="scipy")
+    written = [path_nc]
+    for metric in ERROR_MAP_METRICS:
+        written.append(plot_error_map(ds, metric, out / f"{metric}.png"))
+    print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "
+          + ", ".join(str(p) for p in written))
+    print()
+    _print_errormap_summary(ds)
+    return 0

@@ -1,0 +1,114 @@
+"""``dampax solve``: the models' key numbers for one oscillator, and a plot of them."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+
+import numpy as np
+
+from ._common import (
+    PROG,
+    add_oscillator_arguments,
+    check_digits,
+    check_plot_path,
+    fmt,
+    oscillator_from,
+    oscillator_text,
+)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``dampax solve``."""
+    add_oscillator_arguments(parser)
+    out = parser.add_argument_group("output")
+    out.add_argument("--turning", type=int, default=6, metavar="N",
+                     help="turning points of the matched ansatz to print (default: %(default)s)")
+    out.add_argument("--digits", type=int, default=4, metavar="N",
+                     help="significant digits printed (default: %(default)s)")
+    out.add_argument("--plot", metavar="FILE.png",
+                     help="also save x(t) and E(t) of every model to this file")
+    out.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
+                     help="time span of the plot and the reference integration "
+                          "(default: a bit past the latest halt, or 6 undamped periods)")
+    out.add_argument("--no-reference", action="store_true",
+                     help="skip the reference integrator (diffrax)")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the amplitudes, damping ratios, halt times and turning points of every model."""
+    from .._models import applicable_models
+    from .._plot import plot_results
+    from .._summary import damping_ratios, run_models
+
+    if args.turning < 0:
+        raise ValueError(f"--turning must be >= 0, got {args.turning}")
+    check_digits(args.digits)
+    if args.plot:
+        check_plot_path(args.plot)
+    osc = oscillator_from(args)
+    models = applicable_models(osc, reference=not args.no_reference)
+    run = run_models(osc, args.x0, args.v0, models=models, n_turning=max(args.turning, 1),
+                     t_end=args.t_end)
+    matched = run.results["matched"]
+    if matched.error is not None:
+        raise ValueError(matched.error)
+    for note in run.notes:
+        print(f"{PROG}: note: {note}", file=sys.stderr)
+
+    d = args.digits
+    x0, v0 = run.x0, run.v0
+    w0 = float(np.asarray(osc.omega0))
+    A0 = math.hypot(x0, v0 / w0)
+    phi0 = math.atan2(-v0 / w0, x0) if A0 > 0 else 0.0
+    r0, r1, r2 = damping_ratios(osc, x0, v0)
+    sol = matched.solution
+    rows = [
+        ("A", float(np.asarray(sol.amplitude)), "m", "matched amplitude (eq. 22)"),
+        ("phi", float(np.asarray(sol.phase)), "rad", "matched phase (eq. 23)"),
+        ("A0", A0, "m", "undamped amplitude, x0 = A0 cos(phi0)"),
+        ("phi0", phi0, "rad", "undamped phase, v0 = -w0 A0 sin(phi0)"),
+        ("d0/(w0 A0)", r0, "", "Coulomb ratio, d0 = 2 mu g/(pi w0)"),
+        ("d1/w0", r1, "", "viscous ratio, d1 = b/(2m)"),
+        ("d2 A0/w0", r2, "", "quadratic ratio, d2 = 4 D w0/(3 pi m)"),
+        ("xc", float(np.asarray(osc.xc)), "m", "sticking band |x| <= xc = mu g/w0^2"),
+        ("w0", w0, "rad/s", f"undamped period T0 = {fmt(2 * math.pi / w0, d)} s"),
+    ]
+    print(f"{PROG} solve: {oscillator_text(args)}")
+    print()
+    for name, value, unit, what in rows:
+        print(f"  {name:<11} = {fmt(value, d):>10} {unit:<6} {what}")
+    print()
+
+    width = max(len(r.label) for r in run.results.values())
+    print(f"  {'model':<{width}}  {'halt time [s]':>13}  {'halt position [m]':>17}")
+    for r in run.results.values():
+        if r.error is not None:
+            reason = "not available" if r.name == "reference" else f"not available: {r.error}"
+            print(f"  {r.label:<{width}}  {reason}")
+            continue
+        print(f"  {r.label:<{width}}  {fmt(r.halt_time, d, inf='never'):>13}  "
+              f"{fmt(r.halt_position, d):>17}")
+
+    if args.turning > 0:
+        ts, xs = matched.turning_t[:args.turning], matched.turning_x[:args.turning]
+        shown = int(np.sum(np.isfinite(ts)))
+        print()
+        if shown < args.turning:
+            print(f"  turning points of the matched ansatz (v = 0, t > 0): only {shown} "
+                  f"before it halts at t = {fmt(matched.halt_time, d)} s")
+        else:
+            print(f"  turning points of the matched ansatz (v = 0, t > 0), first {shown}:")
+        if shown:
+            print(f"  {'n':>3}  {'t [s]':>10}  {'x [m]':>10}  {'x/x0':>10}")
+        for i in range(shown):
+            rel = xs[i] / x0 if x0 != 0 else math.nan
+            print(f"  {i + 1:>3}  {fmt(ts[i], d):>10}  {fmt(xs[i], d):>10}  "
+                  f"{fmt(rel, d):>10}")
+
+    if args.plot:
+        path = plot_results(run, args.plot)
+        print()
+        print(f"  plot written to {path}")
+    return 0
