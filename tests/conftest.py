@@ -1,5 +1,3 @@
-"""Test configuration: float64 everywhere (dampax enables it on import; set it here too)."""
+"""Test configuration: importing dampax enables float64 in JAX once, for every test module."""
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
+import dampax  # noqa: F401  (jax_enable_x64 is set on import)

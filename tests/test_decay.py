@@ -13,9 +13,6 @@ phi returned by ``dp.solve(..., phase="matched")`` are checked against the quart
 import math
 
 import jax
-
-jax.config.update("jax_enable_x64", True)
-
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -10,15 +10,9 @@ from helpers import W0, evaluate, ratios_to_constants, scipy_stick_slip
 
 import dampax as dp
 
-# (method, options) for every analytic model; parametrised once here
-MODELS = {
-    "matched": dict(method="ansatz"),
-    "undamped": dict(method="ansatz", phase="undamped"),
-    "matched_tail": dict(method="ansatz", tail="coulomb"),
-    "matched_tail_back1": dict(method="ansatz", tail="coulomb", back=1),
-    "rizcallah": dict(method="rizcallah"),
-    "coulomb_exact": dict(method="coulomb_exact"),
-}
+# solve options of every analytic model, from the registry; parametrised once here
+MODELS = {name: m.solve_options for name, m in dp.MODELS.items() if name in dp._models.ANALYTIC}
+MODELS["matched_tail_back1"] = dict(MODELS["matched_tail"], back=1)
 COULOMB_ONLY = {"rizcallah", "coulomb_exact"}
 QUADRANTS = [(1, 0), (1, 1), (-1, 1), (-1, -1), (1, -1), (0, 1), (-1, 0), (0, -1)]
 

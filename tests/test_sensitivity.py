@@ -13,17 +13,15 @@ Jacobian is compiled once (its compilation dominates this module's run time).
 import argparse
 import math
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
 import equinox as eqx  # noqa: E402
+import jax
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import dampax as dp  # noqa: E402
-from dampax._sensitivity import Sensitivity, add_arguments, run, sensitivity  # noqa: E402
+from dampax._cli.sensitivity import add_arguments, run  # noqa: E402
+from dampax._sensitivity import Sensitivity, sensitivity  # noqa: E402
 
 M, K = 1.0, 30.0
 W0 = math.sqrt(K / M)
