@@ -5,8 +5,8 @@ f' = -(a f^2 + b' f + c), f(0) = 1 (a = d2 A, b' = d1, c = d0/A) is integrated n
 with the closed form ``dampax._ansatz.decay`` / ``halt_time`` in every regime: each combination of
 a, b', c zero or positive and the discriminant b'^2 - 4ac negative, exactly zero and positive,
 plus near-boundary values that show the regimes meet continuously. The halt time is also checked
-against independent, cancellation-free closed forms (DESIGN 2.3). Then the amplitude A and phase
-phi returned by ``dp.solve(..., phase="matched")`` are checked against the quartic of eq. 22
+against independent, cancellation-free closed forms (docs/DESIGN.md 2.3). Then the amplitude A and
+phase phi returned by ``dp.solve(..., phase="matched")`` are checked against the quartic of eq. 22
 (numpy.roots) and the initial conditions in all four quadrants of (x0, v0).
 """
 
@@ -58,7 +58,7 @@ def tau_closed_form(a, bp, c):
 
 
 def tau_design(a, bp, c):
-    """Halt time from the regime formulas printed in DESIGN 2.3 (well-conditioned cases only)."""
+    """Halt time from the regime formulas of docs/DESIGN.md 2.3 (well-conditioned cases)."""
     if c == 0.0:
         return math.inf
     if a == 0.0 and bp == 0.0:

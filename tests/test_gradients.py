@@ -1,4 +1,4 @@
-"""Finite values and correct gradients of the ansatz solution (DESIGN 2.1-2.3).
+"""Finite values and correct gradients of the ansatz solution (docs/DESIGN.md 2.1-2.3).
 
 Hypothesis draws damping ratios (each exactly 0 or positive, inside the regime where the model
 exists), a reference amplitude and an initial phase in any quadrant; the Oscillator's mu, b, D

@@ -74,7 +74,7 @@ def test_vmap_equals_loop_and_no_recompilation(model):
 
 @pytest.mark.parametrize("model", MODELS)
 def test_scaling_invariance(model):
-    # DESIGN 1: same ratios d0/(w0 A0), d1/w0, d2 A0/w0, phi0 -> same x/A0 against w0 t
+    # docs/DESIGN.md 1: same ratios d0/(w0 A0), d1/w0, d2 A0/w0, phi0 -> same x/A0 against w0 t
     phi0 = 0.7
     curves = []
     for m, k, A0 in [(1.0, 30.0, 0.2), (0.3, 2.0, 0.05), (5.0, 800.0, 1.7)]:

@@ -1,4 +1,4 @@
-"""Every row of DESIGN section 4 (the papers' quoted numbers), m = 1 kg, k = 30 N/m, A0 = 0.2 m.
+"""Every row of docs/DESIGN.md section 4 (the quoted numbers), m = 1 kg, k = 30 N/m, A0 = 0.2 m.
 
 The paper quotes two or three significant figures; each check is to the last printed digit.
 """
@@ -83,7 +83,7 @@ def test_combined_general_start():
 
 
 def test_combined_from_rest_fig14d():
-    # V.A / DESIGN note: Fig. 14(d) (x0 = 0.2, v0 = 0) gives (2.26 s, 0.055 x0) as the last
+    # V.A / docs/DESIGN.md note: Fig. 14(d) (x0 = 0.2, v0 = 0) gives (2.26 s, 0.055 x0) as the last
     # turning point outside the band; the third is the paper's (1.74 s, -0.155 x0)
     osc = paper_osc(0.03, 0.25)
     sol = dp.solve(osc, 0.2, 0.0)

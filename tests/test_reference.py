@@ -212,7 +212,7 @@ def test_coulomb_turning_points_exact(batch_a):
 
 
 def test_design_numbers(batch_a):
-    """DESIGN section 4: Coulomb d0/(w0 A0) = 0.1 from rest at 0.2 m."""
+    """docs/DESIGN.md section 4: Coulomb d0/(w0 A0) = 0.1 from rest at 0.2 m."""
     i = 4
     w0 = np.sqrt(30.0)
     tn, xn = batch_a.turning_points(4)

@@ -42,7 +42,7 @@ def test_reproduce_command_writes_figures_and_numbers(reproduced):
     for r in rows:
         if r["status"] == "explained":
             assert r["note"] and r["source"] in EXPLAINED_SOURCES, r
-    # the DESIGN section 4 rows are all within the printed rounding
+    # the docs/DESIGN.md section 4 rows are all within the printed rounding
     for r in rows:
         if r["source"].startswith("DESIGN"):
             assert r["status"] == "ok", r

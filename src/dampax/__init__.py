@@ -36,5 +36,4 @@ from ._solve import solve as solve  # noqa: E402
 from ._solve import turning_points as turning_points  # noqa: E402
 from ._trace import Trace as Trace  # noqa: E402
 from ._trace import load_trace as load_trace  # noqa: E402
-
-__version__ = "0.1.0"
+from ._version import __version__ as __version__  # noqa: E402

@@ -435,7 +435,7 @@ class RizcallahSolution(_PiecewiseSolution):
 
 def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
                     window: int = 8) -> RizcallahSolution:
-    """Rizcallah's sinusoidal-friction solution for Coulomb damping (DESIGN 2.5), any start.
+    """Rizcallah's sinusoidal-friction solution for Coulomb damping (docs/DESIGN.md 2.5), any start.
 
     Arguments:
         osc: Oscillator with b = D = 0 (else ``valid`` is False).

@@ -31,6 +31,7 @@ import numpy as np
 from ._models import ANALYTIC, MODELS, check_models
 from ._oscillator import from_ratios
 from ._solve import solve
+from ._version import __version__
 
 Array = jax.Array
 
@@ -275,7 +276,6 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     import xarray as xr
     from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
 
-    from . import __version__
 
     axes = {"d0_ratio": _axis("d0_ratio", d0_ratio, ratio=True),
             "d1_ratio": _axis("d1_ratio", d1_ratio, ratio=True),

@@ -112,7 +112,7 @@ def _first_after_period(cases: Cases, d0, d2, options) -> float:
 
 
 def paper_numbers(cases: Cases | None = None) -> list[Number]:
-    """Every value quoted in the two papers (and DESIGN section 4), computed with dampax.
+    """Every value quoted in the two papers (and docs/DESIGN.md section 4), computed with dampax.
 
     Arguments:
         cases: a shared solution cache (one is made when None).

@@ -25,6 +25,7 @@ function theorem), and the turning point x(t*) then carries the total derivative
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import diffrax as dfx
@@ -102,6 +103,16 @@ def _stages(tableau, vf, t0, y0, h, *, last: bool):
         k = vf(add(t0, mul(h, jnp.asarray(float(c_i), dtype=h.dtype))), y_i)
         ks.append(k)
     return ks
+
+
+# The solver below implements diffrax's solver interface (init/step/func) as of diffrax 0.7;
+# pyproject.toml pins diffrax < 0.8. Fail at import, with the fix, if the interface moved.
+_STEP_ARGS = ("self", "terms", "t0", "t1", "y0", "args", "solver_state", "made_jump")
+_FOUND = tuple(inspect.signature(dfx.AbstractSolver.step).parameters)
+if _FOUND != _STEP_ARGS:
+    raise ImportError(
+        f"dampax needs diffrax's solver interface of diffrax 0.7, step{_STEP_ARGS[1:]}; "
+        f"diffrax {dfx.__version__} has step{_FOUND[1:]}: install 'diffrax>=0.7.1,<0.8'")
 
 
 class _UnrolledERK(dfx.AbstractAdaptiveSolver):

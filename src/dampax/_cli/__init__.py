@@ -12,6 +12,7 @@ import argparse
 import sys
 from collections.abc import Callable
 
+from .._version import __version__
 from . import errormap, fit, reproduce, sensitivity, solve
 from ._common import PROG
 
@@ -31,8 +32,6 @@ def build_parser() -> argparse.ArgumentParser:
     Returns:
         An ``argparse.ArgumentParser``; parsed arguments carry the subcommand's ``run``.
     """
-    from .. import __version__
-
     parser = argparse.ArgumentParser(
         prog=PROG,
         description="Harmonic oscillator with Coulomb, viscous and quadratic damping: analytic "
