@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 import dampax as dp
+from dampax._cli.fit import add_arguments, run
 from dampax._fit import (
     PARAMS,
-    add_arguments,
     compare_envelope_models,
     compare_models,
     example_trace,
@@ -26,7 +26,6 @@ from dampax._fit import (
     fit_envelope,
     initial_guess,
     residual_function,
-    run,
 )
 from dampax._trace import Trace, load_trace
 

@@ -1,0 +1,41 @@
+"""Fitting the damping constants mu, b, D to measured free-decay traces (docs/DESIGN.md, fitting).
+
+Modules: ``_params`` (names, named parameter pytrees, internal coordinates, eq. 21),
+``_core`` (the fit models, residuals, optimisers, covariance: pure and vmappable), ``_guess``
+(initial guesses from a trace, numpy), ``_result`` (FitResult, ModelComparison, ArrayFit) and
+``_api`` (the public functions). The command ``dampax fit`` lives in ``dampax._cli.fit``.
+"""
+
+from ._api import EXAMPLE as EXAMPLE
+from ._api import compare_envelope_models as compare_envelope_models
+from ._api import compare_models as compare_models
+from ._api import example_trace as example_trace
+from ._api import fit as fit
+from ._api import fit_arrays as fit_arrays
+from ._api import fit_envelope as fit_envelope
+from ._api import residual_function as residual_function
+from ._core import FIT_MODELS as FIT_MODELS
+from ._core import METHOD_NAMES as METHOD_NAMES
+from ._core import MODELS as MODELS
+from ._core import OPTIMIZERS as OPTIMIZERS
+from ._core import FitModel as FitModel
+from ._guess import initial_guess as initial_guess
+from ._params import CANDIDATES as CANDIDATES
+from ._params import DAMPING as DAMPING
+from ._params import ENVELOPE_PARAMS as ENVELOPE_PARAMS
+from ._params import LOSSES as LOSSES
+from ._params import PARAMS as PARAMS
+from ._params import EnvelopeParams as EnvelopeParams
+from ._params import TraceParams as TraceParams
+from ._params import check_free as check_free
+from ._result import ArrayFit as ArrayFit
+from ._result import FitResult as FitResult
+from ._result import ModelComparison as ModelComparison
+
+__all__ = [
+    "FitResult", "ModelComparison", "ArrayFit", "fit", "fit_arrays", "fit_envelope",
+    "compare_models", "compare_envelope_models", "initial_guess", "example_trace",
+    "residual_function", "PARAMS", "ENVELOPE_PARAMS", "CANDIDATES", "DAMPING", "MODELS",
+    "LOSSES", "OPTIMIZERS", "METHOD_NAMES", "FIT_MODELS", "FitModel", "TraceParams",
+    "EnvelopeParams", "EXAMPLE", "check_free",
+]

@@ -1,0 +1,485 @@
+"""The public fitting functions: checks, windows, guesses and staging around the pure core.
+
+:func:`fit` (traces), :func:`fit_envelope` (tables of maxima), :func:`compare_models` and
+:func:`compare_envelope_models` (candidate damping models ranked by BIC), :func:`fit_arrays`
+(the jit / vmap-able core on arrays), :func:`residual_function` (for other optimizers) and
+:func:`example_trace` (docs/DESIGN.md, fitting).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._oscillator import Oscillator
+from .._trace import Trace, load_trace
+from ._core import (
+    FIT_MODELS,
+    FIT_RESULTS,
+    MAX_STEPS,
+    MODELS,
+    OPTIMIZERS,
+    FitModel,
+    ReferenceOptions,
+    model_curve,
+    run_core,
+)
+from ._guess import analyse, guess_envelope, guess_trace, start_index
+from ._params import (
+    CANDIDATES,
+    LOSSES,
+    MAD,
+    PARAMS,
+    Constants,
+    EnvelopeParams,
+    TraceParams,
+    as_arrays,
+    as_params,
+    check_choice,
+    check_free,
+    flat,
+    oscillator_values,
+    to_model,
+    varied_names,
+    vary_mask,
+)
+from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
+
+# ----------------------------------------------------------------------------------------------
+# data preparation
+
+
+def _prepare(trace_or_t, x):
+    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped."""
+    source = ""
+    if isinstance(trace_or_t, Trace):
+        if x is not None:
+            raise ValueError("pass either a Trace or the arrays t and x, not both")
+        t, x, source = trace_or_t.t, trace_or_t.x, trace_or_t.source
+    elif isinstance(trace_or_t, (str, Path)):
+        trace = load_trace(trace_or_t)
+        t, x, source = trace.t, trace.x, trace.source
+    else:
+        if x is None:
+            raise ValueError("fit(t, x): x is missing (or pass a dampax.Trace)")
+        t = trace_or_t
+    t = np.asarray(t, dtype=float).reshape(-1)
+    x = np.asarray(x, dtype=float).reshape(-1)
+    if t.shape != x.shape:
+        raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
+    ok = np.isfinite(t) & np.isfinite(x)
+    t, x = t[ok], x[ok]
+    order = np.argsort(t, kind="stable")
+    t, x = t[order], x[order]
+    if t.size < 10:
+        raise ValueError(f"a fit needs at least 10 finite samples, got {t.size}")
+    return t, x, source
+
+
+def _bucket(n: int, minimum: int = 4096) -> int:
+    """Padded length: the next power of 4 >= n, at least ``minimum``, so that traces of
+    different lengths share compiled fits (compiling one takes 10-30 s; evaluating the padded
+    samples costs far less)."""
+    return max(minimum, 1 << (2 * int(math.ceil(math.log2(max(n, 1)) / 2))))
+
+
+def _pad(t, x, n_pad):
+    """(t, x, weight) padded to ``n_pad`` samples with the last one at weight 0."""
+    n = len(t)
+    wt = np.zeros(n_pad)
+    wt[:n] = 1.0
+    tp = np.full(n_pad, t[-1])
+    tp[:n] = t
+    xp = np.full(n_pad, x[-1])
+    xp[:n] = x
+    return tp, xp, wt
+
+
+def _robust_scale(r) -> float:
+    """1.4826 MAD of residuals: the soft_l1 scale f_scale."""
+    return float(MAD * np.median(np.abs(r - np.median(r))))
+
+
+def _reference_options(model: FitModel, max_swings, rtol, atol, t, w0):
+    """:class:`ReferenceOptions` for a model that integrates (else None).
+
+    Arguments:
+        model: the fit model.
+        max_swings: half swings budget; default from the window t and w0 (concrete values).
+        rtol, atol: integrator tolerances.
+        t, w0: the window and the angular frequency of the start.
+    """
+    if not model.integrates:
+        return None
+    if max_swings is None:
+        try:
+            span = float(np.max(np.asarray(t)) - np.asarray(t)[0])
+            max_swings = int(1.15 * span * float(w0) / math.pi) + 8
+        except (TypeError, jax.errors.ConcretizationTypeError,
+                jax.errors.TracerArrayConversionError) as err:
+            raise ValueError(f"fit_arrays(model={model.name!r}) under jit/vmap needs "
+                             "max_swings (static): the number of half swings in the window "
+                             "plus a margin") from err
+    return ReferenceOptions(int(max_swings), float(rtol), float(atol))
+
+
+# ----------------------------------------------------------------------------------------------
+# fits
+
+
+def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
+        fit_omega0: bool = False, offset: bool = True, start="auto", end=None,
+        loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
+        rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None) -> FitResult:
+    """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
+
+    Parameters: the damping constants named in ``free`` (mu, b, D >= 0), and always x0, v0 at
+    the fit start, the equilibrium ``offset`` and, with ``fit_omega0``, w0 (m fixed,
+    k = m w0^2, so mu, b, D keep their units). Non-free damping constants stay at the
+    oscillator's values. With ``loss="soft_l1"`` the fit starts from a linear-loss fit whose
+    residuals set the scale (1.4826 MAD); a model with ``start_from`` (the reference) starts
+    from the optimum of that model (the ansatz).
+
+    Arguments:
+        trace_or_t: a :class:`Trace` (from :func:`load_trace`), a file path, or the times t.
+        x: the positions when ``trace_or_t`` holds the times.
+        oscillator: the known constants (m, k, g; the damping constants not in ``free`` stay
+            at its values, usually 0). Default ``Oscillator(m=1.0, k=1.0)``.
+        free: the damping constants to fit, among "mu", "b", "D".
+        model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (diffrax
+            integration of eq. 3, started from the ansatz fit).
+        fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m).
+        offset: fit the equilibrium offset (else the trace is taken as centred on 0).
+        start: where the fit window begins: "auto" (the first clear extreme after the largest
+            excursion, which skips a hand release), "data" / None (the first sample) or a time.
+        end: optional end time of the window.
+        loss: "linear" or "soft_l1" (robust to outliers; scale from the MAD of a linear fit).
+        optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
+        p0: optional initial values (dict by parameter name) overriding the automatic guess.
+        max_steps, rtol, atol: optimizer budget and tolerances.
+        max_swings: reference model budget (default from the window length).
+
+    Returns:
+        A :class:`FitResult`.
+    """
+    check_choice("model", model, MODELS)
+    check_choice("loss", loss, LOSSES)
+    check_choice("optimizer", optimizer, OPTIMIZERS)
+    spec = FIT_MODELS[model]
+    free = check_free(free)
+    osc = oscillator_values(oscillator)
+    t_all, x_all, source = _prepare(trace_or_t, x)
+    warn = []
+    an = analyse(t_all, x_all)
+    if an.n_cross < 3:
+        warn.append(f"only {an.n_cross} zero crossings found: is this a free-decay "
+                    "oscillation? initial guesses are rough")
+    if not fit_omega0 and abs(an.omega / osc["w0"] - 1.0) > 0.03:
+        warn.append(f"the data oscillate at {an.omega:.5g} rad/s but sqrt(k/m) = "
+                    f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k")
+    i0 = start_index(t_all, x_all, an, start)
+    i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
+    t, xw = t_all[i0:i1], x_all[i0:i1]
+    if t.size < 10:
+        raise ValueError(f"the fit window [{t_all[i0]:g}, {end}] holds fewer than 10 samples")
+    an_w = analyse(t, xw)
+    an_w.omega = an.omega if an.n_cross >= an_w.n_cross else an_w.omega
+    guess = guess_trace(t, xw, free, osc, fit_omega0, offset, an=an_w)
+    if p0:
+        unknown = set(p0) - set(PARAMS)
+        if unknown:
+            raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
+        guess = guess._replace(**{k: float(v) for k, v in p0.items()})
+    for w in warn:
+        warnings.warn(w, stacklevel=2)
+    vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
+    consts = Constants(m=osc["m"], g=osc["g"])
+    n = len(t)
+    tp, xp, wt = _pad(t, xw, _bucket(n))
+    steps = int(max_steps or MAX_STEPS[optimizer])
+
+    def run(p_start, name, fs):
+        opts = _reference_options(FIT_MODELS[name], max_swings, 1e-8, 1e-10, t, p_start.w0)
+        return run_core(tp, xp, wt, p_start, vary, consts, fs, model=name, optimizer=optimizer,
+                        max_steps=steps, rtol=float(rtol), atol=float(atol), opts=opts)
+
+    stages = []
+    fs = math.inf
+    first = spec.start_from or spec.name
+    out = run(guess, first, fs)
+    if loss == "soft_l1":
+        r = xw - np.asarray(out.curve)[:n]
+        fs = _robust_scale(r)
+        fs = fs if fs > 0 else float(np.std(r)) or 1.0
+        stages.append(f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}")
+        out = run(out.params, first, fs)
+    if spec.start_from:
+        stages.append(f"started from the {first} fit ({int(out.steps)} steps)")
+        out = run(out.params, spec.name, fs)
+    init = {name: getattr(guess, name) for name in varied_names(vary)}
+    return build_result(out, FitContext(
+        model=model, free=free, vary=vary, consts=consts, t=t, x=xw, loss=loss,
+        optimizer=optimizer, f_scale=fs, init=init, source=source, full_t=t_all, full_x=x_all,
+        warnings=tuple(warn), stages="; ".join(stages)))
+
+
+def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,
+                 offset: bool = False, loss: str = "linear", optimizer: str = "lm",
+                 max_steps: int | None = None, rtol: float = 1e-10,
+                 atol: float = 1e-12) -> FitResult:
+    """Fit the closed-form amplitude E(t) = A f(t - t_1) of the ansatz to successive maxima.
+
+    f solves f' = -(a f^2 + b' f + c), f(0) = 1 with a = d2 A, b' = d1, c = d0 / A (eq. 20),
+    so E' = -(d0 + d1 E + d2 E^2): the envelope decay of eq. 3 with Coulomb, viscous and
+    quadratic damping.
+
+    Arguments:
+        t_peaks, amplitudes: times and values of the maxima (absolute values are used); or
+            a :class:`Trace` (or a path) holding them, with ``amplitudes`` left out.
+        free: damping constants to fit ("mu", "b", "D").
+        omega0: angular frequency [rad/s] used to convert (d0, d2) to (mu, D) (eq. 21);
+            default 2 pi / the median spacing of t_peaks (maxima of one sign, one per period).
+        oscillator: m and g (default m = 1 kg, g = 9.81); non-free damping constants stay at
+            its values.
+        offset: also fit a constant added to the envelope (a zero offset of the angle).
+        loss, optimizer, max_steps, rtol, atol: as in :func:`fit`.
+
+    Returns:
+        A :class:`FitResult` with params mu, b, D, A (amplitude at t_1), offset.
+    """
+    check_choice("loss", loss, LOSSES)
+    check_choice("optimizer", optimizer, OPTIMIZERS)
+    free = check_free(free)
+    osc = oscillator_values(oscillator)
+    t, E, source = _prepare(t_peaks, amplitudes)
+    E = np.abs(E)
+    if omega0 is None:
+        omega0 = 2.0 * math.pi / float(np.median(np.diff(t)))
+    omega0 = float(omega0)
+    if not (math.isfinite(omega0) and omega0 > 0):
+        raise ValueError(f"omega0 must be > 0, got {omega0}")
+    guess = guess_envelope(t, E, free, osc, omega0)
+    vary = vary_mask(EnvelopeParams, free, offset=offset)
+    consts = Constants(m=osc["m"], g=osc["g"], w0=omega0)
+    n = len(t)
+    tp, xp, wt = _pad(t, E, _bucket(n, 256))
+    steps = int(max_steps or MAX_STEPS[optimizer])
+
+    def run(p_start, fs):
+        return run_core(tp, xp, wt, p_start, vary, consts, fs, model="envelope",
+                        optimizer=optimizer, max_steps=steps, rtol=float(rtol),
+                        atol=float(atol), opts=None)
+
+    fs = math.inf
+    out = run(guess, fs)
+    stages = ""
+    if loss == "soft_l1":
+        fs = _robust_scale(E - np.asarray(out.curve)[:n]) or 1.0
+        stages = f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}"
+        out = run(out.params, fs)
+    init = {name: getattr(guess, name) for name in varied_names(vary)}
+    return build_result(out, FitContext(
+        model="envelope", free=free, vary=vary, consts=consts, t=t, x=E, loss=loss,
+        optimizer=optimizer, f_scale=fs, init=init, source=source, stages=stages))
+
+
+def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: bool = True,
+               m=1.0, g=9.81, model: str = "ansatz", loss: str = "linear", f_scale=None,
+               optimizer: str = "lm", weights=None, max_steps: int | None = None,
+               rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
+               ref_rtol: float = 1e-8, ref_atol: float = 1e-10) -> ArrayFit:
+    """Pure, jit/vmap-able core of :func:`fit`: one fit of x(t) from the start p0.
+
+    No data checks, no automatic start or guesses: t[0] is the fit start (t0 of x0, v0).
+
+    Arguments:
+        t, x: 1-d arrays of equal length (the fit window); may be traced / batched by vmap.
+        p0: initial (and, for the parameters that do not vary, fixed) values: a vector in the
+            layout ``PARAMS`` = (mu, b, D, w0, offset, x0, v0), a dict by name or a
+            ``TraceParams``. A free damping constant at 0 starts from a small positive value.
+        free, fit_omega0, offset: which parameters vary (static); x0, v0 always vary.
+        m, g: mass and gravitational acceleration (fixed).
+        model: "ansatz" or "reference".
+        loss: "linear" or "soft_l1"; ``f_scale`` (data units) defaults to 1.4826 MAD of the
+            residuals at p0.
+        optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
+        weights: optional per-sample weights 1/sigma (0 drops a sample).
+        max_steps, rtol, atol: optimizer budget and tolerances (internal coordinates).
+        max_swings, ref_rtol, ref_atol: reference model only (static).
+
+    Returns:
+        An :class:`ArrayFit` (params, stderr, success, n_iterations, chisqr, covariance), the
+        vectors in the layout ``PARAMS``.
+    """
+    check_choice("model", model, MODELS)
+    check_choice("loss", loss, LOSSES)
+    check_choice("optimizer", optimizer, OPTIMIZERS)
+    spec = FIT_MODELS[model]
+    vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
+    t = jnp.asarray(t, dtype=float)
+    x = jnp.asarray(x, dtype=float)
+    p0 = as_arrays(as_params(p0, TraceParams))
+    wt = jnp.ones_like(x) if weights is None else jnp.asarray(weights, dtype=float)
+    consts = as_arrays(Constants(m=m, g=g))
+    opts = _reference_options(spec, max_swings, ref_rtol, ref_atol, t, p0.w0)
+    if loss == "linear":
+        fs = jnp.inf
+    elif f_scale is None:
+        st = spec.setup(p0, t, consts, spec)
+        q = to_model(jax.tree_util.tree_map(jnp.zeros_like, st.ref), st, as_arrays(vary, bool))
+        r0 = model_curve(spec, t, q, st, opts) - x
+        fs = MAD * jnp.median(jnp.abs(r0 - jnp.median(r0)))
+    else:
+        fs = f_scale
+    out = run_core(t, x, wt, p0, vary, consts, fs, model=model, optimizer=optimizer,
+                   max_steps=int(max_steps or MAX_STEPS[optimizer]), rtol=float(rtol),
+                   atol=float(atol), opts=opts)
+    return ArrayFit(flat(out.params), flat(out.stderr), out.code == FIT_RESULTS.successful,
+                    out.steps, out.chisqr,
+                    out.covariance)
+
+
+def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool = False,
+                      offset: bool = True, model: str = "ansatz",
+                      max_swings: int | None = None):
+    """The residuals model(t; p) - x that :func:`fit` minimises, in physical parameters.
+
+    For checks against other optimizers (e.g. ``scipy.optimize.least_squares``): the same
+    model, window (t[0] is the start of x0, v0) and fixed constants as :func:`fit` with
+    ``start="data"``.
+
+    Arguments:
+        t, x: the fit window.
+        free, oscillator, fit_omega0, offset, model: as in :func:`fit`.
+        max_swings: reference model budget (default from the window).
+
+    Returns:
+        (fun, jac, names): ``fun(p)`` and ``jac(p)`` take the varied parameters ``names`` (in
+        the order of PARAMS, physical units) as a numpy vector and return numpy arrays
+        (jitted; forward-mode Jacobian).
+    """
+    check_choice("model", model, MODELS)
+    spec = FIT_MODELS[model]
+    vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
+    osc = oscillator_values(oscillator)
+    names = varied_names(vary)
+    base = TraceParams(mu=osc["mu"], b=osc["b"], D=osc["D"], w0=osc["w0"], offset=0.0,
+                       x0=0.0, v0=0.0)
+    t = jnp.asarray(t, dtype=float)
+    x = jnp.asarray(x, dtype=float)
+    consts = as_arrays(Constants(m=osc["m"], g=osc["g"]))
+    span = jnp.max(t) - t[0]
+    if spec.integrates and max_swings is None:
+        omega = analyse(np.asarray(t), np.asarray(x)).omega if fit_omega0 else osc["w0"]
+        max_swings = int(1.15 * float(span) * omega / math.pi) + 8
+    opts = _reference_options(spec, max_swings, 1e-10, 1e-12, t, base.w0)
+
+    def residuals(p):
+        full = as_arrays(base._replace(**{name: p[i] for i, name in enumerate(names)}))
+        q = spec.to_coords(full, consts)
+        return spec.curve(t - t[0], q, consts, span, opts) - x
+
+    fun = jax.jit(residuals)
+    jac = jax.jit(jax.jacfwd(residuals))
+    return (lambda p: np.asarray(fun(jnp.asarray(p, dtype=float))),
+            lambda p: np.asarray(jac(jnp.asarray(p, dtype=float))), names)
+
+
+# ----------------------------------------------------------------------------------------------
+# model comparison
+
+
+def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str = "bic",
+                   envelope=None, **fit_kwargs) -> ModelComparison:
+    """Fit every candidate set of damping terms and rank them by BIC (or AIC).
+
+    Arguments:
+        trace: a Trace, a path or the times (then ``x``); or None with ``envelope``.
+        x: the positions when ``trace`` holds the times.
+        candidates: tuples of free damping terms.
+        criterion: "bic" (default) or "aic".
+        envelope: (t_peaks, amplitudes) to compare envelope models instead
+            (:func:`compare_envelope_models`).
+        **fit_kwargs: passed to :func:`fit` (or :func:`fit_envelope`).
+
+    Returns:
+        A :class:`ModelComparison` (``.best``, ``.table``, ``.report()``).
+    """
+    if envelope is not None:
+        if trace is not None:
+            raise ValueError("pass either a trace or envelope=(t_peaks, amplitudes)")
+        return compare_envelope_models(*envelope, candidates=candidates, criterion=criterion,
+                                       **fit_kwargs)
+    if trace is None:
+        raise ValueError("compare_models needs a trace (or envelope=(t_peaks, amplitudes))")
+    if "free" in fit_kwargs:
+        raise ValueError("compare_models sets free itself; pass candidates=")
+    results = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for cand in candidates:
+            results[tuple(check_free(cand))] = fit(trace, x, free=cand, **fit_kwargs)
+    return rank(results, criterion)
+
+
+def compare_envelope_models(t_peaks, amplitudes=None, *, candidates=CANDIDATES,
+                            criterion: str = "bic", **kwargs) -> ModelComparison:
+    """:func:`compare_models` for a table of maxima (:func:`fit_envelope` per candidate).
+
+    Arguments:
+        t_peaks, amplitudes: as in :func:`fit_envelope`.
+        candidates, criterion: as in :func:`compare_models`.
+        **kwargs: passed to :func:`fit_envelope`.
+
+    Returns:
+        A :class:`ModelComparison`.
+    """
+    if "free" in kwargs:
+        raise ValueError("compare_envelope_models sets free itself; pass candidates=")
+    results = {tuple(check_free(c)): fit_envelope(t_peaks, amplitudes, free=c, **kwargs)
+               for c in candidates}
+    return rank(results, criterion)
+
+
+# ----------------------------------------------------------------------------------------------
+# synthetic example
+
+#: the documented truth of ``dampax fit --example`` (:func:`example_trace`)
+EXAMPLE = dict(m=0.2, k=15.0, mu=0.002, b=0.0, D=0.02, x0=0.05, v0=0.0, noise=2e-4,
+               rate=200.0, t_end=25.0, seed=5)
+
+
+def example_trace(**overrides) -> tuple[Trace, dict]:
+    """A synthetic free decay with known constants, for ``dampax fit --example``.
+
+    Generated by the reference integrator (``solve(method="reference")``, eq. 3) from (x0, v0)
+    at t = 0, sampled at ``rate`` up to ``t_end`` with Gaussian noise of ``noise`` [m] (fixed
+    seed), offset 0: the truth is ``EXAMPLE`` (m = 0.2 kg, k = 15 N/m, mu = 0.002,
+    D = 0.02 kg/m, x0 = 5 cm, v0 = 0, noise 0.2 mm, 200 samples/s for 25 s; the block would
+    halt at 29.4 s, so the trace ends while it still moves).
+
+    Arguments:
+        **overrides: entries of ``EXAMPLE`` to change.
+
+    Returns:
+        (trace, truth).
+    """
+    from .._solve import solve
+
+    truth = {**EXAMPLE, **overrides}
+    osc = Oscillator(m=truth["m"], k=truth["k"], mu=truth["mu"], b=truth["b"], D=truth["D"])
+    t = np.arange(0.0, truth["t_end"], 1.0 / truth["rate"])
+    w0 = math.sqrt(truth["k"] / truth["m"])
+    swings = int(1.2 * truth["t_end"] * w0 / math.pi) + 8
+    sol = solve(osc, truth["x0"], truth["v0"], method="reference", t_end=float(t[-1]) + 0.01,
+                max_swings=swings)
+    x = np.asarray(sol.x(jnp.asarray(t)))
+    rng = np.random.default_rng(truth["seed"])
+    x = x + truth["noise"] * rng.standard_normal(t.size)
+    return Trace(t=t, x=x, source="dampax example (reference integrator)",
+                 time_column="t", position_column="x", n_rows=t.size), truth

@@ -1,0 +1,558 @@
+"""The pure core of the fits: the fit models, residuals, robust loss, optimisers, covariance.
+
+Everything here works on arrays and named parameter pytrees (``_params``) and is jit / vmap
+friendly; :func:`core` is the one compiled function of every fit (docs/DESIGN.md, fitting).
+
+Fit models (:data:`FIT_MODELS`, one entry each):
+
+- "ansatz": x(t) = offset + A f(t - t0) cos(w0 (t - t0) + phi), the closed form of Lelas &
+  Pezer (eqs. 11, 20) with a = d2 A, b' = d1, c = d0 / A (eq. 21). Fitted in the coordinates
+  (x0, y = A sin(phi)): x0 = A cos(phi) and v0 = -(a + b' + c) x0 - w0 y is the matched
+  (x0, v0) <-> (A, phi) map of eqs. 22-23, so no quartic is solved inside the fit.
+- "reference": eq. 3 integrated by ``solve(method="reference")`` (diffrax, exact stick-slip)
+  from (x0, v0), forward-mode derivatives; started from the "ansatz" fit.
+- "envelope": E(t) = offset + A f(t - t1) for a table of successive maxima (eq. 20).
+
+Optimisers: optimistix Levenberg-Marquardt (default), optax adam or L-BFGS on the same (robust)
+sum of squares. ``loss="soft_l1"``: rho(z) = 2 (sqrt(1 + z) - 1) of z = (r / s)^2 as scipy,
+by residual reweighting r -> r sqrt(rho(z) / z). Covariance: s2 (J^T J)^-1 with
+s2 = chi2 / (n - n_varys), carried to the physical parameters by the delta method, computed
+as (J_p^T J_p)^-1 with J_p = J G^-1 (G the Jacobian of the map), which stays exact when a
+log-parameter tends to 0.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optax
+import optimistix as optx
+
+from .._ansatz import decay
+from .._oscillator import Oscillator
+from .._solution import result_where
+from ._params import (
+    Constants,
+    Damping,
+    EnvelopeParams,
+    Setup,
+    TraceCoords,
+    TraceParams,
+    ansatz_v0,
+    ansatz_y,
+    as_arrays,
+    clamp,
+    damping_d,
+    envelope_setup,
+    flat,
+    log_bounds,
+    on_damping,
+    to_model,
+    trace_setup,
+    unflat,
+)
+
+OPTIMIZERS = ("lm", "adam", "lbfgs")
+MAX_STEPS = {"lm": 256, "lbfgs": 1000, "adam": 4000}
+METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix)", "adam": "adam (optax)",
+                "lbfgs": "L-BFGS (optax)"}
+LM_ROUNDS = 5
+
+
+class ReferenceOptions(NamedTuple):
+    """Budget and tolerances of the reference integrator inside a fit (static)."""
+
+    max_swings: int
+    rtol: float
+    atol: float
+
+
+# ----------------------------------------------------------------------------------------------
+# the fit models: curve and per-model settings
+
+class FIT_RESULTS(eqx.Enumeration):
+    """Outcome of the optimizer of a fit (the report's first line)."""
+
+    successful = "converged"
+    max_steps_reached = "maximum number of steps reached"
+    failed = "the optimizer failed (non-finite values or divergence)"
+
+
+
+def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
+    """x(tau) = offset + A f(tau) cos(w0 tau + phi), eqs. 11, 20-21; x0 = A cos(phi),
+    y = A sin(phi)."""
+    d0, d1, d2 = damping_d(q.mu, q.b, q.D, q.w0, consts.m, consts.g)
+    A = jnp.sqrt(q.x0 * q.x0 + q.y * q.y)
+    phi = jnp.arctan2(q.y, q.x0)
+    f = decay(tau, d2 * A, d1, d0 / A)
+    return q.offset + A * f * jnp.cos(q.w0 * tau + phi)
+
+
+def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions):
+    """x(tau) of eq. 3 from (x0, v0 = y), integrated by the reference solver (diffrax)."""
+    from .._solve import solve
+
+    m = consts.m
+    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g)
+    sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
+                rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint="forward")
+    return q.offset + sol.x(tau)
+
+
+def _envelope_curve(tau, q: EnvelopeParams, consts: Constants, span, opts):
+    """E(tau) = offset + A f(tau), f of eq. 20 with w0 fixed (eq. 21)."""
+    d0, d1, d2 = damping_d(q.mu, q.b, q.D, consts.w0, consts.m, consts.g)
+    return q.offset + q.A * decay(tau, d2 * q.A, d1, d0 / q.A)
+
+
+def _coords_with(p: TraceParams, y) -> TraceCoords:
+    return TraceCoords(mu=p.mu, b=p.b, D=p.D, w0=p.w0, offset=p.offset, x0=p.x0, y=y)
+
+
+def _params_with(q: TraceCoords, v0) -> TraceParams:
+    return TraceParams(mu=q.mu, b=q.b, D=q.D, w0=q.w0, offset=q.offset, x0=q.x0, v0=v0)
+
+
+def _ansatz_coords(p: TraceParams, consts: Constants) -> TraceCoords:
+    return _coords_with(p, ansatz_y(p.x0, p.v0, p.mu, p.b, p.D, p.w0, consts.m, consts.g))
+
+
+def _ansatz_params(q: TraceCoords, consts: Constants) -> TraceParams:
+    return _params_with(q, ansatz_v0(q.x0, q.y, q.mu, q.b, q.D, q.w0, consts.m, consts.g))
+
+
+def _ansatz_amplitude_phase(params: dict, q, m, g):
+    """(A, phi) of the fitted ansatz: its coordinates x0 = A cos(phi), y = A sin(phi)."""
+    x0, y = float(q.x0), float(q.y)
+    return math.hypot(x0, y), math.atan2(y, x0)
+
+
+def _reference_amplitude_phase(params: dict, q, m, g):
+    """(A, phi) of the ansatz matched (eqs. 22-23) to the fitted (x0, v0); NaN if none."""
+    from .._solve import solve
+
+    w0 = params["w0"]
+    try:
+        sol = solve(Oscillator(m=m, k=m * w0 ** 2, mu=params["mu"], b=params["b"],
+                               D=params["D"], g=g), params["x0"], params["v0"])
+        return float(sol.amplitude), float(sol.phase)
+    except ValueError:
+        return math.nan, math.nan
+
+
+@dataclass(frozen=True)
+class FitModel:
+    """One fit model: its curve and its settings. A new model is one entry of FIT_MODELS.
+
+    Attributes:
+        name: the ``model`` argument of the fits.
+        kind: "trace" (parameters TraceParams) or "envelope" (EnvelopeParams).
+        description: one line, for the command-line help.
+        params: the type of the reported parameters.
+        coords: the type of the model's coordinates (and of the internal theta).
+        curve: (tau, q, consts, span, opts) -> the model at tau = t - t0, q in the model's
+            coordinates.
+        setup: (p0, t, consts, model) -> the reference point and scales (``_params.Setup``).
+        to_coords, to_params: (parameters, consts) <-> the model's coordinates.
+        y_scale: trace models: (w0, sx) -> the scale of the velocity coordinate y.
+        amplitude_phase: trace models: (params, q, m, g) -> (A, phi) of the fitted ansatz.
+        lm_rounds: restarts of Levenberg-Marquardt (see :func:`_lm_rounds`).
+        start_from: fit this model first and start from its optimum (``fit``).
+        reuse_jacobian: the statistics reuse the optimizer's last residuals and Jacobian (no
+            further copy of the model to compile).
+        integrates: the curve integrates eq. 3 and needs :class:`ReferenceOptions`.
+    """
+
+    name: str
+    kind: str
+    description: str
+    params: type
+    coords: type
+    curve: Callable
+    setup: Callable
+    to_coords: Callable
+    to_params: Callable
+    y_scale: Callable | None = None
+    amplitude_phase: Callable | None = None
+    lm_rounds: int = LM_ROUNDS
+    start_from: str | None = None
+    reuse_jacobian: bool = False
+    integrates: bool = False
+
+
+def _identity(p, consts):
+    return p
+
+
+#: the fit models by name: a new model is one entry
+FIT_MODELS = {m.name: m for m in (
+    FitModel(
+        name="ansatz", kind="trace", description="the closed form of Lelas & Pezer (fast)",
+        params=TraceParams, coords=TraceCoords, curve=_ansatz_curve, setup=trace_setup,
+        to_coords=_ansatz_coords, to_params=_ansatz_params, y_scale=lambda w0, sx: sx,
+        amplitude_phase=_ansatz_amplitude_phase),
+    FitModel(
+        name="reference", kind="trace",
+        description="eq. 3 integrated by diffrax, started from the ansatz fit",
+        params=TraceParams, coords=TraceCoords, curve=_reference_curve, setup=trace_setup,
+        to_coords=lambda p, consts: _coords_with(p, p.v0),
+        to_params=lambda q, consts: _params_with(q, q.y), y_scale=lambda w0, sx: w0 * sx,
+        amplitude_phase=_reference_amplitude_phase,
+        # started from the ansatz optimum: one round
+        lm_rounds=1, start_from="ansatz", reuse_jacobian=True, integrates=True),
+    FitModel(
+        name="envelope", kind="envelope", description="E(t) = A f(t) of the maxima",
+        params=EnvelopeParams, coords=EnvelopeParams, curve=_envelope_curve,
+        setup=envelope_setup, to_coords=_identity, to_params=_identity),
+)}
+#: the models of trace fits (the ``model`` argument of ``fit``)
+MODELS = tuple(name for name, m in FIT_MODELS.items() if m.kind == "trace")
+
+
+# ----------------------------------------------------------------------------------------------
+# residuals
+
+
+class ResidualArgs(NamedTuple):
+    """What the residuals need besides theta (a pytree: traced under jit / vmap).
+
+    Attributes:
+        t, x: sample times and data (padded).
+        weight: 1/sigma per sample; 0 drops a sample (padding).
+        setup: reference point and scales of the internal coordinates.
+        vary: the mask of varied parameters.
+        f_scale: soft_l1 scale in data units (inf: linear loss).
+    """
+
+    t: jax.Array
+    x: jax.Array
+    weight: jax.Array
+    setup: Setup
+    vary: Any
+    f_scale: jax.Array
+
+
+def _robust(r, fs):
+    """soft_l1 reweighting: r sqrt(rho(z)/z), z = (r/fs)^2, rho(z)/z = 2/(1 + sqrt(1 + z))."""
+    z = (r / fs) ** 2
+    return r * jnp.sqrt(2.0 / (1.0 + jnp.sqrt(1.0 + z)))
+
+
+def model_curve(model: FitModel, t, q, setup: Setup, opts):
+    """The model at the data times, q in the model's coordinates."""
+    return model.curve(t - setup.t0, q, setup.consts, setup.span, opts)
+
+
+def _residual_rows(theta, args: ResidualArgs, model: FitModel, opts, clamped=True,
+                   with_curve=False):
+    """Normalised residuals (model - data)/sx of the data rows, robust-weighted, masked."""
+    st = args.setup
+    q = to_model(unflat(theta, model.coords), st, args.vary, clamped)
+    curve = model_curve(model, args.t, q, st, opts)
+    r = (curve - args.x) / st.sx * args.weight
+    r = jnp.where(args.weight > 0.0, _robust(r, args.f_scale / st.sx), 0.0)
+    return (r, curve) if with_curve else r
+
+
+def _residual_fn(theta, args: ResidualArgs, model: FitModel, opts):
+    """Data rows plus one pin row per parameter: theta_i for fixed ones (0 at the optimum)."""
+    pins = jnp.where(flat(args.vary), 0.0, theta)
+    return jnp.concatenate([_residual_rows(theta, args, model, opts), pins])
+
+
+def _materialised(fn, args):
+    """``fn(theta, args)`` whose derivative is an explicit Jacobian matrix (custom_jvp).
+
+    Its JVP computes r and J = jacfwd(fn) together and returns J @ dtheta, so the linear map
+    that optimistix keeps per step is a matrix product: materialising it (as QR or the normal
+    equations do) and transposing it cost nothing more, and the model (for "reference" the
+    whole diffrax integrator) is traced and compiled once per step instead of once for the
+    linearisation and again for its transpose.
+    """
+    @jax.custom_jvp
+    def residuals(theta):
+        return fn(theta, args)
+
+    @residuals.defjvp
+    def residuals_jvp(primals, tangents):
+        (theta,), (dtheta,) = primals, tangents
+        J, r = jax.jacfwd(lambda th: (fn(th, args),) * 2, has_aux=True)(theta)
+        return r, J @ dtheta
+
+    return lambda theta, _args: residuals(theta)
+
+
+def _clamp_flat(theta, args: ResidualArgs, model: FitModel):
+    return flat(clamp(unflat(theta, model.coords), args.setup, args.vary))
+
+
+# ----------------------------------------------------------------------------------------------
+# optimisers
+
+
+def _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol):
+    """Minimise loss_fn with optax adam (decaying rate) or L-BFGS; (theta, code, steps)."""
+    lbfgs = optimizer == "lbfgs"
+    if lbfgs:
+        opt = optax.lbfgs()
+        value_and_grad = optax.value_and_grad_from_state(loss_fn)
+    else:
+        opt = optax.adam(optax.exponential_decay(0.02, max_steps, 1e-3))
+        value_and_grad = jax.value_and_grad(loss_fn)
+
+    def cond(c):
+        k, _, _, _, done = c
+        return (k < max_steps) & ~done
+
+    def body(c):
+        k, theta, state, prev, _ = c
+        if lbfgs:
+            value, grad = value_and_grad(theta, state=state)
+            updates, state = opt.update(grad, state, theta, value=value, grad=grad,
+                                        value_fn=loss_fn)
+        else:
+            value, grad = value_and_grad(theta)
+            updates, state = opt.update(grad, state, theta)
+        theta = optax.apply_updates(theta, updates)
+        small = jnp.max(jnp.abs(updates)) <= atol + rtol * jnp.max(jnp.abs(theta))
+        flat_loss = jnp.abs(prev - value) <= rtol * jnp.abs(value) + 1e-300
+        return k + 1, theta, state, value, small & flat_loss & jnp.isfinite(value)
+
+    init = (jnp.array(0), theta0, opt.init(theta0), jnp.array(jnp.inf, dtype=theta0.dtype),
+            jnp.array(False))
+    k, theta, _, _, done = jax.lax.while_loop(cond, body, init)
+    if lbfgs:
+        code = result_where(done, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached)
+    else:  # adam: a finished schedule counts as converged
+        code = result_where(jnp.isfinite(loss_fn(theta)), FIT_RESULTS.successful,
+                            FIT_RESULTS.failed)
+    return theta, code, k
+
+
+def _result_code(result) -> FIT_RESULTS:
+    """The :class:`FIT_RESULTS` member of an optimistix result."""
+    ok = result == optx.RESULTS.successful
+    capped = result == optx.RESULTS.nonlinear_max_steps_reached
+    return result_where(ok, FIT_RESULTS.successful,
+                        result_where(capped, FIT_RESULTS.max_steps_reached, FIT_RESULTS.failed))
+
+
+def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps, rtol, atol):
+    """optimistix Levenberg-Marquardt in ``model.lm_rounds`` restarts, for constants that go
+    to 0.
+
+    optimistix damps with lambda I (Levenberg), which is not scale-invariant: a log-parameter
+    whose constant tends to 0 has a vanishing Jacobian column and creeps towards its bound by
+    tiny steps. Between rounds (1) a Gauss-Newton step in the physical constants p (where the
+    model is smooth through p = 0) moves a constant that it sends to p <= 0 next to its lower
+    bound (~1e-10 of the damping scale; the optimizer can still raise it), and (2) the log
+    coordinates are rescaled so that their columns match the largest nuisance column
+    (Marquardt's scaling, per round). A round after a converged one with nothing changed is
+    skipped. Returns (theta, code, steps, final) with final = (r, J) for one round.
+    """
+    rounds = model.lm_rounds
+    # normal equations: 5-10x faster per step than the default QR on tall Jacobians; the
+    # internal coordinates are normalised, so J^T J stays well conditioned
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
+                                     linear_solver=lx.Normal(lx.Cholesky()))
+    if rounds == 1:
+        sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=int(max_steps),
+                                 throw=False)
+        info = sol.state.f_info  # residuals and Jacobian at the returned (accepted) point
+        return (_clamp_flat(sol.value, args, model), _result_code(sol.result),
+                sol.stats["num_steps"], (info.residual, info.jac.as_matrix()))
+    per_round = max(int(max_steps) // rounds, 16)
+    vary = flat(args.vary)
+    dref, lo = log_bounds(args.setup, args.vary)
+    is_log = flat(on_damping(model.coords, Damping(True, True, True), False))
+    dref = flat(on_damping(model.coords, dref, 1.0))
+    lo = flat(on_damping(model.coords, lo, -jnp.inf))
+
+    def rows(th):
+        r = _residual_rows(th, args, model, opts, clamped=False)
+        return r, r
+
+    def solve(theta, scale):
+        def scaled(u, a):
+            return fn(theta + scale * u, a)
+
+        sol = optx.least_squares(scaled, solver, jnp.zeros_like(theta), args=args,
+                                 max_steps=per_round, throw=False)
+        return (_clamp_flat(theta + scale * sol.value, args, model), sol.stats["num_steps"],
+                _result_code(sol.result))
+
+    def one(carry, _):
+        theta, scale, steps, code, redo = carry
+        again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
+        theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),
+                                            theta, scale)
+        J, r = jax.jacfwd(rows, has_aux=True)(theta)
+        # Gauss-Newton step in (p for the damping constants, theta for the rest)
+        p = dref * jnp.exp(theta)
+        Jx = jnp.where(is_log, J / p, J)
+        Jx = jnp.where(vary, Jx, 0.0)
+        step = jnp.linalg.lstsq(Jx, -r)[0]
+        snap = is_log & vary & (p + step <= 0.0) & (theta > lo + 1.0)
+        theta = jnp.where(snap, lo + 1.0, theta)
+        # Marquardt-like rescaling of the log coordinates
+        cn = jnp.sqrt(jnp.sum(J * J, axis=0))
+        ref = jnp.max(jnp.where(vary & ~is_log, cn, 0.0))
+        safe = jnp.where(cn > 0.0, cn, 1.0)
+        new = jnp.where(is_log & vary & (cn > 0.0), jnp.clip(ref / safe, 1.0, 1e15), 1.0)
+        ratio = new / scale
+        redo = jnp.any(snap) | jnp.any((ratio > 10.0) | (ratio < 0.1))
+        return (theta, new, steps + n_steps, code, redo), None
+
+    init = (theta0, jnp.ones_like(theta0), jnp.array(0), FIT_RESULTS.successful,
+            jnp.array(True))
+    (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=rounds)
+    return theta, code, steps, None
+
+
+
+# ----------------------------------------------------------------------------------------------
+# one fit: optimise, then the statistics
+
+
+class CoreResult(NamedTuple):
+    """Output of :func:`core` (arrays; named parameters of the model's ``params`` type).
+
+    Attributes:
+        params: the fitted parameters (fixed ones at their p0 value).
+        stderr: their standard errors (NaN for fixed ones).
+        covariance: covariance of the parameters in the order of their fields (zero rows and
+            columns for fixed ones).
+        code: a :class:`FIT_RESULTS` member (converged, step budget exhausted, failed).
+        steps: optimizer steps.
+        chisqr: sum of squared (robust-weighted) residuals in data units.
+        ndata, nvarys: samples with weight > 0, varied parameters.
+        curve: the model at the (padded) data times.
+        coords: the optimum in the model's coordinates.
+    """
+
+    params: Any
+    stderr: Any
+    covariance: jax.Array
+    code: FIT_RESULTS
+    steps: jax.Array
+    chisqr: jax.Array
+    ndata: jax.Array
+    nvarys: jax.Array
+    curve: jax.Array
+    coords: Any
+
+
+def _covariance(J, params_of, theta, vary, s2):
+    """Covariance of the physical parameters: s2 (J_p^T J_p)^-1, J_p = J G^-1 with G the
+    Jacobian of ``params_of`` (internal -> physical) at theta; (cov, stderr) over ``vary``."""
+    L = theta.shape[0]
+    G = jax.jacfwd(params_of)(theta)
+    eye = jnp.eye(L, dtype=G.dtype)
+    G = jnp.where(vary[:, None], G, eye)
+    Jp = jnp.linalg.solve(G.T, J.T).T  # J G^-1
+    H = Jp.T @ Jp
+    # a constant at its bound with a zero Jacobian column (reference model) gets no stderr
+    active = vary & (jnp.diag(H) > 0.0)
+    pair = active[:, None] & active[None, :]
+    H = jnp.where(pair, H, eye)
+    d = jnp.sqrt(jnp.where(jnp.diag(H) > 0.0, jnp.diag(H), 1.0))
+    C = jnp.linalg.inv(H / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
+    cov = jnp.where(pair, s2 * C, 0.0)
+    var = jnp.diag(cov)
+    stderr = jnp.where(active, jnp.sqrt(jnp.where(var >= 0.0, var, jnp.nan)), jnp.nan)
+    return cov, stderr
+
+
+@functools.partial(jax.jit, static_argnames=("model", "optimizer", "max_steps", "rtol", "atol",
+                                             "opts"))
+def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps, rtol, atol,
+         opts) -> CoreResult:
+    """One fit, pure: optimise, then the covariance by the delta method.
+
+    Arguments:
+        t, x, weight: samples (padded with weight 0); t[0] is the fit start.
+        p0: the start (and the values of the fixed parameters), of the model's ``params`` type.
+        vary: the mask, same type, booleans (traced: one compilation for every candidate).
+        consts: :class:`~dampax._fit._params.Constants`.
+        f_scale: soft_l1 scale in data units (inf: linear loss).
+        model: the name of an entry of :data:`FIT_MODELS` (static, as all the rest).
+        optimizer: "lm", "adam" or "lbfgs".
+        max_steps, rtol, atol: budget and tolerances (internal coordinates).
+        opts: :class:`ReferenceOptions` for models that integrate, else None.
+
+    Returns:
+        A :class:`CoreResult`.
+    """
+    spec = FIT_MODELS[model]
+    st = spec.setup(p0, t, consts, spec)
+    args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
+    theta0 = jnp.zeros(len(p0), dtype=st.sx.dtype)
+    fn = _materialised(functools.partial(_residual_fn, model=spec, opts=opts), args)
+    final = None
+    if optimizer == "lm":
+        theta, code, steps, final = _lm_rounds(fn, theta0, args, spec, opts, max_steps, rtol,
+                                               atol)
+    else:
+        def loss_fn(th):
+            return 0.5 * jnp.sum(fn(th, args) ** 2)
+
+        theta, code, steps = _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol)
+
+    theta = _clamp_flat(theta, args, spec)
+    npad = t.shape[0]
+    if spec.reuse_jacobian:
+        # reuse the optimizer's last residuals and Jacobian (no further copy of the integrator
+        # to compile); a constant at its lower bound has a zero column there and gets no
+        # standard error
+        if final is None:
+            J, r = jax.jacfwd(lambda th: (fn(th, args),) * 2, has_aux=True)(theta)
+        else:
+            r, J = final
+        r, J = r[:npad], J[:npad]
+        z = ((1.0 + 0.5 * (r * st.sx / f_scale) ** 2) ** 2 - 1.0)  # invert soft_l1 weighting
+        r_plain = jnp.where(jnp.isfinite(f_scale), jnp.sign(r) * f_scale / st.sx * jnp.sqrt(z),
+                            r)
+        curve = x + r_plain * st.sx / jnp.where(weight > 0.0, weight, 1.0)
+    else:
+        # statistics at the (clamped) optimum, without the clamp so that a constant at its
+        # lower bound keeps its (tiny) derivative and the delta method stays regular
+        def rows(th):
+            r, curve = _residual_rows(th, args, spec, opts, clamped=False, with_curve=True)
+            return r, (r, curve)
+
+        J, (r, curve) = jax.jacfwd(rows, has_aux=True)(theta)
+    n = jnp.sum(weight > 0.0)
+    vary_v = flat(vary)
+    nvary = jnp.sum(vary_v)
+    chi2_n = jnp.sum(r * r)
+    s2 = chi2_n / jnp.maximum(n - nvary, 1)
+
+    def params_of(th):
+        return flat(spec.to_params(to_model(unflat(th, spec.coords), st, vary, False), consts))
+
+    params = params_of(theta)
+    cov, stderr = _covariance(J, params_of, theta, vary_v, s2)
+    finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(chi2_n)
+    code = result_where(finite, code, FIT_RESULTS.failed)
+    return CoreResult(params=unflat(params, spec.params), stderr=unflat(stderr, spec.params),
+                      covariance=cov, code=code, steps=steps, chisqr=chi2_n * st.sx ** 2,
+                      ndata=n, nvarys=nvary, curve=curve,
+                      coords=to_model(unflat(theta, spec.coords), st, vary))
+
+
+def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
+    """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
+    the same shapes shares one compiled function. ``static``: the keyword arguments of core."""
+    return core(jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
+                jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
+                as_arrays(consts), jnp.asarray(f_scale, dtype=float), **static)
+

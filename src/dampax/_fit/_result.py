@@ -1,0 +1,416 @@
+"""Results of the fits: :class:`FitResult` (report, plot, JSON), :class:`ModelComparison`
+(candidate damping models ranked by BIC or AIC) and :class:`ArrayFit` (the vmappable arrays of
+``fit_arrays``). Statistics follow lmfit's definitions (docs/DESIGN.md, fitting).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import numpy as np
+
+from .._ansatz import decay, halt_time
+from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
+from ._params import DAMPING, UNITS, Constants, check_choice, damping_d, varied_names
+
+
+@dataclass
+class FitResult:
+    """Result of :func:`fit` / :func:`fit_envelope`.
+
+    Attributes:
+        params: fitted and fixed parameters in physical units (dict name -> float): the damping
+            constants mu, b, D, w0, offset, x0, v0 (x0, v0 at the fit start t_start) for traces;
+            mu, b, D, A, offset for envelopes.
+        stderr: standard errors (dict; NaN for fixed parameters).
+        varied: names of the fitted parameters (the order of ``covariance``).
+        covariance, correlation: matrices over ``varied``.
+        residuals: data minus model over the fitted window.
+        t, x, model_x: the fitted window (times, data, model).
+        success, message, n_iterations: optimizer outcome.
+        chisqr, redchi, aic, bic, ndata, nvarys: fit statistics (lmfit's definitions:
+            aic = n ln(chisqr/n) + 2 nvarys, bic = n ln(chisqr/n) + ln(n) nvarys).
+        derived: d0, d1, d2, xc, k, A (ansatz amplitude), phi, halt_time.
+        free, model, loss, optimizer, kind ("trace" or "envelope"), t_start, source.
+    """
+
+    params: dict
+    stderr: dict
+    varied: list
+    covariance: np.ndarray
+    correlation: np.ndarray
+    residuals: np.ndarray
+    t: np.ndarray
+    x: np.ndarray
+    model_x: np.ndarray
+    success: bool
+    message: str
+    n_iterations: int
+    chisqr: float
+    redchi: float
+    aic: float
+    bic: float
+    ndata: int
+    nvarys: int
+    free: tuple
+    model: str
+    loss: str
+    optimizer: str
+    kind: str = "trace"
+    t_start: float = 0.0
+    source: str = ""
+    fixed: dict = field(default_factory=dict)
+    derived: dict = field(default_factory=dict)
+    init: dict = field(default_factory=dict)
+    envelope: np.ndarray | None = None
+    full_t: np.ndarray | None = None
+    full_x: np.ndarray | None = None
+    f_scale: float = math.inf
+    warnings: list = field(default_factory=list)
+
+    @property
+    def rms(self) -> float:
+        """Root mean square of the residuals (data units)."""
+        return float(np.sqrt(np.mean(self.residuals ** 2)))
+
+    def __repr__(self) -> str:
+        vals = ", ".join(f"{k}={self.params[k]:.4g}" for k in self.free)
+        return (f"FitResult({self.kind}, model={self.model!r}, free={self.free}, {vals}, "
+                f"rms={self.rms:.3g}, bic={self.bic:.1f}, success={self.success})")
+
+    def report(self, *, min_correl: float = 0.1) -> str:
+        """A text report like lmfit's fit_report: statistics, values, correlations."""
+        method = METHOD_NAMES.get(self.optimizer, self.optimizer)
+        lines = ["[[Model]]",
+                 f"    {self.kind} fit, model = {self.model!r}, free damping = "
+                 f"{', '.join(self.free) or 'none'}, loss = {self.loss}"
+                 + (f" (f_scale = {self.f_scale:.4g})" if math.isfinite(self.f_scale) else ""),
+                 ]
+        if self.source:
+            lines.append(f"    data: {self.source}")
+        lines += [
+            "[[Fit Statistics]]",
+            f"    # fitting method   = {method}",
+            f"    # iterations       = {self.n_iterations}",
+            f"    # data points      = {self.ndata}",
+            f"    # variables        = {self.nvarys}",
+            f"    chi-square         = {self.chisqr:.6g}",
+            f"    reduced chi-square = {self.redchi:.6g}",
+            f"    Akaike info crit   = {self.aic:.6g}",
+            f"    Bayesian info crit = {self.bic:.6g}",
+            f"    rms residual       = {self.rms:.6g}",
+            f"    success            = {self.success} ({self.message})",
+        ]
+        if self.kind == "trace":
+            lines.append(f"    fit start t0       = {self.t_start:.6g}")
+        lines.append("[[Variables]]")
+        width = max(len(k) for k in self.params) + 1
+        for name, value in self.params.items():
+            unit = UNITS.get(name, "")
+            if name in self.varied:
+                err = self.stderr[name]
+                rel = abs(err / value) * 100 if value != 0 and math.isfinite(err) else math.nan
+                rel_text = f" ({rel:.2f}%)" if math.isfinite(rel) else ""
+                init = self.init.get(name)
+                init_text = f" (init = {init:.6g})" if init is not None else ""
+                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {err:.4g}{rel_text}"
+                             f"{init_text} {unit}".rstrip())
+            else:
+                lines.append(f"    {name + ':':<{width}} {value:.6g} (fixed) {unit}".rstrip())
+        if self.derived:
+            lines.append("[[Derived]]")
+            for name, value in self.derived.items():
+                lines.append(f"    {name + ':':<{width}} {value:.6g}")
+        pairs = []
+        n = len(self.varied)
+        for i in range(n):
+            for j in range(i + 1, n):
+                c = float(self.correlation[i, j])
+                if math.isfinite(c) and abs(c) >= min_correl:
+                    pairs.append((abs(c), f"    C({self.varied[i]}, {self.varied[j]})", c))
+        lines.append(f"[[Correlations]] (unreported correlations are < {min_correl:.3f})")
+        if pairs:
+            w = max(len(p[1]) for p in pairs)
+            for _, label, c in sorted(pairs, reverse=True):
+                lines.append(f"{label:<{w}} = {c:+.4f}")
+        for note in self.warnings:
+            lines.append(f"[[Warning]] {note}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (no arrays of data)."""
+        def num(v):
+            v = float(v)
+            return v if math.isfinite(v) else None
+
+        return {
+            "kind": self.kind, "model": self.model, "free": list(self.free), "loss": self.loss,
+            "optimizer": self.optimizer, "source": self.source,
+            "params": {k: num(v) for k, v in self.params.items()},
+            "stderr": {k: num(v) for k, v in self.stderr.items()},
+            "varied": list(self.varied),
+            "covariance": [[num(c) for c in row] for row in np.asarray(self.covariance)],
+            "correlation": [[num(c) for c in row] for row in np.asarray(self.correlation)],
+            "derived": {k: num(v) for k, v in self.derived.items()},
+            "fixed": {k: num(v) for k, v in self.fixed.items()},
+            "statistics": {"chisqr": num(self.chisqr), "redchi": num(self.redchi),
+                           "aic": num(self.aic), "bic": num(self.bic), "ndata": self.ndata,
+                           "nvarys": self.nvarys, "rms": num(self.rms),
+                           "t_start": num(self.t_start)},
+            "success": bool(self.success), "message": self.message,
+            "n_iterations": int(self.n_iterations), "warnings": list(self.warnings),
+        }
+
+    def plot(self, path, *, title: str | None = None):
+        """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
+        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state).
+
+        Returns:
+            The path written.
+        """
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(10, 6.5), layout="constrained")
+        FigureCanvasAgg(fig)
+        ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
+        off = self.params.get("offset", 0.0)
+        if self.full_t is not None and len(self.full_t) > len(self.t):
+            before = self.full_t < self.t[0]
+            if np.any(before):
+                ax.plot(self.full_t[before], self.full_x[before], color="0.7", lw=0.6,
+                        label="data before the fit start")
+        marker = dict(ls="none", marker=".", ms=4) if self.kind == "envelope" or \
+            len(self.t) < 400 else dict(lw=0.6)
+        ax.plot(self.t, self.x, color="tab:blue", label="data", **marker)
+        ax.plot(self.t, self.model_x, color="tab:red", lw=0.9, label=f"fit ({self.model})")
+        if self.envelope is not None and self.kind == "trace":
+            ax.plot(self.t, off + self.envelope, color="k", lw=0.8, ls="--",
+                    label="envelope A f(t)")
+            ax.plot(self.t, off - self.envelope, color="k", lw=0.8, ls="--")
+        xc = self.derived.get("xc", 0.0)
+        if self.kind == "trace" and "mu" in self.free and xc > 0:
+            ax.axhspan(off - xc, off + xc, color="tab:orange", alpha=0.25,
+                       label="sticking band offset +- xc")
+        ax.set_ylabel("amplitude" if self.kind == "envelope" else "position")
+        terms = ", ".join(f"{k} = {self.params[k]:.4g}" for k in self.free)
+        what = self.source or ("maxima" if self.kind == "envelope" else "trace")
+        ax.set_title(title or f"{what}: {terms}  (rms {self.rms:.3g})",
+                     fontsize=9)
+        ax.legend(fontsize=8, loc="upper right")
+        axr.plot(self.t, self.residuals, color="tab:blue", lw=0.5,
+                 **({"marker": ".", "ls": "none"} if self.kind == "envelope" else {}))
+        axr.axhline(0.0, color="k", lw=0.6)
+        axr.set_ylabel("data - fit")
+        axr.set_xlabel("t [s]")
+        fig.savefig(str(path), dpi=110)
+        return Path(path)
+
+
+@dataclass
+class ModelComparison:
+    """Candidate damping models fitted to the same data, ranked by an information criterion.
+
+    Attributes:
+        results: candidate (tuple of free terms) -> FitResult, best first.
+        criterion: "bic" or "aic" (the ranking).
+        table: one dict per candidate, best first: free, aic, bic, delta (criterion minus the
+            best), chisqr, rms, nvarys, success.
+    """
+
+    results: dict
+    criterion: str
+    table: list
+
+    @property
+    def best(self) -> FitResult:
+        """The fit of the best-ranked candidate."""
+        return next(iter(self.results.values()))
+
+    @property
+    def ranking(self) -> list:
+        """Candidates (tuples of free terms), best first."""
+        return list(self.results)
+
+    @property
+    def supported(self) -> tuple:
+        """Damping terms of the best-ranked model."""
+        return tuple(self.best.free)
+
+    def evidence(self) -> dict:
+        """Per damping term: the criterion change when it is removed from / added to the best
+        model (positive = the data support the best model's choice), where such a candidate
+        was fitted."""
+        best = tuple(self.best.free)
+        score = {tuple(sorted(k)): getattr(r, self.criterion) for k, r in self.results.items()
+                 if r.success}
+        ref = getattr(self.best, self.criterion)
+        out = {}
+        for term in DAMPING:
+            other = tuple(sorted(set(best) ^ {term}))
+            if other and other in score:
+                out[term] = score[other] - ref
+        return out
+
+    def report(self) -> str:
+        """The ranking as a text table and which damping terms the data support."""
+        name = self.criterion.upper()
+        lines = [f"Model ranking by {name} (lower is better):",
+                 f"  {'rank':>4}  {'free terms':<12} {'AIC':>12} {'BIC':>12} {'d' + name:>10} "
+                 f"{'rms':>10}  {'ok':>3}"]
+        for i, row in enumerate(self.table):
+            lines.append(f"  {i + 1:>4}  {','.join(row['free']):<12} {row['aic']:>12.2f} "
+                         f"{row['bic']:>12.2f} {row['delta']:>10.2f} {row['rms']:>10.4g}  "
+                         f"{'yes' if row['success'] else 'no':>3}")
+        best = self.best.free
+        lines.append(f"  the data support: {' + '.join(best)} "
+                     f"({', '.join(f'{k} = {self.best.params[k]:.4g}' for k in best)})")
+        ev = self.evidence()
+        for term, delta in ev.items():
+            verb = "removing" if term in best else "adding"
+            lines.append(f"    {verb} {term} changes {name} by {delta:+.1f}"
+                         + ("" if delta > 0 else "  (not decisive)"))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        return {"criterion": self.criterion,
+                "ranking": [{**row, "free": list(row["free"])} for row in self.table],
+                "supported": list(self.supported)}
+
+
+class ArrayFit(NamedTuple):
+    """Result of :func:`fit_arrays`: arrays only (vmappable); layout PARAMS.
+
+    Attributes:
+        params: fitted (mu, b, D, w0, offset, x0, v0); fixed entries hold their p0 value.
+        stderr: standard errors (NaN for fixed entries).
+        success: the optimizer converged and everything is finite.
+        n_iterations: optimizer steps.
+        chisqr: sum of squared (robust-weighted) residuals in data units.
+        covariance: 7 x 7 covariance of params (zero rows/columns for fixed entries).
+    """
+
+    params: jax.Array
+    stderr: jax.Array
+    success: jax.Array
+    n_iterations: jax.Array
+    chisqr: jax.Array
+    covariance: jax.Array
+
+
+@dataclass(frozen=True)
+class FitContext:
+    """What a fit was asked to do, besides the core's arrays: what its FitResult reports.
+
+    Attributes:
+        model: name of the fit model (an entry of ``FIT_MODELS``).
+        free: the fitted damping constants.
+        vary: the mask of varied parameters (named booleans).
+        consts: m, g (and w0 of envelope fits), floats.
+        t, x: the fitted window (not padded).
+        loss, optimizer: as asked.
+        f_scale: the soft_l1 scale (inf for the linear loss).
+        init: initial values of the varied parameters.
+        source: where the data came from.
+        full_t, full_x: the whole trace (drawn before the fit start), or None.
+        warnings: notes about the data.
+        stages: how the fit was staged (appended to the message).
+    """
+
+    model: str
+    free: tuple
+    vary: tuple
+    consts: Constants
+    t: np.ndarray
+    x: np.ndarray
+    loss: str
+    optimizer: str
+    f_scale: float = math.inf
+    init: dict = field(default_factory=dict)
+    source: str = ""
+    full_t: np.ndarray | None = None
+    full_x: np.ndarray | None = None
+    warnings: tuple = ()
+    stages: str = ""
+
+
+def _trace_derived(params: dict, coords, ctx: FitContext):
+    """(derived, envelope A f(t), fixed) of a trace fit: eq. 21, xc = mu g/w0^2, k = m w0^2,
+    the ansatz amplitude and phase (eqs. 22-23) and its halt time."""
+    m, g = ctx.consts.m, ctx.consts.g
+    w0 = params["w0"]
+    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
+    derived = {"d0": d0, "d1": d1, "d2": d2, "xc": params["mu"] * g / w0 ** 2,
+               "k": m * w0 ** 2}
+    A, phi = FIT_MODELS[ctx.model].amplitude_phase(params, coords, m, g)
+    envelope = None
+    t_start = float(ctx.t[0])
+    if math.isfinite(A) and A > 0:
+        envelope = A * np.asarray(decay(ctx.t - t_start, d2 * A, d1, d0 / A))
+        derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
+    derived["A"], derived["phi"] = A, phi
+    fixed = {"m": m, "g": g}
+    if not ctx.vary.w0:
+        fixed["k"] = m * params["w0"] ** 2
+    return derived, envelope, fixed
+
+
+def _envelope_derived(params: dict, coords, ctx: FitContext):
+    """(derived, None, fixed) of an envelope fit: eq. 21 at the fixed w0."""
+    m, g, w0 = ctx.consts.m, ctx.consts.g, ctx.consts.w0
+    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
+    return {"d0": d0, "d1": d1, "d2": d2, "w0": w0}, None, {"m": m, "g": g, "w0": w0}
+
+
+def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
+    """The :class:`FitResult` of the core's output ``out`` for the fit described by ``ctx``."""
+    mask = ctx.vary._asdict()
+    idx = [i for i, on in enumerate(mask.values()) if on]  # rows of the covariance
+    cov = np.asarray(out.covariance, dtype=float)[np.ix_(idx, idx)]
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd, sd)
+    params = {name: float(v) for name, v in out.params._asdict().items()}
+    stderr = {name: float(v) if mask[name] else math.nan
+              for name, v in out.stderr._asdict().items()}
+    n = len(ctx.t)
+    curve = np.asarray(out.curve, dtype=float)[:n]
+    ndata, nvarys, chisqr = int(out.ndata), int(out.nvarys), float(out.chisqr)
+    neg2ll = ndata * math.log(max(chisqr, 1e-300) / ndata)
+    text = FIT_RESULTS[out.code]
+    message = f"{text}; {ctx.stages}" if ctx.stages else text
+    kind = FIT_MODELS[ctx.model].kind
+    derive = _trace_derived if kind == "trace" else _envelope_derived
+    derived, envelope, fixed = derive(params, out.coords, ctx)
+    return FitResult(
+        params=params, stderr=stderr, varied=varied_names(ctx.vary), covariance=cov,
+        correlation=corr, residuals=ctx.x - curve, t=ctx.t, x=ctx.x, model_x=curve,
+        success=bool(out.code == FIT_RESULTS.successful), message=message,
+        n_iterations=int(out.steps), chisqr=chisqr,
+        redchi=chisqr / max(ndata - nvarys, 1), aic=neg2ll + 2 * nvarys,
+        bic=neg2ll + math.log(ndata) * nvarys, ndata=ndata, nvarys=nvarys, free=tuple(ctx.free),
+        model=ctx.model, loss=ctx.loss, optimizer=ctx.optimizer, kind=kind,
+        t_start=float(ctx.t[0]), source=ctx.source, fixed=fixed, derived=derived,
+        init={k: float(v) for k, v in ctx.init.items()}, envelope=envelope, full_t=ctx.full_t,
+        full_x=ctx.full_x, f_scale=float(ctx.f_scale), warnings=list(ctx.warnings))
+
+
+def rank(results: dict, criterion: str) -> ModelComparison:
+    """A :class:`ModelComparison` of fits (candidate -> FitResult): the successful ones first,
+    by increasing ``criterion`` ("aic" or "bic")."""
+    check_choice("criterion", criterion, ("aic", "bic"))
+
+    def key(item):
+        r = item[1]
+        return (not r.success, getattr(r, criterion))
+
+    ordered = dict(sorted(results.items(), key=key))
+    best = getattr(next(iter(ordered.values())), criterion)
+    table = [dict(free=tuple(k), aic=r.aic, bic=r.bic,
+                  delta=getattr(r, criterion) - best, chisqr=r.chisqr, rms=r.rms,
+                  nvarys=r.nvarys, success=r.success) for k, r in ordered.items()]
+    return ModelComparison(results=ordered, criterion=criterion, table=table)
