@@ -89,7 +89,13 @@ def test_layout_and_attrs(quick_map, tmp_path):
     assert list(ds["model"].values) == list(MODELS)
     for name in METRICS + ("valid",):
         assert name in ds and "long_name" in ds[name].attrs
-    assert ds["max_error"].attrs["units"] == "A0"
+    # CF conventions: dimensionless variables in units "1", the normalisation in long_name
+    for name in METRICS + ("window", "reference_halt_time"):
+        assert ds[name].attrs["units"] == "1", name
+    assert "/ A0" in ds["max_error"].attrs["long_name"]
+    assert ds.attrs["Conventions"] == "CF-1.10"
+    assert ds.attrs["source"].startswith(f"dampax {dp.__version__}")
+    assert "dampax.error_map(" in ds.attrs["history"]
     assert bool(ds["reference_valid"].all())
     for key in ("periods", "samples_per_period", "dampax_version", "reference_rtol",
                 "reference_atol"):
