@@ -133,3 +133,17 @@ def test_one_spelling_in_every_command(tmp_path, capsys):
     text = capsys.readouterr().out
     assert text.count(dp.MODELS["matched_tail"].label) >= 2
     assert main(["sensitivity", "--models", "tail"]) == 2  # the old spelling is gone
+
+
+def test_traced_t_end_under_jit_and_vmap():
+    """The reference's t_end may be traced (issue 15, item 4): same x(t) as an eager solve."""
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.0288, D=2.95)
+    eager = float(dp.solve(osc, 0.2, 0.0, method="reference", t_end=5.0).x(1.0))
+
+    def x_at_one(t_end):
+        return dp.solve(osc, 0.2, 0.0, method="reference", t_end=t_end).x(1.0)
+
+    assert float(jax.jit(x_at_one)(5.0)) == pytest.approx(eager, abs=1e-12)
+    # t_end = 0.5 stops before t = 1 while the block still moves: NaN there, by design
+    both = np.asarray(jax.vmap(x_at_one)(jnp.array([0.5, 5.0])))
+    assert np.isnan(both[0]) and both[1] == pytest.approx(eager, abs=1e-12)
