@@ -18,7 +18,7 @@ import jax.numpy as jnp
 
 from ._ansatz import AnsatzSolution, _atanc
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
-from ._solution import RESULTS, AbstractSolution, first_failure, result_where
+from ._solution import RESULTS, AbstractSolution, first_failure, is_successful, result_where
 
 Array = jax.Array
 
@@ -167,7 +167,7 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
                                     for v in (t_s, x_s, v_s, osc.xc, osc.gamma, osc.omega0))
     result = first_failure((~(jnp.isfinite(x_s) & jnp.isfinite(v_s)), RESULTS.nonfinite_state),
                            (~(gamma < w0), RESULTS.overdamped))
-    valid = (gamma < w0) & jnp.isfinite(x_s) & jnp.isfinite(v_s)
+    valid = is_successful(result)
     wd = jnp.sqrt(jnp.where(valid, w0 * w0 - gamma * gamma, 1.0))
     moving = v_s != 0.0
     # first partial swing: u = x - cen0 is a damped cosine; its velocity vanishes at

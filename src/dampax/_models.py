@@ -10,13 +10,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
-import numpy as np
-
-from ._oscillator import Oscillator, check_choices
-
-
-def _scalar(x) -> float:
-    return float(np.asarray(x))
+from ._oscillator import Oscillator, as_float, check_choices
 
 
 def _always(osc: Oscillator) -> bool:
@@ -24,16 +18,16 @@ def _always(osc: Oscillator) -> bool:
 
 
 def _has_friction(osc: Oscillator) -> bool:
-    return _scalar(osc.mu) > 0.0
+    return as_float(osc.mu) > 0.0
 
 
 def _coulomb_only(osc: Oscillator) -> bool:
-    return _has_friction(osc) and _scalar(osc.b) == 0.0 and _scalar(osc.D) == 0.0
+    return _has_friction(osc) and as_float(osc.b) == 0.0 and as_float(osc.D) == 0.0
 
 
 def _exact_applies(osc: Oscillator) -> bool:
-    return (_has_friction(osc) and _scalar(osc.D) == 0.0
-            and _scalar(osc.gamma) < _scalar(osc.omega0))
+    return (_has_friction(osc) and as_float(osc.D) == 0.0
+            and as_float(osc.gamma) < as_float(osc.omega0))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -156,6 +156,11 @@ class Oscillator(eqx.Module):
         return _repr_fields(self, ("m", "k", "mu", "b", "D", "g"))
 
 
+def as_float(x) -> float:
+    """A concrete scalar (Python number, numpy or JAX array) as a Python float."""
+    return float(np.asarray(x))
+
+
 def _value_text(value) -> str:
     """A field's value for repr: the number for a scalar, a short array otherwise."""
     if isinstance(value, jax.core.Tracer):

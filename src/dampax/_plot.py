@@ -13,18 +13,14 @@ from collections.abc import Mapping
 import numpy as np
 
 from ._models import MODELS
-from ._oscillator import Oscillator
+from ._oscillator import Oscillator, as_float
 from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._summary import ModelRun, damping_ratios
 
 
-def _scalar(x) -> float:
-    return float(np.asarray(x))
-
-
 def _grid(osc: Oscillator, t_end: float, n_points: int | None) -> np.ndarray:
     if n_points is None:
-        periods = t_end * _scalar(osc.omega0) / (2.0 * math.pi)
+        periods = t_end * as_float(osc.omega0) / (2.0 * math.pi)
         n_points = int(min(max(2000, 500 * math.ceil(120 * periods / 500)), 200_000))
     return np.linspace(0.0, t_end, n_points)
 
@@ -59,7 +55,7 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
         style = MODELS[k].style
         ax_x.plot(t, curves[k][0], **style)
         ax_e.plot(t, curves[k][1], **style)
-    xc = _scalar(osc.xc)
+    xc = as_float(osc.xc)
     if xc > 0.0:
         for sign in (1.0, -1.0):
             ax_x.axhline(sign * xc, color="0.35", linestyle="--", linewidth=0.9, zorder=1.0,
@@ -78,8 +74,8 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
     fig.suptitle(
         rf"$d_0/(\omega_0 A_0)$ = {r0:.4g},   $d_1/\omega_0$ = {r1:.4g},   "
         rf"$d_2 A_0/\omega_0$ = {r2:.4g}" "\n"
-        rf"m = {_scalar(osc.m):g} kg, k = {_scalar(osc.k):g} N/m, $\mu$ = {_scalar(osc.mu):g}, "
-        rf"b = {_scalar(osc.b):g} kg/s, D = {_scalar(osc.D):g} kg/m, "
+        rf"m = {as_float(osc.m):g} kg, k = {as_float(osc.k):g} N/m, $\mu$ = {as_float(osc.mu):g}, "
+        rf"b = {as_float(osc.b):g} kg/s, D = {as_float(osc.D):g} kg/m, "
         rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11)
     fig.savefig(path, dpi=dpi)
     fig.clear()

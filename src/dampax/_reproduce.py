@@ -77,9 +77,8 @@ def _ratio_title(panel: Panel) -> str:
 
 
 def _style(name: str) -> dict:
-    spec = MODELS[name]
-    return dict(color=spec.color, linestyle=spec.linestyle, linewidth=spec.linewidth,
-                zorder=spec.zorder)
+    """The registry's line style without its label (the panels label their own curves)."""
+    return {k: v for k, v in MODELS[name].style.items() if k != "label"}
 
 
 def _red_label(panel: Panel) -> str:

@@ -15,12 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._models import MODELS, applicable_models, check_models
-from ._oscillator import Oscillator, check_finite
+from ._oscillator import Oscillator, as_float, check_finite
 from ._solve import solve, turning_points
-
-
-def _scalar(x) -> float:
-    return float(np.asarray(x))
 
 
 @dataclasses.dataclass
@@ -98,7 +94,7 @@ def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:
     Returns:
         t_end [s]: latest finite halt + T0/2, at most 100 T0; 6 T0 when nothing halts.
     """
-    period = 2.0 * math.pi / _scalar(osc.omega0)
+    period = 2.0 * math.pi / as_float(osc.omega0)
     finite = [t for t in halt_times if math.isfinite(t)]
     if not finite:
         return 6.0 * period
@@ -107,7 +103,7 @@ def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:
 
 def _result(name, sol, summary) -> ModelResult:
     tau, x_h, (tt, tx) = summary
-    return ModelResult(name, sol, _scalar(tau), _scalar(x_h), np.asarray(tt), np.asarray(tx))
+    return ModelResult(name, sol, as_float(tau), as_float(x_h), np.asarray(tt), np.asarray(tx))
 
 
 def run_models(osc: Oscillator, x0: float, v0: float, *, models: Sequence[str] | None = None,
@@ -172,8 +168,8 @@ def damping_ratios(osc: Oscillator, x0: float, v0: float) -> tuple[float, float,
     Returns:
         (d0/(w0 A0), d1/w0, d2 A0/w0); the first is inf (nan without friction) when A0 = 0.
     """
-    w0 = _scalar(osc.omega0)
-    d0, d1, d2 = (_scalar(d) for d in osc.damping_coefficients)
+    w0 = as_float(osc.omega0)
+    d0, d1, d2 = (as_float(d) for d in osc.damping_coefficients)
     A0 = math.hypot(x0, v0 / w0)
     r0 = d0 / (w0 * A0) if A0 > 0 else (math.inf if d0 > 0 else math.nan)
     return r0, d1 / w0, d2 * A0 / w0
