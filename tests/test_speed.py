@@ -1,0 +1,136 @@
+"""The fast paths of issue 12: the merged dense output, the compilation cache, the progress bar.
+
+The dense output's accuracy against scipy is checked in test_reference.py (its sample times
+are a uniform grid, so they take the merged path); here the merged path is checked against
+the binary-search path and against the exact viscous solution, and the cacheability of the
+compiled reference program is checked on its HLO.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import ratios_to_constants
+
+import dampax as dp
+from dampax._reference import _uniform
+
+
+@pytest.fixture(scope="module")
+def batch():
+    rng = np.random.default_rng(12)
+    n = 24
+    d0 = rng.uniform(0.0, 0.1, n) * (rng.random(n) > 0.25)  # some without friction
+    d1 = rng.uniform(0.0, 0.2, n) * (rng.random(n) > 0.5)
+    d2 = rng.uniform(0.0, 0.75, n) * (rng.random(n) > 0.25)
+    phi0 = rng.uniform(-np.pi, np.pi, n)  # every quadrant
+    osc = dp.from_ratios(jnp.asarray(d0), jnp.asarray(d1), jnp.asarray(d2), m=1.0, k=30.0,
+                         A0=0.2)
+    w0 = np.sqrt(30.0)
+    sol = dp.solve(osc, 0.2 * jnp.cos(phi0), -0.2 * w0 * jnp.sin(phi0), method="reference",
+                   t_end=6.0, max_swings=40)
+    return sol
+
+
+def test_uniform_detection():
+    assert _uniform(np.linspace(0.0, 5.0, 101)) == (0.0, 0.05)
+    assert _uniform(np.array([0.0, 1.0, 3.0])) is None  # not uniform
+    assert _uniform(np.linspace(5.0, 0.0, 11)) is None  # decreasing
+    assert _uniform(np.zeros((3, 4))) is None  # not 1-D
+    assert _uniform(np.array([0.0, 1.0])) is None  # too short to be worth it
+
+
+def test_merged_grid_equals_binary_search(batch):
+    """The merged path (uniform grid) and the search path (any t) give the same x and v."""
+    t = np.linspace(-0.5, 7.0, 1501)  # before 0, through the halts, beyond t_end
+    x_grid, v_grid = batch.state(t)  # detected as a grid
+    x_search, v_search = (a[:, 0] for a in batch.state(t[None, :]))  # 2-D: a search per t
+    np.testing.assert_array_equal(np.isnan(x_grid), np.isnan(x_search))
+    np.testing.assert_allclose(x_grid, x_search, rtol=0, atol=1e-14, equal_nan=True)
+    np.testing.assert_allclose(v_grid, v_search, rtol=0, atol=1e-13, equal_nan=True)
+    # NaN exactly before 0 and beyond the integrated interval of a still-moving trajectory
+    assert np.all(np.isnan(np.asarray(x_grid)[:, t < 0]))
+    moving = ~np.asarray(batch.halted)
+    assert np.all(np.isnan(np.asarray(x_grid)[moving][:, t > 6.0]))
+    assert np.all(np.isfinite(np.asarray(x_grid)[:, (t >= 0) & (t <= 6.0)]))
+
+
+def test_grid_under_jit_equals_eager(batch):
+    t = jnp.linspace(0.0, 6.0, 301)
+    eager = batch.state(np.asarray(t))
+    traced = jax.jit(lambda s, tt: s.state(tt, grid=(tt[0], tt[1] - tt[0])))(batch, t)
+    searched = jax.jit(lambda s, tt: s.state(tt))(batch, t)
+    for a, b, c in zip(eager, traced, searched, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-14, equal_nan=True)
+        np.testing.assert_allclose(a, c, rtol=0, atol=1e-13, equal_nan=True)
+    with pytest.raises(ValueError, match="1-D"):
+        batch.state(jnp.zeros((2, 3)), grid=(0.0, 1.0))
+
+
+@pytest.mark.parametrize("phi0", [0.3, 2.0, -2.5, -0.7])
+def test_dense_output_exact_viscous(phi0):
+    """x and v between the solver's steps against the exact damped harmonic motion."""
+    m, k = 1.0, 30.0
+    _, b, _ = ratios_to_constants(d1_ratio=0.05)
+    w0 = np.sqrt(k / m)
+    x0, v0 = 0.2 * np.cos(phi0), -0.2 * w0 * np.sin(phi0)
+    sol = dp.solve(dp.Oscillator(m=m, k=k, b=b), x0, v0, method="reference", t_end=5.0)
+    t = np.linspace(0.0, 5.0, 2001)
+    gamma = b / (2 * m)
+    wd = np.sqrt(w0**2 - gamma**2)
+    x_ex = np.exp(-gamma * t) * (x0 * np.cos(wd * t) + (v0 + gamma * x0) / wd * np.sin(wd * t))
+    v_ex = np.exp(-gamma * t) * (v0 * np.cos(wd * t)
+                                 - (gamma * v0 + w0**2 * x0) / wd * np.sin(wd * t))
+    x, v = sol.state(t)
+    assert np.max(np.abs(np.asarray(x) - x_ex)) < 1e-9 * 0.2
+    assert np.max(np.abs(np.asarray(v) - v_ex)) < 1e-8 * 0.2 * w0
+
+
+def test_reference_program_has_no_host_callback():
+    """JAX writes no program with host callbacks to its persistent cache: the reference solve
+    (and with it every error-map step) must compile to one without."""
+    from dampax._reference import _solve_jit
+
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=2.95)
+    lowered = _solve_jit.lower(osc, jnp.asarray(0.2), jnp.asarray(0.0), jnp.asarray(5.0),
+                               rtol=1e-10, atol=1e-12, max_swings=8, max_steps_per_swing=16,
+                               solver_name="dopri8", root_finder="newton", adjoint="recursive")
+    text = lowered.as_text()
+    assert "callback" not in text.lower()
+
+
+def _cache_dir_in_subprocess(env_extra: dict) -> str:
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DAMPAX_CACHE", "DAMPAX_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR")}
+    env.update(env_extra)
+    code = "import dampax, jax; print(jax.config.jax_compilation_cache_dir)"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True)
+    return out.stdout.strip().splitlines()[-1]
+
+
+def test_compilation_cache_settings(tmp_path):
+    assert _cache_dir_in_subprocess({"DAMPAX_CACHE_DIR": str(tmp_path / "c")}) == str(
+        tmp_path / "c")
+    assert (tmp_path / "c").is_dir()
+    assert _cache_dir_in_subprocess({"XDG_CACHE_HOME": str(tmp_path / "x")}) == str(
+        tmp_path / "x" / "dampax" / "jax") or sys.platform in ("darwin", "win32")
+    assert _cache_dir_in_subprocess({"DAMPAX_CACHE": "0"}) == "None"
+    # the user's own setting wins
+    assert _cache_dir_in_subprocess({"JAX_COMPILATION_CACHE_DIR": str(tmp_path / "j")}) == str(
+        tmp_path / "j")
+
+
+def test_progress_says_compiling_first(capsys):
+    dp.error_map(d0_ratio=[0.0, 0.05], d2_ratio=0.3, phi0=0.0, periods=2.0,
+                 samples_per_period=16, models=("matched",), reference="coulomb_exact",
+                 d1_ratio=0.0, progress=True)
+    err = capsys.readouterr().err
+    assert "error map: compiling" in err
+    assert err.index("compiling") < err.rindex("100%")
