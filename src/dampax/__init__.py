@@ -1,12 +1,17 @@
 """dampax: the damped harmonic oscillator with sliding friction, viscous and quadratic drag, in JAX.
 
 Importing dampax enables float64 in JAX (``jax_enable_x64``): every number this library
-compares against a reference needs it.
+compares against a reference needs it. It also turns JAX's persistent compilation cache on in
+the user's cache directory (``DAMPAX_CACHE=0`` turns that off; see ``dampax._cache``).
 """
 
 import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
+
+from ._cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
+
+_enable_compilation_cache()
 
 from ._fit import ArrayFit as ArrayFit  # noqa: E402
 from ._fit import FitResult as FitResult  # noqa: E402
