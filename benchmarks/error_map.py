@@ -36,6 +36,8 @@ def parse() -> argparse.Namespace:
     p.add_argument("--chunk-size", type=int, help="points per device per step (default: 128 "
                    "with the diffrax reference, 2048 without; at most the grid / devices)")
     p.add_argument("--host-devices", type=int, help="CPU only: XLA host devices")
+    p.add_argument("--no-bare", action="store_true",
+                   help="skip timing the bare reference solve over the same grid")
     return p.parse_args()
 
 
@@ -92,7 +94,44 @@ def main() -> None:
         print(f"  reference={ref:<13} chunk {chunk:>5}/device: compile ~{first - step:5.1f} s; "
               f"{n} points in {elapsed:7.2f} s = {n / elapsed:8.0f} points/s; peak RSS "
               f"{rss:6.0f} MiB; reference invalid at {bad} points")
+        if ref == "reference" and not args.no_bare:
+            bare = bare_reference(grids[ref], chunk * ndev, args.periods,
+                                  args.samples_per_period)
+            print(f"    bare reference solve (halt time only, same grid, window, budget and "
+                  f"chunks): {bare:7.2f} s; map / bare = {elapsed / bare:5.2f}")
         sys.stdout.flush()
+
+
+def bare_reference(axes: dict, chunk: int, periods: float, spp: int) -> float:
+    """Wall time of the reference solve alone over the map's grid (best of 2, compiled)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import dampax as dp
+
+    values = [np.atleast_1d(np.asarray(axes[k], dtype=float))
+              for k in ("d0_ratio", "d1_ratio", "d2_ratio", "phi0")]
+    grid = np.stack([g.ravel() for g in np.meshgrid(*values, indexing="ij")], axis=-1)
+    n_samples = int(math.floor(periods * spp + 1e-9)) + 1
+    t_end = (n_samples - 1) * 2.0 * math.pi / spp
+    opts = dict(t_end=t_end, max_swings=2 * math.ceil(periods) + 6, max_steps_per_swing=64)
+
+    @jax.jit
+    def solve(rows):
+        osc = dp.from_ratios(rows[:, 0], rows[:, 1], rows[:, 2], m=1.0, k=1.0, A0=1.0)
+        return dp.solve(osc, jnp.cos(rows[:, 3]), -jnp.sin(rows[:, 3]), method="reference",
+                        **opts).halt_time
+
+    pad = -len(grid) % chunk
+    grid = np.concatenate([grid, np.repeat(grid[:1], pad, axis=0)])
+    best = math.inf
+    for _ in range(3):  # the first compiles
+        start = time.perf_counter()
+        jax.block_until_ready([solve(jnp.asarray(grid[i:i + chunk]))
+                               for i in range(0, len(grid), chunk)])
+        best = min(best, time.perf_counter() - start)
+    return best
 
 
 if __name__ == "__main__":
