@@ -14,9 +14,12 @@ The swings run in a fixed-length `jax.lax.scan` (reverse-mode differentiable; un
 the elements may use different numbers of swings). Each scan slot is one `diffeqsolve`
 ("segment") that ends at a velocity zero, at `t_end`, or after `max_steps_per_swing` solver
 steps; in the last case the same swing continues in the next slot. Every accepted step end is
-stored, and the dense output x(t), v(t) re-takes one Runge--Kutta step from the stored point
-before t: it is as accurate between the steps as at them, since that step is no longer than
-the accepted one.
+stored as a knot, the turning point as the swing's last one. The dense output x(t), v(t) is the
+degree-9 Hermite interpolant of the knot interval around t (x and its first four derivatives,
+from eq. 3 with the swing's sign, at both ends): about 1e-11 A0 at rtol = 1e-10, as accurate
+as the knots, and a tenth of the cost of re-taking a Dopri8 step. The interval is found by a
+binary search per time, or, for sorted times on a uniform grid (an error map's samples), by
+merging the knots into the grid in one pass.
 
 Derivatives: the starting guess of Newton's method is held fixed (`stop_gradient`); the swing's
 end time is t* - v(t*)/a(t*) on the re-taken step, whose first derivative is exact (implicit
