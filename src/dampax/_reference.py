@@ -398,8 +398,9 @@ class ReferenceSolution(AbstractSolution):
         turning_x: positions at those turning points, NaN-padded.
         t_cover: end of the integrated interval (t_end when complete; inf once halted).
         seg_t0, seg_n, seg_s, seg_ts, seg_xs, seg_vs: per scan slot its start time (inf if
-            unused), the number of stored points, sgn(v), and the stored step times and states
-            (inf-padded); the dense output works from them.
+            unused), the number of knots, sgn(v), and the knots: the stored step times and
+            states, the turning point last when the slot ends at one (inf-padded); the dense
+            output interpolates between them.
 
     Array attributes may carry leading batch axes (a batched solve); the methods then evaluate
     every trajectory.
