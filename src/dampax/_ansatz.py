@@ -348,6 +348,14 @@ class AnsatzSolution(AbstractSolution):
             return self.osc.energy(*self._state(t))
         return self._mask(0.5 * self.osc.m * (self.omega0 * self.A * self.f(t)) ** 2)
 
+    def _x_energy(self, t, grid=None):
+        if self.matched:
+            x, v = self._state(t)
+            return x, self.osc.energy(x, v)
+        f = self.f(t)
+        return (self._mask(self.A * f * jnp.cos(self._phase(t))),
+                self._mask(0.5 * self.osc.m * (self.omega0 * self.A * f) ** 2))
+
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
     def _turning_residual(self, t, n, params):

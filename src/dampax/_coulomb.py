@@ -53,6 +53,10 @@ class _PiecewiseSolution(AbstractSolution):
         """Energy k x^2/2 + m v^2/2 (eq. 4)."""
         return self.osc.energy(*self._state(t))
 
+    def _x_energy(self, t, grid=None):
+        x, v = self._state(t)
+        return x, self.osc.energy(x, v)
+
 
 class SwingSolution(_PiecewiseSolution):
     """Exact motion under Coulomb friction (+ viscous damping) from the state (t_s, x_s, v_s).
@@ -255,7 +259,12 @@ class TailSolution(AbstractSolution):
         early = t <= self.t_switch
         t_head = jnp.where(early, t, 0.0)
         t_tail = jnp.where(early, self.t_switch, t)
-        return jnp.where(early, head(t_head), tail(t_tail))
+        return jax.tree_util.tree_map(lambda h, s: jnp.where(early, h, s), head(t_head),
+                                      tail(t_tail))
+
+    def _x_energy(self, t, grid=None):
+        x, v = self._pick(t, self.ansatz._state, self.tail._state)
+        return x, self.ansatz.osc.energy(x, v)
 
     @jit_method
     def x(self, t) -> Array:

@@ -493,6 +493,10 @@ class ReferenceSolution(AbstractSolution):
         """
         return self.energy_of(*self.state(t, grid=grid))
 
+    def _x_energy(self, t, grid=None):
+        x, v = self.state(t, grid=grid)
+        return x, self.energy_of(x, v)
+
     def energy_of(self, x, v) -> Array:
         """Energy (eq. 4) of states x, v shaped like the output of `state`."""
         shape = self.batch_shape + (1,) * (jnp.ndim(x) - len(self.batch_shape))

@@ -101,6 +101,13 @@ class AbstractSolution(eqx.Module):
         """True where the model gives values (``result`` is successful); else they are NaN."""
         return is_successful(self.result)
 
+    def _x_energy(self, t, grid=None) -> tuple[Array, Array]:
+        """(x(t), energy(t)) together; subclasses share the work of the two (error maps).
+
+        ``grid`` = (start, step) says that 1-D t is uniform; models that cannot use it ignore it.
+        """
+        return self.x(t), self.energy(t)
+
     @property
     def message(self) -> str:
         """Why the solution is not valid ("" when it is), for a concrete solution."""
