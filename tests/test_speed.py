@@ -117,8 +117,8 @@ def _cache_dir_in_subprocess(env_extra: dict) -> str:
 
 def test_compilation_cache_settings(tmp_path):
     assert _cache_dir_in_subprocess({"DAMPAX_CACHE_DIR": str(tmp_path / "c")}) == str(
-        tmp_path / "c")
-    assert (tmp_path / "c").is_dir()
+        tmp_path / "c" / "jax")
+    assert (tmp_path / "c" / "jax").is_dir()
     assert _cache_dir_in_subprocess({"XDG_CACHE_HOME": str(tmp_path / "x")}) == str(
         tmp_path / "x" / "dampax" / "jax") or sys.platform in ("darwin", "win32")
     assert _cache_dir_in_subprocess({"DAMPAX_CACHE": "0"}) == "None"
@@ -134,3 +134,39 @@ def test_progress_says_compiling_first(capsys):
     err = capsys.readouterr().err
     assert "error map: compiling" in err
     assert err.index("compiling") < err.rindex("100%")
+
+
+_MAP_SCRIPT = """
+import sys, numpy as np, dampax as dp
+ds = dp.error_map(d0_ratio=[0.0, 0.04], d2_ratio=[0.0, 0.3], phi0=[0.0, 2.0], periods=3.0,
+                  samples_per_period=16, chunk_size=4, progress=False)
+np.save(sys.argv[1], ds["max_error"].values)
+"""
+
+
+def test_traced_error_map_step_is_reused_across_processes(tmp_path):
+    """A second process deserializes the traced step (jax.export) instead of tracing it; the
+    numbers are those of a process without any cache, and a damaged file is traced again."""
+    env = {k: v for k, v in os.environ.items() if k not in ("DAMPAX_CACHE", "JAX_COMPILATION_"
+                                                            "CACHE_DIR")}
+    script = tmp_path / "map.py"
+    script.write_text(_MAP_SCRIPT)
+
+    def run(out, **extra):
+        subprocess.run([sys.executable, str(script), str(tmp_path / out)], check=True,
+                       env={**env, "DAMPAX_CACHE_DIR": str(tmp_path / "cache"), **extra})
+        return np.load(tmp_path / out)
+
+    first = run("a.npy")
+    files = list((tmp_path / "cache" / "exported").glob("error_map-*.jaxexport"))
+    assert len(files) == 1
+    stamp = files[0].stat().st_mtime_ns
+    second = run("b.npy")
+    assert files[0].stat().st_mtime_ns == stamp  # read, not written again
+    files[0].write_bytes(b"not a program")
+    damaged = run("c.npy")
+    plain = run("d.npy", DAMPAX_CACHE="0")
+    assert np.isfinite(plain).sum() > 0
+    for other in (first, second, damaged):
+        np.testing.assert_array_equal(other, plain)
+    assert files[0].read_bytes() != b"not a program"  # rewritten

@@ -120,10 +120,6 @@ class SwingSolution(_PiecewiseSolution):
         B = (V + g * U) / wd
         K = (g * V + w0 * w0 * U) / wd
         tau0 = jnp.clip(t - self.t_start, 0.0, None)
-        ex0 = jnp.exp(-g * tau0)
-        c0, s0 = jnp.cos(wd * tau0), jnp.sin(wd * tau0)
-        x_a = cen0 + ex0 * (U * c0 + B * s0)
-        v_a = ex0 * (V * c0 - K * s0)
         # whole half-swings from (t1, x1)
         h = self.half_period
         J = self.n_swings
@@ -133,11 +129,15 @@ class SwingSolution(_PiecewiseSolution):
         xj = self._x_turn(j)
         cen = _sign(xj) * xc
         tau = jnp.clip(t - self.t1 - j * h, 0.0, h)
-        ex = jnp.exp(-g * tau)
-        cw, sw = jnp.cos(wd * tau), jnp.sin(wd * tau)
+        # one exp, cos and sin per time, at the elapsed time of the branch that is taken
+        first = t < self.t1
+        tau_t = jnp.where(first, tau0, tau)
+        ex = jnp.exp(-g * tau_t)
+        cw, sw = jnp.cos(wd * tau_t), jnp.sin(wd * tau_t)
+        x_a = cen0 + ex * (U * cw + B * sw)
+        v_a = ex * (V * cw - K * sw)
         x_b = jnp.where(resting, xj, cen + (xj - cen) * ex * (cw + (g / wd) * sw))
         v_b = jnp.where(resting, 0.0, -(xj - cen) * ex * (w0 * w0 / wd) * sw)
-        first = t < self.t1
         x = jnp.where(first, x_a, x_b)
         v = jnp.where(first, v_a, v_b)
         before = (t < self.t_start) | ~self.valid
@@ -364,10 +364,12 @@ class RizcallahSolution(_PiecewiseSolution):
     def _free(self, t):
         t = jnp.asarray(t, dtype=float)
         w0, d, ph = self.omega0, self.d, self.phase0
-        th = w0 * t + ph
-        x = (self.amplitude0 - d * t) * jnp.cos(th) + (d / w0) * jnp.cos(ph) * jnp.sin(w0 * t)
-        v = (-d * jnp.cos(th) - w0 * (self.amplitude0 - d * t) * jnp.sin(th)
-             + d * jnp.cos(ph) * jnp.cos(w0 * t))
+        # one cos and sin per time: those of w0 t + phi0 by the addition theorems
+        cw, sw = jnp.cos(w0 * t), jnp.sin(w0 * t)
+        cph, sph = jnp.cos(ph), jnp.sin(ph)
+        cth, sth = cw * cph - sw * sph, sw * cph + cw * sph
+        x = (self.amplitude0 - d * t) * cth + (d / w0) * cph * sw
+        v = -d * cth - w0 * (self.amplitude0 - d * t) * sth + d * cph * cw
         return x, v
 
     def _state(self, t):

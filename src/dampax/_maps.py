@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cache import compile_cached
 from ._models import ANALYTIC, MODELS, check_models
 from ._oscillator import from_ratios
 from ._solve import solve
@@ -209,7 +210,7 @@ def _executable(cfg: _Config, device_ids: tuple[int, ...], step: int):
 
     fn, mesh = _compiled(cfg, device_ids)
     rows = jax.ShapeDtypeStruct((step, 4), jnp.float64, sharding=NamedSharding(mesh, P("points")))
-    return fn.lower(rows).compile()
+    return compile_cached("error_map", (cfg, device_ids), fn, rows)
 
 
 # ----------------------------------------------------------------------------------------------
