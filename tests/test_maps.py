@@ -197,6 +197,7 @@ def test_chunk_size_does_not_change_the_map():
     (dict(chunk_size=0), "chunk_size"),
     (dict(chunk_size=2.5), "chunk_size"),
     (dict(periods=0.0), "periods"),
+    (dict(periods=1e7), "periods"),
     (dict(samples_per_period=1), "samples_per_period"),
     (dict(reference="euler"), "reference"),
 ])
@@ -235,3 +236,42 @@ def test_cli_bad_axis_exits_2(tmp_path, capsys):
     assert main(["errormap", "--models", "matched,foo", "--out", str(tmp_path)]) == 2
     assert capsys.readouterr().err.startswith("dampax: error: --models")
     assert not any(Path(tmp_path).iterdir())
+
+
+def test_long_window_in_segments_matches_scipy():
+    """Beyond 32 periods the reference runs in restarted segments: a 100-period point against
+    scipy's stick-slip integration (an independent reference over the same window)."""
+    d0r, d1r, d2r, phi0 = 0.002, 0.003, 0.01, 2.0
+    periods, spp = 100.0, 32
+    ds = error_map(d0_ratio=d0r, d1_ratio=d1r, d2_ratio=d2r, phi0=phi0, periods=periods,
+                   samples_per_period=spp, models=("matched",), progress=False)
+    assert ds.attrs["reference_segments"] == 4
+    mu, b, D = ratios_to_constants(d0r, d1r, d2r, m=1.0, k=1.0, A0=1.0)
+    x0, v0 = math.cos(phi0), -math.sin(phi0)
+    t = np.arange(int(periods * spp) + 1) * (2 * math.pi / spp)
+    segments, _, rest = scipy_stick_slip(1.0, 1.0, mu, b, D, x0, v0, t[-1])
+    x_ref, v_ref = evaluate(segments, rest, t)
+    assert rest is not None and rest[0] > 32 * 2 * math.pi  # halts in a later segment
+    window = t <= rest[0]
+    sol = dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=mu, b=b, D=D), x0, v0, method="ansatz")
+    expected = np.max(np.abs(np.asarray(sol.x(t[window])) - x_ref[window]))
+    got = ds.squeeze()
+    assert float(got["max_error"]) == pytest.approx(expected, rel=1e-6)
+    assert float(got["reference_halt_time"]) == pytest.approx(rest[0] / (2 * math.pi),
+                                                              rel=1e-9)
+    assert float(got["window"]) == pytest.approx(t[window][-1] / (2 * math.pi), rel=1e-12)
+
+
+def test_error_map_memory_does_not_grow_with_periods():
+    """The compiled step's scratch memory (XLA's own analysis) for 2,000 periods is that of 100
+    periods: the reference is kept one segment at a time."""
+    import jax
+
+    ids = tuple(d.id for d in jax.local_devices())
+
+    def scratch(periods):
+        cfg = maps._config(("matched",), "reference", periods, 32, 1e-10, 1e-12)
+        return maps._executable(cfg, ids, len(ids)).memory_analysis().temp_size_in_bytes
+
+    small, large = scratch(100.0), scratch(2000.0)
+    assert large < 1.5 * small

@@ -45,6 +45,10 @@ METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_po
 ENERGY_FLOOR = 1e-4
 _AXES = ("d0_ratio", "d1_ratio", "d2_ratio", "phi0")
 _BLOCK = 1024  # at most this many samples per scan step (memory per point: a few such arrays)
+#: Longer windows integrate the reference in segments of about this many periods.
+SEGMENT_PERIODS = 32.0
+#: At most this many samples per grid point (periods x samples_per_period).
+MAX_SAMPLES = 10**8
 
 # CF conventions: dimensionless variables have units "1"; the normalisation is in long_name
 _VARIABLE_ATTRS = {
@@ -88,12 +92,17 @@ class _Config:
     block: int
     rtol: float
     atol: float
-    max_swings: int
+    max_swings: int  # of the reference, per segment
     max_steps_per_swing: int
+    seg_blocks: int  # blocks per segment of the reference (all of them: one segment)
 
     @property
     def n_blocks(self) -> int:
         return -(-self.n_samples // self.block)
+
+    @property
+    def n_segments(self) -> int:
+        return -(-self.n_blocks // self.seg_blocks)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -111,72 +120,114 @@ def _solve_reference(cfg: _Config, osc, x0, v0, t_end):
     return sol, sol.valid, halted
 
 
+def _accumulate(stats, win, t, err, e_err):
+    """Running (count, last time, max error, sum of squares, max energy error) over ``win``."""
+    count, t_win, err_max, err_sq, e_max = stats
+    err = jnp.where(win, err, 0.0)
+    e_err = jnp.where(win, e_err, 0.0)
+    return (count + jnp.sum(win), jnp.maximum(t_win, jnp.max(jnp.where(win, t, 0.0))),
+            jnp.maximum(err_max, jnp.max(err, axis=1)), err_sq + jnp.sum(err * err, axis=1),
+            jnp.maximum(e_max, jnp.max(e_err, axis=1)))
+
+
 def _per_point(cfg: _Config, row):
-    """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0), w0 = A0 = 1."""
+    """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0), w0 = A0 = 1.
+
+    The diffrax reference is integrated segment by segment (``cfg.seg_blocks`` blocks of
+    samples each, restarted from the state at the segment's end), so its memory does not grow
+    with the window. The comparison window (to the reference's halt, or until its energy falls
+    below the floor) is only known at the end; with several segments both candidates are
+    accumulated and the right one is picked at the end.
+    """
     d0r, d1r, d2r, phi0 = row[0], row[1], row[2], row[3]
     m, k, A0 = 1.0, 1.0, 1.0
     osc = from_ratios(d0r, d1r, d2r, m=m, k=k, A0=A0)
     w0 = osc.omega0
     period = 2.0 * math.pi / w0
     dt = period / cfg.samples_per_period
-    t_end = (cfg.n_samples - 1) * dt  # the last sample, computed as the samples are
     x0 = A0 * jnp.cos(phi0)
     v0 = -w0 * A0 * jnp.sin(phi0)
     E0 = 0.5 * k * A0 * A0
     xc = osc.xc
 
-    ref, ref_valid, halted = _solve_reference(cfg, osc, x0, v0, t_end)
     sols = [solve(osc, x0, v0, **MODELS[name].solve_options) for name in cfg.models]
     valid = [sol.valid for sol in sols]
-    t_halt = jnp.where(halted, ref.halt_time, jnp.inf)
     n_mod = len(cfg.models)
+    single = cfg.n_segments == 1
+    seg_len = cfg.seg_blocks * cfg.block  # samples per segment
+    grid_ok = False
+    if cfg.reference == "reference":
+        # merging the solver's steps into the block's grid costs O(steps) per block, a
+        # bisection per sample O(log(steps)): whichever is less
+        knots = cfg.max_swings * (cfg.max_steps_per_swing + 1)
+        grid_ok = knots <= cfg.block * math.log2(knots)
 
-    def block(carry, j):
-        fallen, count, t_win, err_max, err_sq, e_max = carry
-        idx = j * cfg.block + jnp.arange(cfg.block)
-        t = idx * dt
-        inside = idx < cfg.n_samples
-        grid = None
-        if cfg.reference == "reference":
-            # merging the solver's steps into the block's grid costs O(steps) per block, a
-            # bisection per sample O(log(steps)): whichever is less
-            knots = cfg.max_swings * (cfg.max_steps_per_swing + 1)
-            if knots <= cfg.block * math.log2(knots):
-                grid = (t[0], dt)
-        x_ref, e_ref = ref._x_energy(t, grid)
-        below = inside & (e_ref < ENERGY_FLOOR * E0)
-        fallen_t = fallen | (jnp.cumsum(below) > 0)
-        win = inside & jnp.where(halted, t <= t_halt, ~fallen_t)
-        errs, e_errs = [], []
-        for sol in sols:
-            x, e = sol._x_energy(t)
-            errs.append(jnp.abs(x - x_ref) / A0)
-            e_errs.append(jnp.abs(e - e_ref) / E0)
-        err = jnp.where(win, jnp.stack(errs), 0.0)
-        e_err = jnp.where(win, jnp.stack(e_errs), 0.0)
-        carry = (fallen_t[-1], count + jnp.sum(win), jnp.maximum(t_win, jnp.max(
-            jnp.where(win, t, 0.0))), jnp.maximum(err_max, jnp.max(err, axis=1)),
-            err_sq + jnp.sum(err * err, axis=1), jnp.maximum(e_max, jnp.max(e_err, axis=1)))
-        return carry, None
+    def segment(carry, s):
+        xs, vs, halted, t_halt, x_halt, ref_ok, fallen, stats = carry
+        i0 = s * seg_len
+        # one segment: the whole window, up to the last sample (computed as the samples are)
+        t_end = (cfg.n_samples - 1) * dt if single else seg_len * dt
+        ref, ok, seg_halted = _solve_reference(cfg, osc, xs, vs, t_end)
+        new = ~halted & seg_halted
+        t_halt = jnp.where(new, i0 * dt + ref.halt_time, t_halt)
+        x_halt = jnp.where(new, ref.halt_position, x_halt)
+        ref_ok = ref_ok & (ok | halted)
+        halted = halted | seg_halted
+
+        def block(carry, j):
+            fallen, stats = carry
+            idx = j * cfg.block + jnp.arange(cfg.block)
+            t = idx * dt
+            inside = idx < cfg.n_samples
+            t_local = t if single else (idx - i0) * dt
+            x_ref, e_ref = ref._x_energy(t_local, (t_local[0], dt) if grid_ok else None)
+            below = inside & (e_ref < ENERGY_FLOOR * E0)
+            fallen_t = fallen | (jnp.cumsum(below) > 0)
+            errs, e_errs = [], []
+            for sol in sols:
+                x, e = sol._x_energy(t)
+                errs.append(jnp.abs(x - x_ref) / A0)
+                e_errs.append(jnp.abs(e - e_ref) / E0)
+            err, e_err = jnp.stack(errs), jnp.stack(e_errs)
+            if single:  # the halt is known: one window
+                wins = (inside & jnp.where(halted, t <= t_halt, ~fallen_t),)
+            else:  # to the halt (if any comes), or until the energy falls
+                wins = (inside & (t <= t_halt), inside & ~fallen_t)
+            stats = tuple(_accumulate(st, w, t, err, e_err)
+                          for st, w in zip(stats, wins, strict=True))
+            return (fallen_t[-1], stats), None
+
+        (fallen, stats), _ = jax.lax.scan(block, (fallen, stats),
+                                          s * cfg.seg_blocks + jnp.arange(cfg.seg_blocks))
+        if not single:
+            xs, vs = ref.state(seg_len * dt)
+        return (xs, vs, halted, t_halt, x_halt, ref_ok, fallen, stats), None
 
     zeros = jnp.zeros(n_mod)
-    init = (jnp.array(False), jnp.array(0), jnp.array(0.0), zeros, zeros, zeros)
-    (_, count, t_win, err_max, err_sq, e_max), _ = jax.lax.scan(
-        block, init, jnp.arange(cfg.n_blocks))
+    empty = (jnp.array(0), jnp.array(0.0), zeros, zeros, zeros)
+    init = (x0, v0, jnp.array(False), jnp.array(jnp.inf), jnp.array(jnp.nan), jnp.array(True),
+            jnp.array(False), (empty,) if single else (empty, empty))
+    (_, _, halted, t_halt, x_halt, ref_valid, _, stats), _ = jax.lax.scan(
+        segment, init, jnp.arange(cfg.n_segments))
+    if single:
+        stats = stats[0]
+    else:
+        stats = jax.tree_util.tree_map(lambda a, b: jnp.where(halted, a, b), *stats)
+    count, t_win, err_max, err_sq, e_max = stats
     rms = jnp.sqrt(err_sq / jnp.maximum(count, 1))
 
     rows = []
     for j, sol in enumerate(sols):
-        dt_halt = jnp.where(halted, (sol.halt_time - ref.halt_time) / period, jnp.nan)
+        dt_halt = jnp.where(halted, (sol.halt_time - t_halt) / period, jnp.nan)
         xc_safe = jnp.where(xc > 0.0, xc, 1.0)
         dx_halt = jnp.where(halted & (xc > 0.0),
-                            (sol.halt_position - ref.halt_position) / xc_safe, jnp.nan)
+                            (sol.halt_position - x_halt) / xc_safe, jnp.nan)
         ok = valid[j] & ref_valid
         rows.append(jnp.where(ok, jnp.stack([err_max[j], rms[j], e_max[j], dt_halt, dx_halt]),
                               jnp.nan))
     metrics = jnp.stack(rows)  # (n_models, 5)
     info = jnp.stack([ref_valid.astype(float), t_win / period,
-                      jnp.where(halted & ref_valid, ref.halt_time / period, jnp.nan)])
+                      jnp.where(halted & ref_valid, t_halt / period, jnp.nan)])
     return metrics, jnp.stack(valid), info
 
 
@@ -243,6 +294,29 @@ def _positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
+def _config(models, reference, periods, samples_per_period, rtol, atol) -> _Config:
+    """The static settings of the compiled step (arguments already checked)."""
+    n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
+    if n_samples > MAX_SAMPLES:
+        raise ValueError(
+            f"periods x samples_per_period: {periods:g} x {samples_per_period} = "
+            f"{n_samples - 1:.3g} samples per grid point, more than the {MAX_SAMPLES:.0e} a map "
+            "allows (its cost grows with the window); shorten periods or sample less often")
+    block = -(-n_samples // -(-n_samples // _BLOCK))  # equal blocks of at most _BLOCK
+    n_blocks = -(-n_samples // block)
+    seg_blocks, seg_periods = n_blocks, periods
+    if reference == "reference" and periods > SEGMENT_PERIODS:
+        # the reference in segments of about SEGMENT_PERIODS: memory independent of periods
+        seg_blocks = max(1, int(SEGMENT_PERIODS * samples_per_period) // block)
+        seg_periods = seg_blocks * block / samples_per_period
+    cfg = _Config(models=models, reference=reference, n_samples=n_samples,
+                  samples_per_period=samples_per_period, block=block,
+                  rtol=float(rtol), atol=float(atol),
+                  max_swings=2 * math.ceil(seg_periods) + 6, max_steps_per_swing=64,
+                  seg_blocks=seg_blocks)
+    return cfg
+
+
 # ----------------------------------------------------------------------------------------------
 # the public function
 
@@ -270,7 +344,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             undamped phase, eqs. 8-10), "matched_tail" (matched + exact Coulomb tail, eqs. 41,
             52), "rizcallah" (only d1 = d2 = 0; NaN elsewhere), "coulomb_exact" (exact
             half-swings; only d2 = 0).
-        periods: length of the time grid in undamped periods (the window's cap), > 0.
+        periods: length of the time grid in undamped periods (the window's cap), > 0. Beyond
+            ``SEGMENT_PERIODS`` (32) the reference is integrated in segments of about 32
+            periods, each restarted from the state where the last ended, so memory does not
+            grow with ``periods``; at most ``MAX_SAMPLES`` samples per point.
         samples_per_period: samples per undamped period, >= 2.
         chunk_size: grid points per device evaluated at once (bounds the memory), >= 1.
         reference: "reference" (the diffrax integrator of eq. 3 with exact stick-slip) or
@@ -290,7 +367,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
 
     Raises:
         ValueError: naming the argument, for an empty, non-finite or negative axis, an unknown
-            model or reference, chunk_size < 1, periods <= 0 or samples_per_period < 2.
+            model or reference, chunk_size < 1, periods <= 0, samples_per_period < 2 or
+            more than ``MAX_SAMPLES`` samples per point.
     """
     import xarray as xr
     from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
@@ -315,12 +393,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
 
-    n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
-    block = -(-n_samples // -(-n_samples // _BLOCK))  # equal blocks of at most _BLOCK
-    cfg = _Config(models=models, reference=reference, n_samples=n_samples,
-                  samples_per_period=samples_per_period, block=block,
-                  rtol=float(rtol), atol=float(atol),
-                  max_swings=2 * math.ceil(periods) + 6, max_steps_per_swing=64)
+    cfg = _config(models, reference, periods, samples_per_period, rtol, atol)
+    n_samples = cfg.n_samples
 
     shape = tuple(a.size for a in axes.values())
     grid = np.stack([g.ravel() for g in np.meshgrid(*axes.values(), indexing="ij")], axis=-1)
@@ -410,6 +484,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "reference_rtol": float(rtol) if reference == "reference" else 0.0,
         "reference_atol": float(atol) if reference == "reference" else 0.0,
         "reference_max_swings": cfg.max_swings,
+        "reference_segments": cfg.n_segments,
         "periods": periods,
         "samples_per_period": samples_per_period,
         "n_samples": n_samples,
