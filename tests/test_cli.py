@@ -180,3 +180,42 @@ def test_console_script(console_script):
     assert exact == pytest.approx([3 * math.pi / W0, -(X0 - 6 * 0.1 * G / W0**2)], abs=1e-3)
     if ref != ["not available"]:
         assert [float(v) for v in ref] == pytest.approx(exact, abs=1e-4), out
+
+
+@pytest.mark.parametrize("argv, flag", [
+    (["solve", "--plot", "/proc/dampax-test.png"], "--plot"),
+    (["sensitivity", "--plot", "/proc/dampax-test.png"], "--plot"),
+    (["errormap", "--quick", "--out", "/proc/dampax-test"], "--out"),
+    (["reproduce", "--out", "/proc/dampax-test"], "--out"),
+])
+def test_unwritable_output_fails_before_computing(argv, flag, capsys):
+    """/proc exists but no file can be created there (not even by root): the command stops at
+    once with one line naming the option, before any computing (no progress bar, no result)."""
+    if not Path("/proc").is_dir():
+        pytest.skip("needs /proc")
+    assert main(argv) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith(f"dampax: error: {flag}: cannot ") and err.count("\n") == 1
+    assert "error map" not in err and out == ""
+
+
+def test_ctrl_c_exits_130_in_one_line_without_partial_files(tmp_path):
+    """SIGINT during `dampax errormap`: exit status 130, one line, no traceback, and neither
+    errormap.nc nor a temporary file in the output folder."""
+    import signal
+    import time
+
+    out = tmp_path / "maps"
+    proc = subprocess.Popen([sys.executable, "-u", "-m", "dampax._cli", "errormap", "--out",
+                             str(out), "--no-progress"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            # a shell's background job ignores SIGINT, and Python keeps that
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    header = proc.stdout.readline()  # printed just before the map starts
+    assert header.startswith("dampax errormap: 2048 points"), header
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip() == "dampax: interrupted"
+    assert list(out.iterdir()) == []

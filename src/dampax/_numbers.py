@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._io import atomic_path, write_text
 from ._oscillator import damping_coefficients
 from ._paper import (
     A0,
@@ -339,7 +340,7 @@ def write_numbers(rows: Sequence[Number], out: Path) -> tuple[Path, Path]:
     """
     out = Path(out)
     csv_path, md_path = out / "numbers.csv", out / "numbers.md"
-    with open(csv_path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(NUMBER_FIELDS)
         for r in rows:
@@ -375,7 +376,7 @@ def write_numbers(rows: Sequence[Number], out: Path) -> tuple[Path, Path]:
         for j, (note, at) in enumerate(notes.items(), 1):
             where = ("rows " if len(at) > 1 else "row ") + ", ".join(map(str, at))
             lines.append(f"{j}. ({where}) {note}")
-    md_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    write_text(md_path, "\n".join(lines) + "\n")
     return csv_path, md_path
 
 

@@ -12,6 +12,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ._io import save_figure
 from ._models import MODELS
 from ._oscillator import Oscillator, as_float
 from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
@@ -77,7 +78,7 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
         rf"m = {as_float(osc.m):g} kg, k = {as_float(osc.k):g} N/m, $\mu$ = {as_float(osc.mu):g}, "
         rf"b = {as_float(osc.b):g} kg/s, D = {as_float(osc.D):g} kg/m, "
         rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 
@@ -262,7 +263,7 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
     fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
                  f"against the {ref_text}, up to its halt or at most "
                  f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 
@@ -361,6 +362,6 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
                fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path

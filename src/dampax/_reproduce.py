@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._io import save_figure
 from ._models import MODELS
 from ._numbers import Number, paper_numbers, write_numbers
 from ._paper import (
@@ -174,7 +175,7 @@ def draw_figure(figure: Figure, path, cases: Cases | None = None, *, dpi: int = 
                                          110 if cols > 1 else 80))
     fig.suptitle(f"{caption}\nm = 1 kg, k = 30 N/m, "
                  f"x0 = {x0:.4g} m, v0 = {v0:.4g} m/s", fontsize=10)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 
@@ -249,7 +250,7 @@ def draw_rizcallah(name: str, path, cases: Cases | None = None, *, dpi: int = 11
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8, loc="upper right", framealpha=0.9)
     fig.suptitle(case_text, fontsize=9)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 

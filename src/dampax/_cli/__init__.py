@@ -3,7 +3,7 @@
 Each subcommand module has ``add_arguments(parser)`` and ``run(args) -> exit status`` and is
 registered in :data:`SUBCOMMANDS`. A ValueError from dampax (bad input, a model that does not
 exist) is reported as one line, ``dampax: error: <message>``, with exit status 2 (as argparse
-does for bad syntax).
+does for bad syntax); Ctrl-C ends any command with one line and exit status 130.
 """
 
 from __future__ import annotations
@@ -36,8 +36,10 @@ def build_parser() -> argparse.ArgumentParser:
         prog=PROG,
         description="Harmonic oscillator with Coulomb, viscous and quadratic damping: analytic "
                     "models (Lelas & Pezer; Rizcallah) against the exact motion.",
-        epilog="Each run compiles the models with JAX (often 10 s or more); set "
-               "JAX_COMPILATION_CACHE_DIR to a folder to reuse part of that work across runs.")
+        epilog="The first run of a command compiles its models with JAX (often 10 s or more); "
+               "later runs re-use them from the cache in ~/.cache/dampax (DAMPAX_CACHE=0: "
+               "off; DAMPAX_CACHE_DIR: elsewhere). Exit status: 0 ok, 2 invalid input, "
+               "130 interrupted.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (add_arguments, run) in SUBCOMMANDS.items():
@@ -55,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         argv: the arguments without the program name; default ``sys.argv[1:]``.
 
     Returns:
-        The exit status: 0 on success, 2 on invalid input (one line on stderr). Syntax errors
-        and ``--help`` exit through argparse (SystemExit with status 2 / 0).
+        The exit status: 0 on success, 2 on invalid input (one line on stderr), 130 when
+        interrupted (Ctrl-C; no half-written file is left). Syntax errors and ``--help``
+        exit through argparse (SystemExit with status 2 / 0).
     """
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -66,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         message = " ".join(str(err).split())
         print(f"{PROG}: error: {message}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: one line; outputs are written whole or not at all
+        print(f"\n{PROG}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

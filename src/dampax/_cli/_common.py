@@ -86,15 +86,45 @@ def check_plot_path(path: str, flag: str = "--plot") -> None:
         flag: the option named in the error.
 
     Raises:
-        ValueError: the folder does not exist or matplotlib cannot write the suffix.
+        ValueError: the folder does not exist or cannot be written, or matplotlib cannot
+            write the suffix.
     """
     from matplotlib.backend_bases import FigureCanvasBase
 
+    from .._io import check_writable_dir
+
     target = Path(path)
-    if not target.parent.is_dir():
-        raise ValueError(f"{flag}: folder {str(target.parent)!r} does not exist")
+    check_writable_dir(target.parent, flag)
+    if target.is_dir():
+        raise ValueError(f"{flag}: {path!r} is a folder, not a file")
     formats = FigureCanvasBase.get_supported_filetypes()
     suffix = target.suffix.lstrip(".").lower()
     if suffix not in formats:
         raise ValueError(f"{flag}: unsupported file type {target.suffix!r} of {path!r}; "
                          f"use one of {', '.join('.' + f for f in sorted(formats))}")
+
+
+def prepare_out_dir(path, flag: str = "--out") -> Path:
+    """Create the output folder (with parents) and check it can be written, before computing.
+
+    Arguments:
+        path: the folder.
+        flag: the option named in errors.
+
+    Returns:
+        The folder as a Path.
+
+    Raises:
+        ValueError: the path is a file, or the folder cannot be created or written.
+    """
+    from .._io import check_writable_dir
+
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{flag}: {str(out)!r} exists and is not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{flag}: cannot create {str(out)!r} ({err.strerror})") from None
+    check_writable_dir(out, flag)
+    return out

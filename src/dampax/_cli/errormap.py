@@ -5,13 +5,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
 from .._maps import DEFAULT_MODELS, largest_ratio_below, worst_in_box
 from .._models import ANALYTIC, MODELS, check_models
-from ._common import PROG, fmt
+from ._common import PROG, fmt, prepare_out_dir
 
 #: Grid and settings of ``dampax errormap`` (a few minutes on 2 cores with the reference) and
 #: of ``--quick`` (a smoke run). The grids include d0 = 0 and d2 = 0 for the summary table.
@@ -130,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
+    from .._io import atomic_path
     from .._maps import _axis, error_map, parse_axis
     from .._plot import ERROR_MAP_METRICS, plot_error_map
 
@@ -144,9 +144,6 @@ def run(args: argparse.Namespace) -> int:
                               ("--phi0", "phi0", False)):
         axes[name] = _axis(flag, parse_axis(pick(name), flag), ratio=ratio)
     models = check_models(args.models, "--models", allowed=ANALYTIC)
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out: {str(out)!r} exists and is not a folder")
     periods = pick("periods")
     spp = pick("samples_per_period")
     chunk = pick("chunk_size")
@@ -154,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
                              ("--chunk-size", chunk, 0)):
         if not (math.isfinite(value) and value > low):
             raise ValueError(f"{flag} must be > {low:g}, got {value}")
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_out_dir(args.out)
 
     n = int(np.prod([a.size for a in axes.values()]))
     print(f"{PROG} errormap: {n} points ({axes['d0'].size} d0 x {axes['d1'].size} d1 x "
@@ -170,7 +167,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
               "not defined there); their metrics are NaN", file=sys.stderr)
     path_nc = out / "errormap.nc"
-    ds.to_netcdf(path_nc, engine="scipy")
+    with atomic_path(path_nc) as tmp:
+        ds.to_netcdf(tmp, engine="scipy")
     written = [path_nc]
     for metric in ERROR_MAP_METRICS:
         written.append(plot_error_map(ds, metric, out / f"{metric}.png"))

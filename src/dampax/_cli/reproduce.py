@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import PROG
+from ._common import PROG, prepare_out_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dpi <= 0:
         raise ValueError(f"--dpi must be > 0, got {args.dpi}")
     select_figures(args.figures)  # fail on a bad list before any work
+    prepare_out_dir(args.out)
     start = time.perf_counter()
     res = reproduce(args.out, figures=args.figures, numbers=not args.no_numbers,
                     fmt=args.format, dpi=args.dpi, progress=not args.no_progress)
