@@ -101,6 +101,27 @@ class AbstractSolution(eqx.Module):
         """True where the model gives values (``result`` is successful); else they are NaN."""
         return is_successful(self.result)
 
+    @property
+    def model(self) -> str:
+        """The registry name of the model (``dampax.MODELS``), e.g. "matched_tail"."""
+        from ._atlas import model_of
+
+        return model_of(self)
+
+    @property
+    def error_estimate(self) -> Array:
+        """Expected max |x - x_ref| / A0 of this model for this oscillator and initial state.
+
+        Interpolated from the error atlas shipped with dampax (``dampax._atlas``: error maps
+        against the reference over d0/(w0 A0) <= 0.2, d1/w0 <= 0.4, d2 A0/w0 <= 1 and every
+        phi0; the error over the motion up to the reference's halt, at most 20 undamped
+        periods). NaN outside the atlas, where the model does not exist, and for the reference
+        itself. Works under jit and vmap.
+        """
+        from ._atlas import solution_estimate
+
+        return solution_estimate(self)
+
     def _x_energy(self, t, grid=None) -> tuple[Array, Array]:
         """(x(t), energy(t)) together; subclasses share the work of the two (error maps).
 

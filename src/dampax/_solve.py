@@ -17,7 +17,7 @@ from ._oscillator import Oscillator, check_finite, is_concrete
 
 def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matched",
           tail: str | None = None, back: int = 0, kappa: float = 4.0 / math.pi,
-          throw: bool = False, **options):
+          tolerance: float = 1e-2, throw: bool = False, **options):
     """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
 
     The models and their options are listed in ``dampax._models.MODELS`` (the registry every
@@ -29,12 +29,19 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         x0, v0: initial displacement [m] and velocity [m/s].
         method: "ansatz" (Lelas & Pezer, eq. 11), "rizcallah" (sinusoidal friction),
             "coulomb_exact" (exact half-swings; D = 0) or "reference" (diffrax integration of
-            eq. 3 with exact stick-slip).
+            eq. 3 with exact stick-slip); or "auto": the matched ansatz where the error atlas
+            puts max |x - x_ref| / A0 below ``tolerance`` with a margin (twice the largest
+            error at the atlas points around this one, see ``dampax._atlas``), else the
+            reference. The
+            solution's ``model`` says which ("matched" or "reference"); eager, scalar input
+            only (the choice depends on the values).
         phase: ansatz only: "matched" (A, phi from eqs. 22-23) or "undamped" (eqs. 8-10).
         tail: ansatz only: None, or "coulomb" for the improved solutions (eqs. 41, 52, 54): the
             exact Coulomb (+ viscous) motion from the last turning point with |x| > xc.
         back: with tail="coulomb": start the tail this many turning points earlier (eq. 54: 1).
         kappa: rizcallah only: 4/pi (least squares), pi/2 (impulse) or sqrt(2) (rms).
+        tolerance: auto only: the largest acceptable expected error of the ansatz, in A0
+            (``solution.error_estimate``), > 0.
         throw: under ``jit``/``vmap``, raise the failure's message at run time
             (``equinox.error_if``, as ``diffrax.diffeqsolve(throw=True)``) instead of
             returning ``valid = False`` and NaN. Eager calls always raise ValueError.
@@ -53,8 +60,13 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     """
     if not isinstance(osc, Oscillator):
         raise TypeError(f"osc must be a dampax.Oscillator, got {type(osc).__name__}")
+    if method == "auto":
+        if tail is not None or phase != "matched" or back != 0 or kappa != 4.0 / math.pi:
+            raise ValueError("method='auto' chooses between the matched ansatz and the "
+                             "reference: phase, tail, back and kappa do not apply")
+        return _solve_auto(osc, x0, v0, tolerance=tolerance, throw=throw, options=options)
     if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+        raise ValueError(f"method must be one of {METHODS + ('auto',)}, got {method!r}")
     if tail not in (None, "coulomb"):
         raise ValueError(f"tail must be None or 'coulomb', got {tail!r}")
     if method != "ansatz" and (tail is not None or phase != "matched" or back != 0):
@@ -85,6 +97,38 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     if throw:
         sol = sol.result.error_if(sol, ~sol.valid)
     return sol
+
+
+_AUTO_MARGIN = 2.0
+
+
+def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
+    """method="auto": the matched ansatz if its atlas estimate is below tolerance, else the
+    reference (see :func:`solve`)."""
+    if isinstance(tolerance, bool) or not isinstance(tolerance, (int, float)) or not (
+            math.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be a number > 0, got {tolerance!r}")
+    if not is_concrete(osc, x0, v0):
+        raise ValueError("method='auto' picks the model from the values, so it needs concrete "
+                         "input: call dp.solve outside jit/vmap, or name the method")
+    if any(np.ndim(a) for a in jax.tree_util.tree_leaves((osc, x0, v0))):
+        raise ValueError("method='auto' needs a scalar oscillator and initial state (the "
+                         "choice differs from point to point): loop over them, or name the "
+                         "method")
+    check_finite("x0", x0)
+    check_finite("v0", v0)
+    try:
+        sol = solve(osc, x0, v0, method="ansatz", throw=throw)
+    except ValueError:  # the ansatz does not exist here: the reference does
+        sol = None
+    from ._atlas import solution_estimate
+
+    # the atlas' upper estimate (the largest error at the surrounding atlas points) times a
+    # margin of 2, not the interpolation: the ansatz is only chosen where it is good with room
+    # to spare (in tests 2 x the upper estimate was never below the true error)
+    if sol is not None and _AUTO_MARGIN * float(solution_estimate(sol, bound=True)) < tolerance:
+        return sol
+    return solve(osc, x0, v0, method="reference", throw=throw, **options)
 
 
 @eqx.filter_jit
