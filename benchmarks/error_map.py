@@ -86,9 +86,11 @@ def main() -> None:
         start = time.perf_counter()
         error_map(**one_step, **common)
         step = time.perf_counter() - start
-        start = time.perf_counter()
-        ds = error_map(**grids[ref], **common)
-        elapsed = time.perf_counter() - start
+        elapsed = math.inf
+        for _ in range(1 if n > 100_000 else 3):  # best of 3 (the machine may be shared)
+            start = time.perf_counter()
+            ds = error_map(**grids[ref], **common)
+            elapsed = min(elapsed, time.perf_counter() - start)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         bad = int((~ds["reference_valid"]).sum())
         print(f"  reference={ref:<13} chunk {chunk:>5}/device: compile ~{first - step:5.1f} s; "

@@ -7,6 +7,16 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+#: Temporary files being written now (removed by the command line's Ctrl-C handler).
+PARTIAL: set[Path] = set()
+
+
+def remove_partial_files() -> None:
+    """Remove the temporary files of :func:`atomic_path` blocks still being written."""
+    for tmp in list(PARTIAL):
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
 
 @contextlib.contextmanager
 def atomic_path(path) -> Iterator[Path]:
@@ -24,10 +34,12 @@ def atomic_path(path) -> Iterator[Path]:
     """
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.part{path.suffix}")
+    PARTIAL.add(tmp)
     try:
         yield tmp
         os.replace(tmp, path)
     finally:
+        PARTIAL.discard(tmp)
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
 

@@ -9,7 +9,11 @@ does for bad syntax); Ctrl-C ends any command with one line and exit status 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 
 from .._version import __version__
@@ -50,6 +54,50 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@contextlib.contextmanager
+def _exit_on_interrupt():
+    """Ctrl-C (SIGINT) ends the process at once: one line, exit status 130, partial files gone.
+
+    Python raises KeyboardInterrupt only when the main thread runs Python code again (not
+    during a long XLA compilation), may raise it inside a garbage-collector callback where it is
+    ignored, and JAX can crash at exit after an interrupted computation. So the signal is
+    routed to a watcher thread (``signal.set_wakeup_fd``) that removes the temporary files of
+    unfinished writes, prints one line and leaves with ``os._exit(130)``. Outside the main
+    thread (where signals cannot be handled) nothing is changed.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+
+    def watch():
+        while True:
+            try:
+                data = os.read(read_fd, 64)
+            except OSError:
+                return
+            if not data:
+                return  # the pipe was closed: the command is over
+            if signal.SIGINT in data:
+                from .._io import remove_partial_files
+
+                remove_partial_files()
+                with contextlib.suppress(OSError):
+                    os.write(2, f"\n{PROG}: interrupted\n".encode())
+                os._exit(130)
+
+    old_handler = signal.signal(signal.SIGINT, lambda signum, frame: None)
+    old_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    threading.Thread(target=watch, name="dampax-sigint", daemon=True).start()
+    try:
+        yield
+    finally:
+        signal.set_wakeup_fd(old_fd)
+        signal.signal(signal.SIGINT, old_handler)
+        os.close(write_fd)  # the watcher reads end-of-file and returns
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``dampax`` command line.
 
@@ -64,12 +112,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.run(args)
+        with _exit_on_interrupt():
+            return args.run(args)
     except (ValueError, OSError) as err:
         message = " ".join(str(err).split())
         print(f"{PROG}: error: {message}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: one line; outputs are written whole or not at all
+    except KeyboardInterrupt:  # SIGINT raised in Python where no watcher could be installed
         print(f"\n{PROG}: interrupted", file=sys.stderr)
         return 130
 
