@@ -24,6 +24,7 @@ from ._fit import fit_arrays as fit_arrays  # noqa: E402
 from ._fit import fit_envelope as fit_envelope  # noqa: E402
 from ._fit import initial_guess as initial_guess  # noqa: E402
 from ._fit import residual_function as residual_function  # noqa: E402
+from ._global import global_sensitivity as global_sensitivity  # noqa: E402
 from ._maps import error_map as error_map  # noqa: E402
 from ._models import MODELS as MODELS  # noqa: E402
 from ._models import Model as Model  # noqa: E402
