@@ -289,7 +289,7 @@ class _Model(eqx.Module):
             return jnp.max(jnp.abs(sol.x(ts) - ref.x(ts))) / A0
         sol = solve(osc, x0, v0, method=self.method, **options)
         if callable(q):
-            return jnp.asarray(q(sol), dtype=float).reshape(())
+            return jnp.asarray(q(sol), dtype=float)
         if q == "halt_time":
             return sol.halt_time
         if q == "halt_position":
@@ -395,14 +395,19 @@ def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator:
     options = dict(solve_options)
     if method == "reference":
         options.setdefault("adjoint", "forward")
-    # validate the options once, eagerly, at the nominal point
-    if quantity != "max_error":
-        solve(oscillator, x0, v0, method=method, **options)
     model = _Model(osc=oscillator, x0=jnp.asarray(x0, dtype=float),
                    v0=jnp.asarray(v0, dtype=float),
                    t=jnp.asarray(0.0 if t is None else t, dtype=float), names=names,
                    method=method, options=tuple(sorted(options.items())), quantity=quantity,
                    samples=samples)
+    # trace once without compiling: bad solve options and a callable quantity that does not
+    # give a scalar fail here, with dampax.solve's message
+    try:
+        out = jax.eval_shape(model, jax.ShapeDtypeStruct((len(names),), jnp.float64))
+    except TypeError as err:
+        raise ValueError(f"quantity/solve options: {err}") from None
+    if out.shape != ():
+        raise ValueError(f"quantity must give a scalar, got shape {out.shape}")
     label = quantity if isinstance(quantity, str) else getattr(quantity, "__name__", "callable")
     ds = sobol_indices(model, lows, highs, names, n=n, seed=seed, num_resamples=num_resamples,
                        conf_level=conf_level, dgsm=dgsm, batch_size=batch_size,
