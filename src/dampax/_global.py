@@ -191,8 +191,9 @@ def sobol_indices(function: Callable[[Array], Array], lows, highs, names, *, n: 
         i = int(np.argmax(bad))
         at = ", ".join(f"{nm} = {X[i, j]:.6g}" for j, nm in enumerate(names))
         raise ValueError(f"quantity: not finite at {int(bad.sum())} of {Y.size} samples "
-                         f"(e.g. {Y[i]} at {at}); narrow the bounds (a model that never halts "
-                         f"has an infinite halt time; NaN where the model does not exist)")
+                         f"(e.g. {Y[i]} at {at}); narrow the bounds (a model that never halts, "
+                         f"mu = 0 or the reference before its t_end, has an infinite halt "
+                         f"time; NaN where the model does not exist)")
     rng = np.random.default_rng(seed)
     index = rng.integers(n, size=(num_resamples, n))
     z = float(norm.ppf(0.5 + conf_level / 2.0))

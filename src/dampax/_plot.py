@@ -482,7 +482,8 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
             pos = x[idx] - 0.4 + width * (2 * s + j + 0.5)
             ax.bar(pos, np.asarray(ds[var]), width, yerr=np.asarray(ds[f"{var}_conf"]),
                    color=st["color"], alpha=0.85 if j == 0 else 0.45, hatch=hatch,
-                   edgecolor=st["color"], capsize=3, label=f"{var}, {st['label']}")
+                   edgecolor=st["color"], capsize=3,
+                   label=f"{var}, {st['label']} (n = {ds.attrs.get('n', '?')})")
     ax.set_xticks(x, [rf"${_SYMBOLS[nm]}$" for nm in names])
     ax.axhline(0.0, color="0.5", linewidth=0.8)
     ax.set_ylabel("Sobol' index")
@@ -492,7 +493,7 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
     first = next(iter(results.values()))
     ax.set_title(title if title is not None else
                  f"global sensitivity of {first.attrs.get('quantity', 'the quantity')}\n"
-                 f"(S1 first order, ST total; n = {first.attrs.get('n', '?')}, "
+                 f"(S1 first order, ST total; "
                  f"{first.attrs.get('conf_level', 0.95):g} bootstrap bars)", fontsize=10)
     fig.savefig(path, dpi=dpi)
     fig.clear()
