@@ -310,3 +310,17 @@ def test_window_option_sets_the_sweep():
 def test_bad_window_names_the_argument(kwargs, argument):
     with pytest.raises(ValueError, match=argument):
         sensitivity(_osc(0.05), 0.2, 0.0, TS, **kwargs)
+
+
+def test_swing_count_and_its_trend():
+    # pure Coulomb, exact half-swings: n = ceil((x0/xc - 1)/2) turning points, the rest point
+    # included; its trend over the window against numpy's least-squares slope
+    mu = 0.122
+    sens = sensitivity(_osc(mu), 0.2, 0.0, TS[:3], wrt=("mu",), method="coulomb_exact",
+                       swings=True)
+    u = mu * (1.0 + 0.05 * np.linspace(-1.0, 1.0, 41))
+    n = np.ceil((0.2 / (u * 9.81 * M / K) - 1.0) / 2.0)
+    assert float(sens.swings) == 3.0
+    np.testing.assert_array_equal(np.asarray(sens.window_swings)[0], n)
+    np.testing.assert_allclose(float(sens.dswings_trend[0]), np.polyfit(u, n, 1)[0], rtol=1e-9)
+    assert "swings" in sens.report()

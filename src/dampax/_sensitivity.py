@@ -28,7 +28,7 @@ import numpy as np
 from ._models import METHODS
 from ._oscillator import Oscillator, check_choices, check_finite, is_concrete
 from ._solution import RESULTS, is_successful, message
-from ._solve import solve
+from ._solve import solve, turning_points
 
 Array = jax.Array
 
@@ -72,9 +72,16 @@ class Sensitivity(eqx.Module):
             NaN where the halt time is not finite somewhere in the window, where theta = 0
             (an empty window) or where ``trend=False``.
         dhalt_position_trend: the same for the halt position.
+        swings: the number of swings: turning points (v = 0, t > 0) before the halt, as
+            counted by :func:`dampax.turning_points` (the rest point included where the model
+            stops at a turning point: the reference, the Coulomb tail); an integer, so its
+            local derivative is 0 where defined; NaN if it never halts, beyond 64 turning
+            points, or without ``swings=True`` (and ``trend=True``).
+        dswings_trend: the trend derivative of ``swings`` (swings per unit of the parameter).
         window_values: the parameter values of the sweeps, shape (len(wrt), window_points):
             row i varies wrt[i] alone, the others held.
-        window_halt_time, window_halt_position: the halt time and position on the sweeps,
+        window_halt_time, window_halt_position, window_swings: the halt time, position and
+            number of swings on the sweeps,
             shape (len(wrt), window_points) (for :func:`dampax.plot_trend`).
         result: the model's ``RESULTS`` member (why it failed: NaN values, e.g. no admissible
             amplitude); ``valid`` is ``result == RESULTS.successful``.
@@ -96,9 +103,12 @@ class Sensitivity(eqx.Module):
     dhalt_position: Array
     dhalt_time_trend: Array
     dhalt_position_trend: Array
+    swings: Array
+    dswings_trend: Array
     window_values: Array
     window_halt_time: Array
     window_halt_position: Array
+    window_swings: Array
     result: RESULTS
     wrt: tuple[str, ...] = eqx.field(static=True)
     window: float = eqx.field(static=True)
@@ -123,7 +133,8 @@ class Sensitivity(eqx.Module):
         Returns:
             {"x": d x(ts)/d name, "energy": d E(ts)/d name, "halt_time": d tau/d name,
             "halt_position": d x_halt/d name, "halt_time_trend": the trend derivative of tau,
-            "halt_position_trend": that of x_halt}, with the batch axes in front when batched.
+            "halt_position_trend": that of x_halt, "swings_trend": that of the number of
+            swings}, with the batch axes in front when batched.
         """
         i = self.index(name)
         axis = jnp.ndim(self.dhalt_time) - 1  # the wrt axis comes after the batch axes
@@ -132,7 +143,8 @@ class Sensitivity(eqx.Module):
                 "halt_time": jnp.take(self.dhalt_time, i, axis=axis),
                 "halt_position": jnp.take(self.dhalt_position, i, axis=axis),
                 "halt_time_trend": jnp.take(self.dhalt_time_trend, i, axis=axis),
-                "halt_position_trend": jnp.take(self.dhalt_position_trend, i, axis=axis)}
+                "halt_position_trend": jnp.take(self.dhalt_position_trend, i, axis=axis),
+                "swings_trend": jnp.take(self.dswings_trend, i, axis=axis)}
 
     def as_dict(self) -> dict[str, dict[str, Array]]:
         """{name: self.of(name)} for every name of ``wrt``, in order."""
@@ -170,17 +182,22 @@ class Sensitivity(eqx.Module):
             v = float(v)
             return "-" if math.isnan(v) else f"{v:.{digits}g}"
 
-        lines = [f"halt time {num(self.halt_time)} s, halt position {num(self.halt_position)} m;"
-                 f" trend: least-squares slope over +-{100 * self.window:g} % of each parameter",
+        counted = math.isfinite(float(self.swings))
+        lines = [f"halt time {num(self.halt_time)} s, halt position {num(self.halt_position)} m"
+                 + (f", {num(self.swings)} swings" if counted else "")
+                 + f"; trend: least-squares slope over +-{100 * self.window:g} % of each "
+                 "parameter",
                  f"{'parameter':<10} {'d halt time':>13} {'trend':>13}  "
-                 f"{'d halt position':>15} {'trend':>13}"]
+                 f"{'d halt position':>15} {'trend':>13}"
+                 + (f"  {'d swings trend':>14}" if counted else "")]
         for name in self.wrt:
             g = self.of(name)
             ft = "*" if flags[name]["halt_time"] else " "
             fp = "*" if flags[name]["halt_position"] else " "
             lines.append(f"{name:<10} {num(g['halt_time']):>13} {num(g['halt_time_trend']):>12}"
                          f"{ft}  {num(g['halt_position']):>15} "
-                         f"{num(g['halt_position_trend']):>12}{fp}")
+                         f"{num(g['halt_position_trend']):>12}{fp}"
+                         + (f"  {num(g['swings_trend']):>14}" if counted else ""))
         if any(any(f.values()) for f in flags.values()):
             lines.append(f"* {TREND_NOTE}")
         return "\n".join(lines)
@@ -246,6 +263,20 @@ def _check_ts(ts) -> Array:
     return jnp.asarray(ts, dtype=float)
 
 
+#: Turning points counted by :func:`count_swings` (more are reported as NaN).
+MAX_SWINGS = 64
+
+
+def count_swings(sol) -> Array:
+    """Number of turning points (t > 0, v = 0) before the halt, the rest point included where
+    the model stops at a turning point (as :func:`dampax.turning_points`); NaN when the model
+    never halts or has more than :data:`MAX_SWINGS` of them."""
+    t, _ = turning_points(sol, MAX_SWINGS)
+    count = jnp.sum(jnp.isfinite(t)).astype(float)
+    ok = jnp.isfinite(sol.halt_time) & (count < MAX_SWINGS)
+    return jnp.where(ok, count, jnp.nan)
+
+
 def least_squares_slope(u: Array, y: Array) -> Array:
     """Least-squares slope of y against u along the last axis (NaN if u is constant or y not
     finite somewhere); NaN-safe under grad (double where)."""
@@ -260,7 +291,8 @@ def least_squares_slope(u: Array, y: Array) -> Array:
 
 
 @eqx.filter_jit
-def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points, trend):
+def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points, trend,
+              swings):
     """Values and Jacobians of (x(ts), E(ts), tau, x_halt) w.r.t. ``wrt``, and the trend
     sweeps, compiled."""
     base = dict(m=osc.m, k=osc.k, mu=osc.mu, b=osc.b, D=osc.D, g=osc.g, x0=x0, v0=v0)
@@ -296,22 +328,27 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points
 
         def halt(p):
             sol = solution(p)
-            return sol.halt_time, sol.halt_position
+            count = count_swings(sol) if swings else jnp.array(jnp.nan)
+            return sol.halt_time, sol.halt_position, count
 
-        wtau, wxh = jax.vmap(jax.vmap(halt))(P)
+        wtau, wxh, wsw = jax.vmap(jax.vmap(halt))(P)
         ttau, txh = least_squares_slope(grid, wtau), least_squares_slope(grid, wxh)
+        tsw = least_squares_slope(grid, wsw)
+        n_swings = halt(theta)[2]
     else:
-        wtau = wxh = jnp.full(grid.shape, jnp.nan)
-        ttau = txh = jnp.full((n,), jnp.nan)
+        wtau = wxh = wsw = jnp.full(grid.shape, jnp.nan)
+        ttau = txh = tsw = jnp.full((n,), jnp.nan)
+        n_swings = jnp.array(jnp.nan)
     return Sensitivity(ts=ts, x=x, dx=dx, energy=e, denergy=de, halt_time=tau, dhalt_time=dtau,
                        halt_position=xh, dhalt_position=dxh, dhalt_time_trend=ttau,
                        dhalt_position_trend=txh, window_values=grid, window_halt_time=wtau,
-                       window_halt_position=wxh, result=result, wrt=wrt, window=window)
+                       window_halt_position=wxh, swings=n_swings, dswings_trend=tsw,
+                       window_swings=wsw, result=result, wrt=wrt, window=window)
 
 
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
                 method: str = "ansatz", mode: str = "forward", trend: bool = True,
-                window: float = 0.05, window_points: int = 41,
+                window: float = 0.05, window_points: int = 41, swings: bool = False,
                 **solve_options) -> Sensitivity:
     """First derivatives of a model's x(t), E(t), halt time and halt position, local and trend.
 
@@ -354,6 +391,10 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
             trend).
         window_points: values per sweep, >= 3 (default 41; the sweep costs
             len(wrt) * window_points evaluations of the model, no derivatives).
+        swings: also count the swings (turning points before the halt, via
+            :func:`dampax.turning_points`, at most 64) at the nominal point and on the sweeps,
+            and give their trend ``dswings_trend`` (default False: for the analytic models the
+            count costs a Newton solve per turning point and about doubles the compilation).
 
     Returns:
         A :class:`Sensitivity`: ``dx`` has shape (len(wrt),) + ts.shape, ``dx[i]`` in m per
@@ -421,7 +462,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     elif t_end is not None:
         options["t_end"] = t_end  # dampax.solve names the misplaced option
     result = _evaluate(osc, x0, v0, ts, t_end, names, method, mode, options, window,
-                       int(window_points), bool(trend))
+                       int(window_points), bool(trend), bool(swings))
     if is_concrete(result.result._value) and not np.all(np.asarray(result.valid)):
         raise ValueError(f"method={method!r}: {message(result.result)}")
     return result
