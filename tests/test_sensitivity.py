@@ -219,3 +219,108 @@ def test_cli_errors_through_main(monkeypatch, tmp_path, capsys):
         assert _cli.main(["sensitivity", *argv]) == 2
         err = capsys.readouterr().err
         assert err.startswith("dampax: error:") and word in err, err
+
+
+# ---- trend derivatives (issue 13): least-squares slope over +-5 % windows -----------------------
+
+
+def _coulomb_halt(mu, x0=0.2):
+    """Exact halt (time, position) of pure Coulomb friction from rest (Rizcallah eq. 2), numpy:
+    x_n = (-1)^n (x0 - 2 n xc) at t_n = n pi/w0, rest at the first |x_n| <= xc."""
+    xc = mu * 9.81 * M / K
+    n = np.maximum(np.ceil((x0 / xc - 1.0) / 2.0), 0.0)
+    return n * math.pi / W0, (-1.0) ** n * (x0 - 2.0 * n * xc)
+
+
+def test_trend_sees_the_jump_the_local_derivative_misses():
+    # pure Coulomb from rest at 0.2 m: x0 = 5 xc at mu = 0.1223, so the +-5 % window of
+    # mu = 0.122 holds the point where the block loses its third half-swing (1.72 s -> 1.15 s).
+    # Same program as the reference above (wrt, TS and options): no new compilation.
+    mu = 0.122
+    sens = sensitivity(_osc(mu), 0.2, 0.0, TS, wrt=WRT, **REF)
+    g = sens.of("mu")
+    # locally the halt time does not depend on mu (t_n = n pi/w0)
+    assert abs(float(g["halt_time"])) < 1e-6
+    # the trend is the least-squares slope of the exact halts on the same window, in numpy
+    u = mu * (1.0 + 0.05 * np.linspace(-1.0, 1.0, 41))
+    tau, xh = _coulomb_halt(u)
+    assert np.ptp(tau) > 0.5  # the window holds the jump
+    np.testing.assert_allclose(np.asarray(sens.window_values)[0], u, rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(sens.window_halt_time)[0], tau, rtol=1e-7)
+    np.testing.assert_allclose(float(g["halt_time_trend"]), np.polyfit(u, tau, 1)[0], rtol=1e-6)
+    np.testing.assert_allclose(float(g["halt_position_trend"]), np.polyfit(u, xh, 1)[0],
+                               rtol=1e-6)
+    assert float(g["halt_time_trend"]) < -10.0
+    # flagged, with the reason, in the report; b = D = v0 = 0 have empty windows: NaN trends
+    assert sens.disagreements()["mu"]["halt_time"]
+    report = sens.report()
+    assert "*" in report and "jumps inside the window" in report
+    for name in ("b", "D", "v0"):
+        assert math.isnan(float(sens.of(name)["halt_time_trend"])), name
+        assert not sens.disagreements()[name]["halt_time"]
+
+
+def test_trend_equals_local_derivative_without_jumps():
+    # CASE has no swing-count change within +-5 % of any parameter: the reference's trend is
+    # its local derivative up to the window's curvature
+    sens = sensitivity(_osc(*CASE[:3]), CASE[3], CASE[4], TS, wrt=WRT, **REF)
+    np.testing.assert_allclose(sens.dhalt_time_trend, sens.dhalt_time, rtol=0.05,
+                               atol=1e-3 * np.max(np.abs(sens.dhalt_time)))
+    assert not any(any(f.values()) for f in sens.disagreements().values())
+    assert "*" not in sens.report()
+
+
+def test_ansatz_trend_against_numpy_sweep():
+    # the ansatz's halt is smooth: its trend is the numpy least-squares slope of halt times
+    # computed here by dampax.solve on the same grid, and close to the local derivative
+    # (wrt, TS and the default window as above: the compiled program is re-used)
+    p0 = dict(mu=0.0288, D=2.95, x0=0.2, v0=-0.3, b=0.2)
+    sens = sensitivity(_osc(p0["mu"], p0["b"], p0["D"]), p0["x0"], p0["v0"], TS, wrt=WRT)
+    assert sens.window == 0.05 and np.asarray(sens.window_values).shape == (5, 41)
+    for i, name in enumerate(WRT):
+        u = p0[name] * (1.0 + 0.05 * np.linspace(-1.0, 1.0, 41))
+        tau = []
+        for value in u:
+            p = dict(p0, **{name: value})
+            tau.append(float(dp.solve(_osc(p["mu"], p["b"], p["D"]), p["x0"],
+                                      p["v0"]).halt_time))
+        np.testing.assert_allclose(float(sens.dhalt_time_trend[i]), np.polyfit(u, tau, 1)[0],
+                                   rtol=1e-9, err_msg=name)
+        np.testing.assert_allclose(float(sens.dhalt_time_trend[i]),
+                                   float(sens.dhalt_time[i]), rtol=0.02, err_msg=name)
+    np.testing.assert_array_equal(sens.dhalt_position_trend, 0.0)  # always stops at x = 0
+    assert not any(any(f.values()) for f in sens.disagreements().values())
+
+
+def test_window_option_sets_the_sweep():
+    # a narrower window and fewer points (cheapest model to compile)
+    sens = sensitivity(_osc(0.1), 0.2, -0.3, TS[:3], wrt=("mu",), method="rizcallah",
+                       window=0.01, window_points=5)
+    np.testing.assert_allclose(np.asarray(sens.window_values)[0],
+                               0.1 * (1.0 + 0.01 * np.linspace(-1.0, 1.0, 5)), rtol=1e-14)
+    assert sens.window == 0.01 and np.all(np.isfinite(sens.window_halt_time))
+
+
+@pytest.mark.parametrize("kwargs, argument", [
+    (dict(window=0.0), "window"),
+    (dict(window=1.5), "window"),
+    (dict(window=float("nan")), "window"),
+    (dict(window_points=2), "window_points"),
+])
+def test_bad_window_names_the_argument(kwargs, argument):
+    with pytest.raises(ValueError, match=argument):
+        sensitivity(_osc(0.05), 0.2, 0.0, TS, **kwargs)
+
+
+def test_swing_count_and_its_trend():
+    # pure Coulomb, exact half-swings: n = ceil((x0/xc - 1)/2) turning points, the rest point
+    # included; its trend over the window against numpy's least-squares slope
+    mu = 0.122
+    sens = sensitivity(_osc(mu), 0.2, 0.0, TS[:3], wrt=("mu",), method="coulomb_exact",
+                       swings=True)
+    u = mu * (1.0 + 0.05 * np.linspace(-1.0, 1.0, 41))
+    n = np.ceil((0.2 / (u * 9.81 * M / K) - 1.0) / 2.0)
+    assert float(sens.swings) == 3.0
+    np.testing.assert_array_equal(np.asarray(sens.window_swings)[0], n)
+    np.testing.assert_allclose(float(sens.dswings_trend[0]), np.polyfit(u, n, 1)[0], rtol=1e-9)
+    assert "swings" in sens.report()

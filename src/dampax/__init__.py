@@ -24,13 +24,16 @@ from ._fit import fit_arrays as fit_arrays  # noqa: E402
 from ._fit import fit_envelope as fit_envelope  # noqa: E402
 from ._fit import initial_guess as initial_guess  # noqa: E402
 from ._fit import residual_function as residual_function  # noqa: E402
+from ._global import global_sensitivity as global_sensitivity  # noqa: E402
 from ._maps import error_map as error_map  # noqa: E402
 from ._models import MODELS as MODELS  # noqa: E402
 from ._models import Model as Model  # noqa: E402
 from ._oscillator import Oscillator as Oscillator  # noqa: E402
 from ._oscillator import damping_coefficients as damping_coefficients  # noqa: E402
 from ._oscillator import from_ratios as from_ratios  # noqa: E402
+from ._plot import plot_global_sensitivity as plot_global_sensitivity  # noqa: E402
 from ._plot import plot_sensitivity as plot_sensitivity  # noqa: E402
+from ._plot import plot_trend as plot_trend  # noqa: E402
 from ._reproduce import paper_numbers as paper_numbers  # noqa: E402
 from ._reproduce import reproduce as reproduce  # noqa: E402
 from ._sensitivity import Sensitivity as Sensitivity  # noqa: E402

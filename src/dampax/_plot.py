@@ -365,3 +365,137 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
+
+
+def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = None,
+               dpi: int = 120):
+    """Plot the halt time and position over each parameter's trend window, and save the figure.
+
+    One row per parameter of ``wrt``, two panels (halt time, halt position): the sweep of
+    :func:`dampax.sensitivity` (dots joined by thin lines, so a jump between two values shows
+    as a step), the local derivative as a dashed tangent at the nominal value and the trend (the
+    least-squares slope) as a solid line through the sweep's mean.
+
+    Arguments:
+        results: model name -> unbatched :class:`Sensitivity` computed with ``trend=True``;
+            registry keys are drawn in the papers' colours.
+        path: output file; the format follows the suffix.
+        title: figure title (default: none).
+        dpi: resolution of raster output.
+
+    Returns:
+        ``path``, unchanged.
+    """
+    from matplotlib.figure import Figure
+
+    if not results:
+        raise ValueError("results: nothing to plot")
+    for key, r in results.items():
+        if not isinstance(r, Sensitivity) or np.ndim(r.dhalt_time) != 1:
+            raise ValueError(f"results[{key!r}]: need an unbatched Sensitivity")
+    names: list[str] = []
+    for r in results.values():
+        names += [n for n in r.wrt if n not in names]
+    fig = Figure(figsize=(10.0, 2.6 * len(names) + 1.2), layout="constrained")
+    axes = fig.subplots(len(names), 2, squeeze=False)
+    styles, n_other = {}, 0
+    for key in results:
+        styles[key] = _style(key, n_other)
+        n_other += styles[key]["label"] == key
+    quantities = (("halt_time", "halt time [s]", "s"), ("halt_position", "halt position [m]", "m"))
+    for row, name in enumerate(names):
+        unit = UNITS[name]
+        for col, (q, ylabel, _) in enumerate(quantities):
+            ax = axes[row, col]
+            for key, r in results.items():
+                if name not in r.wrt:
+                    continue
+                i = r.index(name)
+                st = dict(styles[key])
+                label = st.pop("label")
+                u = np.asarray(r.window_values)[i]
+                y = np.asarray(getattr(r, f"window_{q}"))[i]
+                centre = float(u[len(u) // 2])
+                ax.plot(u, y, marker="o", markersize=2.5, linewidth=0.6, color=st["color"],
+                        label=label, zorder=st["zorder"])
+                local = float(np.asarray(getattr(r, f"d{q}"))[i])
+                trend = float(np.asarray(getattr(r, f"d{q}_trend"))[i])
+                y0 = float(np.asarray(getattr(r, q)))
+                if math.isfinite(local) and math.isfinite(y0):
+                    ax.plot(u, y0 + local * (u - centre), color=st["color"], linestyle="--",
+                            linewidth=1.0, zorder=st["zorder"])
+                if math.isfinite(trend) and np.all(np.isfinite(y)):
+                    ax.plot(u, np.mean(y) + trend * (u - np.mean(u)), color=st["color"],
+                            linestyle="-", linewidth=1.8, alpha=0.5, zorder=st["zorder"])
+            ax.set_xlabel(rf"${_SYMBOLS[name]}$" + (f" [{unit}]" if unit else ""))
+            ax.set_ylabel(ylabel)
+            ax.grid(True, alpha=0.3)
+    from matplotlib.lines import Line2D
+
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    handles += [Line2D([], [], color="0.3", linestyle="--", linewidth=1.0),
+                Line2D([], [], color="0.3", linestyle="-", linewidth=1.8, alpha=0.5)]
+    labels += ["local derivative (tangent)", "trend (least-squares slope)"]
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
+               fontsize=9, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.savefig(path, dpi=dpi)
+    fig.clear()
+    return path
+
+
+def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int = 120):
+    """Bar chart of Sobol' S1 and ST with their confidence half-widths, and save the figure.
+
+    Arguments:
+        results: an xarray Dataset of :func:`dampax.global_sensitivity`, or a mapping
+            label -> Dataset (e.g. one per model; registry keys get the papers' colours): the
+            datasets' parameters are grouped on the x axis, S1 solid, ST hatched, error bars the
+            bootstrap half-widths.
+        path: output file; the format follows the suffix.
+        title: figure title (default: the quantity).
+        dpi: resolution of raster output.
+
+    Returns:
+        ``path``, unchanged.
+    """
+    from matplotlib.figure import Figure
+
+    if not isinstance(results, Mapping):
+        results = {str(results.attrs.get("method", "model")): results}
+    if not results:
+        raise ValueError("results: nothing to plot")
+    names: list[str] = []
+    for ds in results.values():
+        names += [str(n) for n in ds["parameter"].values if str(n) not in names]
+    n_sets = len(results)
+    width = 0.8 / (2 * n_sets)
+    fig = Figure(figsize=(max(5.5, 1.6 + 1.4 * len(names) * n_sets), 4.2), layout="constrained")
+    ax = fig.subplots()
+    x = np.arange(len(names))
+    n_other = 0
+    for s, (key, ds) in enumerate(results.items()):
+        st = _style(key, n_other)
+        n_other += st["label"] == key
+        idx = [names.index(str(nm)) for nm in ds["parameter"].values]
+        for j, (var, hatch) in enumerate((("S1", None), ("ST", "//"))):
+            pos = x[idx] - 0.4 + width * (2 * s + j + 0.5)
+            ax.bar(pos, np.asarray(ds[var]), width, yerr=np.asarray(ds[f"{var}_conf"]),
+                   color=st["color"], alpha=0.85 if j == 0 else 0.45, hatch=hatch,
+                   edgecolor=st["color"], capsize=3,
+                   label=f"{var}, {st['label']} (n = {ds.attrs.get('n', '?')})")
+    ax.set_xticks(x, [rf"${_SYMBOLS[nm]}$" for nm in names])
+    ax.axhline(0.0, color="0.5", linewidth=0.8)
+    ax.set_ylabel("Sobol' index")
+    ax.set_ylim(min(0.0, ax.get_ylim()[0]), max(1.0, ax.get_ylim()[1]))
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8)
+    first = next(iter(results.values()))
+    ax.set_title(title if title is not None else
+                 f"global sensitivity of {first.attrs.get('quantity', 'the quantity')}\n"
+                 f"(S1 first order, ST total; "
+                 f"{first.attrs.get('conf_level', 0.95):g} bootstrap bars)", fontsize=10)
+    fig.savefig(path, dpi=dpi)
+    fig.clear()
+    return path

@@ -1,4 +1,10 @@
-"""``dampax sensitivity``: how the halt time and position depend on the parameters."""
+"""``dampax sensitivity``: how the halt time and position depend on the parameters.
+
+Local mode (default): local (autodiff) and trend (least-squares slope over a window)
+derivatives of the halt time and position, a plot of d x(t)/d theta and one of the halt over
+each parameter's window. Global mode (``--global "mu=0.01:0.05,D=0.5:3"``): Sobol' indices S1,
+ST with bootstrap half-widths and DGSM over those ranges, and a bar chart.
+"""
 
 from __future__ import annotations
 
@@ -8,9 +14,19 @@ import sys
 
 import numpy as np
 
+from .._global import QUANTITIES, check_bounds
 from .._models import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
-from .._sensitivity import PARAMETERS, UNITS, Sensitivity, check_wrt, sensitivity
+from .._sensitivity import (
+    PARAMETERS,
+    TREND_NOTE,
+    UNITS,
+    Sensitivity,
+    check_window,
+    check_wrt,
+    differ_by_factor,
+    sensitivity,
+)
 from .._solve import solve
 from ._common import (
     PROG,
@@ -31,19 +47,84 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     what.add_argument("--wrt", default="mu,D", metavar="NAMES",
                       help=f"comma-separated parameters to differentiate with respect to, from "
                            f"{','.join(PARAMETERS)} (default: %(default)s)")
-    what.add_argument("--models", default="matched,reference", metavar="NAMES",
+    what.add_argument("--models", default=None, metavar="NAMES",
                       help=f"comma-separated models: {', '.join(MODELS)} "
-                           "(default: %(default)s)")
+                           "(default: matched,reference; with --global: matched)")
     what.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
                       help="time span of the plot (default: half an undamped period past the "
                            "matched ansatz's halt, 2 to 12 periods; 4 periods if it never halts)")
     what.add_argument("--samples", type=int, default=400, metavar="N",
                       help="time samples of the plot (default: %(default)s)")
+    what.add_argument("--window", type=float, default=0.05, metavar="W",
+                      help="relative half-width of the trend window: the trend derivative is "
+                           "the least-squares slope of the halt time (position) over "
+                           "theta (1 - W) ... theta (1 + W), 0 < W < 1 (default: %(default)s, "
+                           "i.e. +-5 %%)")
+    what.add_argument("--window-points", type=int, default=41, metavar="N",
+                      help="parameter values per trend window, >= 3 (default: %(default)s)")
+    glob = parser.add_argument_group(
+        "global sensitivity (Sobol' indices over ranges instead of derivatives at a point)")
+    glob.add_argument("--global", dest="global_spec", default=None, metavar="SPEC",
+                      help="ranges of the parameters, e.g. \"mu=0.01:0.05,D=0.5:3\" (names "
+                           f"from {','.join(PARAMETERS)}): prints Sobol' S1, ST with "
+                           "bootstrap 95%% half-widths and DGSM, and draws them as bars "
+                           "(--plot); the other parameters are those of the options above")
+    glob.add_argument("--quantity", default="halt_time", choices=QUANTITIES,
+                      help="quantity of the global study: halt time, halt position, energy or "
+                           "x at --time, or max_error (max |x - x_ref|/A0 of the model against "
+                           "the reference on [0, --time]) (default: %(default)s)")
+    glob.add_argument("--time", type=float, default=None, metavar="SECONDS",
+                      help="time of --quantity energy or x (required there); end of the "
+                           "max_error window (default: 10 undamped periods)")
+    glob.add_argument("--n", type=int, default=4096, metavar="N",
+                      help="base samples of the Saltelli design, >= 16, a power of 2 is best "
+                           "(N (k + 2) model evaluations for k parameters; default: "
+                           "%(default)s)")
+    glob.add_argument("--seed", type=int, default=0, metavar="SEED",
+                      help="seed of the design and the bootstrap (default: %(default)s)")
     out = parser.add_argument_group("output")
     out.add_argument("--digits", type=int, default=4, metavar="N",
                      help="significant digits printed (default: %(default)s)")
     out.add_argument("--plot", metavar="FILE.png", default="sensitivity.png",
-                     help="where to save the plot of dx/dtheta (default: %(default)s)")
+                     help="where to save the plot of dx/dtheta, or with --global the bar "
+                          "chart of S1 and ST (default: %(default)s)")
+    out.add_argument("--trend-plot", metavar="FILE.png", default=None,
+                     help="where to save the plot of the halt time and position over each "
+                          "parameter's trend window (default: --plot's name with _trend, e.g. "
+                          "sensitivity_trend.png; not drawn with --global)")
+
+
+def parse_global(spec: str) -> dict[str, tuple[float, float]]:
+    """The ranges of ``--global "mu=0.01:0.05,D=0.5:3"`` as {name: (lo, hi)} (ValueError)."""
+    bounds: dict[str, tuple[float, float]] = {}
+    for item in split_names(spec):
+        name, sep, rng = item.partition("=")
+        name = name.strip()
+        lo, sep2, hi = rng.partition(":")
+        if not sep or not sep2 or not name:
+            raise ValueError(f"--global: {item!r} is not NAME=LO:HI (e.g. mu=0.01:0.05)")
+        if name in bounds:
+            raise ValueError(f"--global: {name} given twice")
+        try:
+            bounds[name] = (float(lo), float(hi))
+        except ValueError:
+            raise ValueError(f"--global: {item!r}: LO and HI must be numbers") from None
+    if not bounds:
+        raise ValueError("--global: no ranges given; e.g. --global \"mu=0.01:0.05,D=0.5:3\"")
+    try:
+        check_bounds(bounds)
+    except ValueError as err:
+        raise ValueError(f"--global: {err}") from None
+    return bounds
+
+
+def _trend_path(args: argparse.Namespace) -> str:
+    if args.trend_plot is not None:
+        return args.trend_plot
+    from pathlib import Path
+
+    plot = Path(args.plot)
+    return str(plot.with_name(f"{plot.stem}_trend{plot.suffix}"))
 
 
 def _default_t_end(osc: Oscillator, x0: float, v0: float) -> float:
@@ -59,16 +140,26 @@ def _default_t_end(osc: Oscillator, x0: float, v0: float) -> float:
 
 def run(args: argparse.Namespace) -> int:
     """Print how the halt time and position depend on the parameters; plot d x(t)/d theta."""
-    from .._plot import plot_sensitivity
+    from .._plot import plot_sensitivity, plot_trend
 
+    if args.global_spec is not None:
+        return run_global(args)
     names = check_wrt(split_names(args.wrt))
-    models = check_models(args.models, "--models")
+    models = check_models(args.models or "matched,reference", "--models")
     if args.samples < 2:
         raise ValueError(f"--samples must be >= 2, got {args.samples}")
     check_digits(args.digits)
     if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0.0):
         raise ValueError(f"--t-end must be a finite time > 0, got {args.t_end}")
+    try:
+        window = check_window(args.window)
+    except ValueError as err:
+        raise ValueError(f"--{err}") from None
+    if args.window_points < 3:
+        raise ValueError(f"--window-points must be >= 3, got {args.window_points}")
     check_plot_path(args.plot)
+    trend_path = _trend_path(args)
+    check_plot_path(trend_path, "--trend-plot")
     osc = oscillator_from(args)
     check_finite("x0", args.x0)
     check_finite("v0", args.v0)
@@ -81,8 +172,8 @@ def run(args: argparse.Namespace) -> int:
 
     results: dict[str, Sensitivity] = {}
     for k in models:
-        results[k] = sensitivity(osc, args.x0, args.v0, ts, wrt=names,
-                                 **MODELS[k].solve_options)
+        results[k] = sensitivity(osc, args.x0, args.v0, ts, wrt=names, window=window,
+                                 window_points=args.window_points, **MODELS[k].solve_options)
 
     d = args.digits
     print(f"{PROG} sensitivity: {oscillator_text(args)}")
@@ -95,21 +186,88 @@ def run(args: argparse.Namespace) -> int:
               f"{fmt(float(np.asarray(r.halt_time)), d, inf='never'):>13}  "
               f"{fmt(float(np.asarray(r.halt_position)), d):>17}")
     print()
-    print("  derivatives per unit of the parameter ('-' where the model never halts):")
-    print(f"  {'parameter':<14}  {'model':<{width}}  {'d halt time [s]':>15}  "
-          f"{'d halt position [m]':>19}")
+    print(f"  derivatives per unit of the parameter: local (autodiff) and trend (least-squares "
+          f"slope over +-{100 * window:g} % of the parameter); '-' where undefined")
+    print(f"  {'parameter':<14}  {'model':<{width}}  {'d halt time [s]':>15}  {'trend':>11}  "
+          f"{'d halt position [m]':>19}  {'trend':>11}")
+    flagged = False
     for name in names:
         unit = UNITS[name] or "1"
         first = f"{name} [{unit}]"
         for k, r in results.items():
             g = r.of(name)
-            print(f"  {first:<14}  {labels[k]:<{width}}  "
-                  f"{fmt(float(np.asarray(g['halt_time'])), d):>15}  "
-                  f"{fmt(float(np.asarray(g['halt_position'])), d):>19}")
+            cells = []
+            for q in ("halt_time", "halt_position"):
+                local = float(np.asarray(g[q]))
+                trend = float(np.asarray(g[q + "_trend"]))
+                flag = differ_by_factor(local, trend)
+                flagged |= flag
+                cells.append((fmt(local, d), fmt(trend, d) + ("*" if flag else " ")))
+            print(f"  {first:<14}  {labels[k]:<{width}}  {cells[0][0]:>15}  {cells[0][1]:>12} "
+                  f"{cells[1][0]:>19}  {cells[1][1]:>12}")
             first = ""
+    if flagged:
+        print(f"  * {TREND_NOTE}")
     title = (rf"m = {args.m:g} kg, k = {args.k:g} N/m, $\mu$ = {args.mu:g}, b = {args.b:g} kg/s, "
              rf"D = {args.D:g} kg/m, $x_0$ = {args.x0:g} m, $v_0$ = {args.v0:g} m/s")
     path = plot_sensitivity(results, args.plot, title=title)
+    tpath = plot_trend(results, trend_path, title=title)
+    print()
+    print(f"  plot written to {path}")
+    print(f"  halt over the trend windows written to {tpath}")
+    sys.stdout.flush()
+    return 0
+
+
+def run_global(args: argparse.Namespace) -> int:
+    """``--global``: Sobol' indices and DGSM of the quantity over the ranges; bar chart."""
+    from .._global import global_sensitivity
+    from .._plot import plot_global_sensitivity
+
+    bounds = parse_global(args.global_spec)
+    models = check_models(args.models or "matched", "--models")
+    check_digits(args.digits)
+    if args.n < 16:
+        raise ValueError(f"--n must be >= 16, got {args.n}")
+    if args.seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if args.quantity in ("energy", "x") and args.time is None:
+        raise ValueError(f"--time: --quantity {args.quantity} needs the time [s]")
+    if args.time is not None and not (math.isfinite(args.time) and args.time >= 0.0):
+        raise ValueError(f"--time must be a finite time >= 0, got {args.time}")
+    if args.quantity == "max_error" and "reference" in models:
+        raise ValueError("--models: max_error compares a model against the reference; "
+                         "leave reference out")
+    check_plot_path(args.plot)
+    osc = oscillator_from(args)
+    check_finite("x0", args.x0)
+    check_finite("v0", args.v0)
+    results = {}
+    for k in models:
+        results[k] = global_sensitivity(bounds=bounds, oscillator=osc, x0=args.x0, v0=args.v0,
+                                        quantity=args.quantity, n=args.n, seed=args.seed,
+                                        t=args.time, **MODELS[k].solve_options)
+    d = args.digits
+    ranges = ", ".join(f"{k} in [{lo:g}, {hi:g}]" for k, (lo, hi) in bounds.items())
+    print(f"{PROG} sensitivity --global: {args.quantity} over {ranges}")
+    print(f"  others: {oscillator_text(args)}")
+    print(f"  n = {args.n} base samples, seed {args.seed}; half-widths: 95 % bootstrap")
+    print()
+    labels = {k: MODELS[k].label for k in models}
+    width = max(max(len(s) for s in labels.values()), len("model"))
+    print(f"  {'parameter':<10}  {'model':<{width}}  {'S1':>9}  {'+-':>8}  {'ST':>9}  "
+          f"{'+-':>8}  {'DGSM':>9}")
+    for name in bounds:
+        first = name
+        for k, ds in results.items():
+            row = ds.sel(parameter=name)
+            print(f"  {first:<10}  {labels[k]:<{width}}  {fmt(float(row.S1), d):>9}  "
+                  f"{fmt(float(row.S1_conf), 2):>8}  {fmt(float(row.ST), d):>9}  "
+                  f"{fmt(float(row.ST_conf), 2):>8}  {fmt(float(row.DGSM), d):>9}")
+            first = ""
+    print("  S1: share of the variance from the parameter alone; ST: with its interactions; "
+          "DGSM: derivative bound on ST (not a bound where the quantity jumps)")
+    path = plot_global_sensitivity(results, args.plot)
     print()
     print(f"  plot written to {path}")
     sys.stdout.flush()
