@@ -9,7 +9,8 @@ After a fit, :func:`assess` returns the failures (``success = False`` with a one
 and, separately, whether the model describes the data (``adequate``):
 
 failures
-    the optimizer did not converge; a parameter ran to absurd values (d0/(w0 A), d1/w0 or
+    the optimizer did not converge; no measurable decay (every fitted damping constant
+    within two standard errors of zero); a parameter ran to absurd values (d0/(w0 A), d1/w0 or
     d2 A/w0 above :data:`ABSURD`, or an amplitude far beyond the data); the fitted w0 differs
     from the data's zero-crossing frequency by more than :data:`W0_TOLERANCE`; the model stops
     moving well before the data do, or the reverse (:func:`motion_end`); a standard error of a
@@ -167,6 +168,10 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
     if nonfinite:
         fails.append(f"the standard error of {', '.join(nonfinite)} is not finite (the data do "
                      "not determine it)")
+    damping = [n for n in ("mu", "b", "D") if n in varied]
+    if damping and all(not params[n] > 2.0 * stderr.get(n, math.nan) for n in damping):
+        fails.append(f"no measurable decay: every fitted damping constant "
+                     f"({', '.join(damping)}) is consistent with zero")
     if kind != "trace":
         return fails, bad, diag
     w0 = params["w0"]
