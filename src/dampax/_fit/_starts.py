@@ -57,7 +57,7 @@ class Starts:
         c = self.costs[np.isfinite(self.costs)]
         spread = (f"costs best {c.min():.4g}, median {np.median(c):.4g}, worst {c.max():.4g}"
                   if c.size else "no finite cost")
-        thin = f", every {self.stride}th sample" if self.stride > 1 else ""
+        thin = f", 1 sample in {self.stride}" if self.stride > 1 else ""
         return (f"{self.reached} of {self.n} jittered starts reached the best optimum "
                 f"({spread}{thin})")
 
