@@ -414,8 +414,7 @@ def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: 
                    max_steps=int(max_steps or MAX_STEPS[optimizer]), rtol=float(rtol),
                    atol=float(atol), opts=opts)
     return ArrayFit(flat(out.params), flat(out.stderr), out.code == FIT_RESULTS.successful,
-                    out.steps, out.chisqr,
-                    out.covariance)
+                    out.steps, out.chisqr, out.covariance, out.jac, out.resid)
 
 
 def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool = False,

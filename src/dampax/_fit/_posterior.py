@@ -22,10 +22,12 @@ the thinned residuals follow an AR(1) with coefficient phi^s.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -128,12 +130,99 @@ class Posterior:
                            units={n: unit_of(n, self.units, self.per_mass) for n in names})
 
 
-def _layout(free, vary):
+class _Cfg(NamedTuple):
+    """Static layout of theta: the free constants and which of w0, offset are sampled."""
+
+    free: tuple
+    vary_w0: bool
+    vary_off: bool
+
+
+class _Data(NamedTuple):
+    """What the log posterior needs besides theta (traced: one compilation per shape)."""
+
+    t: jax.Array
+    x: jax.Array
+    fixed: jax.Array  # mu, b, D, w0, offset of the fit (the values of what is not sampled)
+    consts: Constants
+    span: jax.Array
+    centre: jax.Array
+    width: jax.Array
+    theta_map: jax.Array
+    L: jax.Array
+
+
+#: chunk length of the warm-up and the sampling scans (one compiled program for both)
+CHUNK = 25
+
+
+def _unpack(theta, data: _Data, cfg: _Cfg):
+    vals = {c: data.fixed[i] for i, c in enumerate(DAMPING)}
+    for i, c in enumerate(cfg.free):
+        vals[c] = jnp.exp(theta[i])
+    j = len(cfg.free)
+    w0 = theta[j] if cfg.vary_w0 else data.fixed[3]
+    j += int(cfg.vary_w0)
+    off = theta[j] if cfg.vary_off else data.fixed[4]
+    j += int(cfg.vary_off)
+    q = TraceCoords(mu=vals["mu"], b=vals["b"], D=vals["D"], w0=w0, offset=off,
+                    x0=theta[j], y=theta[j + 1])
+    return q, jnp.exp(theta[j + 2]), jnp.tanh(theta[j + 3])
+
+
+def _logpost(theta, data: _Data, cfg: _Cfg):
+    """log prior + exact stationary AR(1) log likelihood of the residuals."""
+    q, sigma, phi = _unpack(theta, data, cfg)
+    rr = data.x - _ansatz_curve(data.t - data.t[0], q, data.consts, data.span, None)
+    e = rr[1:] - phi * rr[:-1]
+    n = rr.shape[0]
+    ll = (-0.5 * jnp.sum(e * e) / sigma ** 2 - 0.5 * rr[0] ** 2 * (1 - phi ** 2) / sigma ** 2
+          - n * jnp.log(sigma) + 0.5 * jnp.log1p(-phi ** 2))
+    lp = -0.5 * jnp.sum(((theta - data.centre) / data.width) ** 2)
+    out = ll + lp
+    return jnp.where(jnp.isfinite(out), out, -jnp.inf)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _neg_value_and_grad(theta, data, cfg):
+    return jax.value_and_grad(lambda th: -_logpost(th, data, cfg))(theta)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _neg_hessian(theta, data, cfg):
+    return jax.hessian(lambda th: -_logpost(th, data, cfg))(theta)
+
+
+def _logdensity(u, data, cfg):
+    return _logpost(data.theta_map + data.L @ u, data, cfg)
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "nch"))
+def _chunk(states, keys, step_size, imm, data, cfg, nch):
+    """CHUNK NUTS steps of every chain (vmapped) in one scan: the warm-up and the sampling
+    share this program (step size and the diagonal inverse mass matrix are arguments)."""
+    import blackjax
+
+    kernel = blackjax.nuts.build_kernel()
+
+    def logdensity(u):
+        return _logdensity(u, data, cfg)
+
+    def one(st, k):
+        ks = jax.random.split(k, nch)
+        st, info = jax.vmap(lambda kk, ss: kernel(kk, ss, logdensity, step_size, imm,
+                                                  max_num_doublings=6))(ks, st)
+        return st, (st.position, info.acceptance_rate, info.is_divergent)
+
+    return jax.lax.scan(one, states, keys)
+
+
+def _layout(free, cfg: _Cfg):
     """Names of the entries of theta, in order."""
     names = [f"log_{c}" for c in free]
-    if vary.w0:
+    if cfg.vary_w0:
         names.append("w0")
-    if vary.offset:
+    if cfg.vary_off:
         names.append("offset")
     return names + ["x0", "y", "log_sigma", "atanh_phi"]
 
@@ -189,14 +278,11 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     t0 = float(res.t[0])
     span = float(res.t[-1] - t0)
     m, g = res.fixed["m"], res.fixed["g"]
-    consts = Constants(m=m, g=g)
     vary_w0 = "w0" in res.varied
     vary_off = "offset" in res.varied
 
-    class _V:
-        w0, offset = vary_w0, vary_off
-
-    names = _layout(free, _V)
+    cfg = _Cfg(free=tuple(free), vary_w0=vary_w0, vary_off=vary_off)
+    names = _layout(free, cfg)
     p = res.params
     A = res.derived["A"]
     y_hat = A * math.sin(res.derived["phi"])
@@ -204,8 +290,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     r = np.asarray(res.residuals)[::stride]
     phi_hat = float(np.clip(np.corrcoef(r[:-1], r[1:])[0, 1], -0.9, 0.995))
     sig_hat = float(np.std(r[1:] - phi_hat * r[:-1])) or 1e-12
-    w_cross = float(res.diagnostics.get("w0/crossing - 1", 0.0))
-    w_cross = p["w0"] / (1.0 + w_cross)
+    w_cross = p["w0"] / (1.0 + float(res.diagnostics.get("w0/crossing - 1", 0.0)))
     # prior centres and widths, and the start (theta at the least-squares fit)
     centre, width, theta0 = [], [], []
     for c in free:
@@ -224,70 +309,34 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     centre += [x0_hat, y_hat, math.log(float(np.sqrt(np.mean(r * r))) or 1e-12), 0.0]
     width += [2 * A, 2 * A, 2.0, 2.0]
     theta0 += [x0_hat, y_hat, math.log(sig_hat), math.atanh(phi_hat)]
-    centre, width = jnp.asarray(centre), jnp.asarray(width)
-    nf = len(free)
-
-    def unpack(theta):
-        vals = {c: p[c] for c in DAMPING}
-        for i, c in enumerate(free):
-            vals[c] = jnp.exp(theta[i])
-        j = nf
-        w0 = theta[j] if vary_w0 else p["w0"]
-        j += int(vary_w0)
-        off = theta[j] if vary_off else p["offset"]
-        j += int(vary_off)
-        q = TraceCoords(mu=vals["mu"], b=vals["b"], D=vals["D"], w0=w0, offset=off,
-                        x0=theta[j], y=theta[j + 1])
-        return q, jnp.exp(theta[j + 2]), jnp.tanh(theta[j + 3])
-
-    def logpost(theta):
-        q, sigma, phi = unpack(theta)
-        rr = xd - _ansatz_curve(t - t0, q, consts, span, None)
-        e = rr[1:] - phi * rr[:-1]
-        n = rr.shape[0]
-        ll = (-0.5 * jnp.sum(e * e) / sigma ** 2 - 0.5 * rr[0] ** 2 * (1 - phi ** 2) / sigma ** 2
-              - n * jnp.log(sigma) + 0.5 * jnp.log1p(-phi ** 2))
-        lp = -0.5 * jnp.sum(((theta - centre) / width) ** 2)
-        out = ll + lp
-        return jnp.where(jnp.isfinite(out), out, -jnp.inf)
-
-    neg = jax.jit(jax.value_and_grad(lambda th: -logpost(th)))
+    dim = len(names)
+    data = _Data(t=t, x=xd, fixed=jnp.asarray([p[c] for c in (*DAMPING, "w0", "offset")]),
+                 consts=Constants(m=jnp.asarray(float(m)), g=jnp.asarray(float(g))),
+                 span=jnp.asarray(span), centre=jnp.asarray(centre),
+                 width=jnp.asarray(width), theta_map=jnp.zeros(dim), L=jnp.eye(dim))
 
     def f(th):
-        v, gr = neg(jnp.asarray(th))
+        v, gr = _neg_value_and_grad(jnp.asarray(th), data, cfg)
         v = float(v)
         return (v, np.asarray(gr, dtype=float)) if math.isfinite(v) else (1e300, np.zeros_like(th))
 
     opt = minimize(f, np.asarray(theta0, dtype=float), jac=True, method="L-BFGS-B",
                    options={"maxiter": 500})
     theta_map = jnp.asarray(opt.x)
-    H = np.asarray(jax.jit(jax.hessian(lambda th: -logpost(th)))(theta_map), dtype=float)
+    H = np.asarray(_neg_hessian(theta_map, data, cfg), dtype=float)
     H = 0.5 * (H + H.T)
     ev, V = np.linalg.eigh(H)
     ev = np.clip(ev, max(ev.max(), 1e-300) * 1e-12, None)
     cov = (V / ev) @ V.T
-    L = jnp.asarray(np.linalg.cholesky(cov + 1e-300 * np.eye(len(ev))))
-
-    def logdensity(u):
-        return logpost(theta_map + L @ u)
+    L = np.linalg.cholesky(cov + 1e-300 * np.eye(dim))
+    data = data._replace(theta_map=theta_map, L=jnp.asarray(L))
 
     key = jax.random.PRNGKey(int(seed))
     k_warm, k_init, k_sample = jax.random.split(key, 3)
-    dim = len(names)
     nch = int(num_chains)
-    kernel = blackjax.nuts.build_kernel()
 
-    @jax.jit
-    def chunk(states, keys, step_size, imm):
-        # one compiled program for the warm-up and the sampling: step size and the diagonal
-        # inverse mass matrix are arguments
-        def one(st, k):
-            ks = jax.random.split(k, nch)
-            st, info = jax.vmap(lambda kk, ss: kernel(kk, ss, logdensity, step_size, imm,
-                                                      max_num_doublings=6))(ks, st)
-            return st, (st.position, info.acceptance_rate, info.is_divergent)
-
-        return jax.lax.scan(one, states, keys)
+    def logdensity(u):
+        return _logdensity(u, data, cfg)
 
     starts = 0.5 * jax.random.normal(k_init, (nch, dim))
     states = jax.vmap(lambda u: blackjax.nuts.init(u, logdensity))(starts)
@@ -295,14 +344,13 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     # first half the diagonal mass matrix is the variance of the draws of u (nearly 1 when the
     # Laplace preconditioning is good)
     step, imm = 0.8, jnp.ones(dim)
-    n_w = max(int(num_warmup) // 25, 2)
-    bar = tqdm(total=n_w + max(1, min(10, int(num_samples) // 50)), desc="posterior",
-               unit="chunk", disable=not progress)
+    n_w = max(math.ceil(int(num_warmup) / CHUNK), 2)
+    n_s = math.ceil(int(num_samples) / CHUNK)
+    bar = tqdm(total=n_w + n_s, desc="posterior", unit="chunk", disable=not progress)
+    warm_keys = jax.random.split(k_warm, n_w * CHUNK).reshape(n_w, CHUNK, -1)
     warm_pos = []
-    for i, ks in enumerate(np.array_split(np.asarray(jax.random.split(k_warm,
-                                                                        int(num_warmup))),
-                                          n_w)):
-        states, (pp, aa, _) = chunk(states, jnp.asarray(ks), step, imm)
+    for i in range(n_w):
+        states, (pp, aa, _) = _chunk(states, warm_keys[i], step, imm, data, cfg, nch)
         acc_w = float(np.mean(np.asarray(aa)))
         step = float(np.clip(step * math.exp(2.0 * (acc_w - 0.8)), 1e-4, 2.0))
         if i >= n_w // 2:
@@ -311,33 +359,33 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
             var = np.var(np.concatenate(warm_pos), axis=0)
             imm = jnp.asarray(np.clip(var, 1e-4, 1e4))
         bar.update()
-    keys = jax.random.split(k_sample, int(num_samples))
-    n_chunks = max(1, min(10, int(num_samples) // 50))
+    keys = jax.random.split(k_sample, n_s * CHUNK).reshape(n_s, CHUNK, -1)
     pos, acc, div = [], [], []
-    for ks in np.array_split(np.asarray(keys), n_chunks):
-        states, (pp, aa, dd) = chunk(states, jnp.asarray(ks), step, imm)
+    for i in range(n_s):
+        states, (pp, aa, dd) = _chunk(states, keys[i], step, imm, data, cfg, nch)
         pos.append(np.asarray(pp))
         acc.append(np.asarray(aa))
         div.append(np.asarray(dd))
         bar.update()
     bar.close()
-    U = np.concatenate(pos, axis=0)  # (draw, chain, dim)
+    ns = int(num_samples)
+    U = np.concatenate(pos, axis=0)[:ns]  # (draw, chain, dim)
     theta = np.asarray(theta_map)[None, None, :] + U @ np.asarray(L).T
     theta = np.transpose(theta, (1, 0, 2))  # (chain, draw, dim)
-    data = {}
+    draws = {}
     flat = theta.reshape(-1, dim)
-    q, sigma, phi_n = jax.vmap(unpack)(jnp.asarray(flat))
+    q, sigma, phi_n = jax.vmap(lambda th: _unpack(th, data, cfg))(jnp.asarray(flat))
     shape = theta.shape[:2]
     for c in free:
-        data[c] = np.asarray(getattr(q, c)).reshape(shape)
-    data["w0"] = np.broadcast_to(np.asarray(q.w0), (flat.shape[0],)).reshape(shape)
-    data["offset"] = np.broadcast_to(np.asarray(q.offset), (flat.shape[0],)).reshape(shape)
-    data["x0"] = np.asarray(q.x0).reshape(shape)
+        draws[c] = np.asarray(getattr(q, c)).reshape(shape)
+    draws["w0"] = np.broadcast_to(np.asarray(q.w0), (flat.shape[0],)).reshape(shape)
+    draws["offset"] = np.broadcast_to(np.asarray(q.offset), (flat.shape[0],)).reshape(shape)
+    draws["x0"] = np.asarray(q.x0).reshape(shape)
     v0 = ansatz_v0(q.x0, q.y, q.mu, q.b, q.D, q.w0, m, g)
-    data["v0"] = np.asarray(v0).reshape(shape)
-    data["sigma"] = np.asarray(sigma).reshape(shape)
-    data["phi_noise"] = np.asarray(phi_n).reshape(shape)
-    ds = xr.Dataset({k: (("chain", "draw"), np.array(v, dtype=float)) for k, v in data.items()},
+    draws["v0"] = np.asarray(v0).reshape(shape)
+    draws["sigma"] = np.asarray(sigma).reshape(shape)
+    draws["phi_noise"] = np.asarray(phi_n).reshape(shape)
+    ds = xr.Dataset({k: (("chain", "draw"), np.array(v, dtype=float)) for k, v in draws.items()},
                     coords={"chain": np.arange(shape[0]), "draw": np.arange(shape[1])},
                     attrs={"model": "ansatz + AR(1) noise", "sampler": "blackjax NUTS",
                            "units": res.units, "per_mass": int(res.per_mass),

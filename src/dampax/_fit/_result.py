@@ -400,6 +400,9 @@ class ArrayFit(NamedTuple):
         n_iterations: optimizer steps.
         chisqr: sum of squared (robust-weighted) residuals in data units.
         covariance: 7 x 7 covariance of params (zero rows/columns for fixed entries).
+        jac, resid: the Jacobian of the (normalised) residuals in the physical parameters
+            (n x 7, zero columns for fixed entries) and those residuals: the input of
+            ``dampax._fit._intervals.hac_covariance`` (intervals for correlated residuals).
     """
 
     params: jax.Array
@@ -408,6 +411,8 @@ class ArrayFit(NamedTuple):
     n_iterations: jax.Array
     chisqr: jax.Array
     covariance: jax.Array
+    jac: jax.Array | None = None
+    resid: jax.Array | None = None
 
 
 @dataclass(frozen=True)
