@@ -6,9 +6,11 @@ regressed on the Coulomb, viscous and quadratic columns of eq. 21, dA/dt = -(d0 
 d2 A^2), by non-negative least squares). The others multiply each free damping constant by
 exp(1.5 z) (z standard normal: a spread of a factor 4.5 per sigma, in log-parameters), w0 by
 1 + 0.003 z and the initial amplitude by exp(0.1 z). The batch runs on the trace thinned to at
-most :data:`BATCH_SAMPLES` samples (every s-th sample; at least 16 per period), padded to that
-length, so one compiled function serves every trace; the best start is then polished on the
-full trace by the caller. The report says how many starts reached the best cost (within
+most :data:`BATCH_SAMPLES` samples (every s-th sample, at least :data:`PER_PERIOD` per period;
+where that leaves more, the first BATCH_SAMPLES of them: the batch then sees the first part of
+the decay), padded to that length, so one compiled function serves every trace, with at most
+:data:`BATCH_STEPS` optimizer steps per start; the best start is then polished on the whole
+trace by the caller. The report says how many starts reached the best cost (within
 :data:`REACHED_RTOL`) and the spread of the costs.
 """
 
@@ -26,7 +28,11 @@ from ._core import FIT_RESULTS, core
 from ._params import PARAMS, TraceParams, as_arrays
 
 #: samples of the thinned trace of the batch (its padded length)
-BATCH_SAMPLES = 2048
+BATCH_SAMPLES = 1024
+#: fewest samples per period kept by the thinning (else the batch covers the trace's start)
+PER_PERIOD = 10
+#: step budget of each start (the best is polished on the whole trace afterwards)
+BATCH_STEPS = 64
 #: a start "reached" the best optimum when its cost is within this relative distance
 REACHED_RTOL = 1e-4
 
@@ -93,12 +99,12 @@ def _batch(t, x, weight, p0s, vary, consts, f_scale, **static):
 
 def thin(t: np.ndarray, x: np.ndarray, omega: float):
     """(t, x, weight, stride): every stride-th sample (at most BATCH_SAMPLES of them, at least
-    16 per period when the trace allows), padded to BATCH_SAMPLES with weight 0."""
+    PER_PERIOD per period), padded to BATCH_SAMPLES with weight 0."""
     n = t.size
     dt = float(np.median(np.diff(t)))
     per_period = 2.0 * math.pi / omega / dt
     stride = max(1, math.ceil(n / BATCH_SAMPLES))
-    stride = max(1, min(stride, int(per_period // 16))) if n > BATCH_SAMPLES else 1
+    stride = max(1, min(stride, int(per_period // PER_PERIOD))) if n > BATCH_SAMPLES else 1
     td, xd = t[::stride], x[::stride]
     if td.size > BATCH_SAMPLES:  # too few samples per period to thin further: cut
         td, xd = td[:BATCH_SAMPLES], xd[:BATCH_SAMPLES]
@@ -119,8 +125,8 @@ def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int,
     p0s = as_arrays(TraceParams(*(jnp.asarray(P[:, i]) for i in range(P.shape[1]))))
     out = _batch(jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt), p0s,
                  as_arrays(vary, bool), as_arrays(consts), jnp.asarray(f_scale, dtype=float),
-                 model=model, optimizer=optimizer, max_steps=max_steps, rtol=rtol, atol=atol,
-                 opts=None)
+                 model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
+                 rtol=rtol, atol=atol, opts=None)
     costs = 0.5 * np.asarray(out.chisqr, dtype=float)
     ok = np.asarray(out.code._value) == FIT_RESULTS.successful._value
     params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
