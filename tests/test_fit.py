@@ -272,6 +272,22 @@ def test_spring_runs_1_and_2_agree():
     for name in ("b", "D"):
         a, b = fits[0].params[name], fits[1].params[name]
         assert abs(a - b) / (0.5 * (a + b)) < 0.10, (name, a, b)
+    # issue 11: the intervals that allow for correlated residuals overlap. Run 3 (glitches,
+    # robust loss) starts at 8.2 cm instead of 7.0-7.2 cm, and the split between b and D
+    # (correlation -0.9) follows the amplitude range: from t = 5.5 s, where its swing is 7.1
+    # cm like the others', its b lies inside both intervals and its D inside their union
+    # (0.1 % below run 1's lower end); from the automatic start it does not (benchmarks/README)
+    ci = [res.conf_interval(0.95) for res in fits]
+    run3 = fit(load_trace(DATA / "spring_mass_airdrag" / "run3.csv"), oscillator=osc,
+               free=("b", "D"), fit_omega0=True, loss="soft_l1", start=5.5)
+    assert run3.success, run3.reason
+    assert run3.derived["A"] == pytest.approx(0.0708, abs=0.001)
+    for name in ("b", "D"):
+        (lo1, hi1), (lo2, hi2) = ci[0][name], ci[1][name]
+        assert max(lo1, lo2) < min(hi1, hi2), (name, ci[0][name], ci[1][name])
+        assert min(lo1, lo2) < run3.params[name] < max(hi1, hi2), (name, run3.params[name])
+    assert max(ci[0]["b"][0], ci[1]["b"][0]) < run3.params["b"] < min(ci[0]["b"][1],
+                                                                      ci[1]["b"][1])
 
 
 @needs_data
@@ -519,3 +535,43 @@ def test_torsion_releases_reach_their_best_optimum():
             assert not res.success and not res.adequate
             assert "stops moving" in res.reason and "before the data" in res.reason
             assert res.report().startswith("FIT FAILED: the model stops moving")
+
+
+@pytest.mark.slow
+def test_posterior_and_cli_posterior(tmp_path, capsys, monkeypatch):
+    """NUTS with AR(1) noise on a short synthetic trace: the draws in the ArviZ layout, the
+    summary's intervals contain the truth, the chains agree; --posterior writes posterior.nc
+    and corner.png."""
+    import xarray as xr
+
+    from dampax import _cli
+
+    t, x = ansatz_trace(2048)
+    post = dp.posterior(t, x, free=("mu", "D"), start="data", num_samples=200, num_chains=2,
+                        num_warmup=150, seed=1)
+    assert post.draws["D"].dims == ("chain", "draw") and post.draws["D"].shape == (2, 200)
+    s = post.summary(0.95)
+    assert set(s) >= {"mu", "D", "w0", "offset", "x0", "v0", "sigma", "phi_noise"}
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"] / M}  # per unit mass
+    for name, value in truth.items():
+        assert s[name]["lo"] < value < s[name]["hi"], (name, s[name])
+        assert s[name]["r_hat"] < 1.05 and s[name]["ess"] > 100, (name, s[name])
+    assert s["sigma"]["lo"] < NOISE < s["sigma"]["hi"]
+    assert "[[Posterior]] NUTS" in post.report() and post.divergences < 10
+    path = post.to_netcdf(tmp_path / "p.nc")
+    assert xr.open_dataset(path, engine="scipy")["D"].shape == (2, 200)
+    assert post.corner(tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="num_samples"):
+        dp.posterior(t, x, num_samples=1)
+    # the command line
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    csv = tmp_path / "trace.csv"
+    csv.write_text("time;position\n" + "".join(f"{a:.4f};{b:.6f}\n"
+                                               for a, b in zip(t, x, strict=True)))
+    out = tmp_path / "out"
+    assert _cli.main(["fit", str(csv), "--start", "data", "--no-compare", "--posterior",
+                      "--draws", "200", "--chains", "2", "--out", str(out)]) == 0
+    assert "[[Posterior]]" in capsys.readouterr().out
+    assert (out / "posterior.nc").is_file() and (out / "corner.png").is_file()
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["posterior"]["D"]["lo"] < TRUTH["D"] / M < summary["posterior"]["D"]["hi"]
