@@ -377,7 +377,8 @@ def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: 
             layout ``PARAMS`` = (mu, b, D, w0, offset, x0, v0), a dict by name or a
             ``TraceParams``. A free damping constant at 0 starts from a small positive value.
         free, fit_omega0, offset: which parameters vary (static); x0, v0 always vary.
-        m, g: mass and gravitational acceleration (fixed).
+        m, g: mass (default 1 kg: b and D per unit mass) and gravitational acceleration
+            (fixed).
         model: "ansatz" or "reference".
         loss: "linear" or "soft_l1"; ``f_scale`` (data units) defaults to 1.4826 MAD of the
             residuals at p0.
@@ -417,7 +418,7 @@ def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: 
                     out.steps, out.chisqr, out.covariance, out.jac, out.resid)
 
 
-def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool = False,
+def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool | None = None,
                       offset: bool = True, model: str = "ansatz",
                       max_swings: int | None = None):
     """The residuals model(t; p) - x that :func:`fit` minimises, in physical parameters.
@@ -438,6 +439,10 @@ def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bo
     """
     check_choice("model", model, MODELS)
     spec = FIT_MODELS[model]
+    if fit_omega0 is None:
+        fit_omega0 = oscillator is None
+    if oscillator is None and not fit_omega0:
+        raise ValueError("fit_omega0=False needs an oscillator (m and k)")
     vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
     osc = oscillator_values(oscillator)
     names = varied_names(vary)
