@@ -164,6 +164,10 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
     fails, bad, diag = [], [], {}
     if not converged:
         fails.append(f"the optimizer did not converge ({message})")
+    if not all(math.isfinite(params.get(n, math.nan)) for n in varied):
+        if converged:
+            fails.append("the fitted parameters are not finite")
+        return fails, ["the fit produced no finite model"], diag
     nonfinite = [n for n in varied if not math.isfinite(stderr.get(n, math.nan))]
     if nonfinite:
         fails.append(f"the standard error of {', '.join(nonfinite)} is not finite (the data do "
