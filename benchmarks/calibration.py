@@ -11,7 +11,7 @@ trace (fixed seeds). All traces are fitted in ONE vmapped call of the pure core
 - the delta-method interval value +- z stderr (white-noise assumption),
 - ``conf_interval``'s interval: the Newey-West (HAC) sandwich of ``_intervals``,
 - (first ``--posterior`` traces) the central interval of ``dp.posterior`` (NUTS, AR(1) noise;
-  2 chains x 500 draws to keep the run short).
+  2 chains x ``--draws`` draws after ``--warmup`` steps, to keep the run short).
 
 Prints the coverage of mu and D for each (the goal for conf_interval and the posterior: 80-97 %
 at a 90 % level) and the binomial standard error of each rate. Not a test: run by hand, the
@@ -62,6 +62,8 @@ def main():
     ap.add_argument("--posterior", type=int, default=12,
                     help="traces that also get a posterior (0: none)")
     ap.add_argument("--level", type=float, default=0.9)
+    ap.add_argument("--draws", type=int, default=500, help="posterior draws per chain")
+    ap.add_argument("--warmup", type=int, default=300, help="posterior warm-up steps")
     args = ap.parse_args()
     z = NormalDist().inv_cdf(0.5 + 0.5 * args.level)
     t = np.arange(0.0, T_END, 1.0 / RATE)
@@ -99,11 +101,11 @@ def main():
         began = time.perf_counter()
         for j in range(min(args.posterior, args.traces)):
             post = dp.posterior(t, xs[j], oscillator=osc, free=FREE, fit_omega0=True,
-                                start="data", num_samples=500, num_chains=2, num_warmup=300,
-                                seed=j)
+                                start="data", num_samples=args.draws, num_chains=2,
+                                num_warmup=args.warmup, seed=j)
             s = post.summary(args.level)
             post_hits.append([s[n]["lo"] < TRUTH[n] < s[n]["hi"] for n in FREE])
-        print(f"{len(post_hits)} posteriors (2 chains x 500 draws): "
+        print(f"{len(post_hits)} posteriors (2 chains x {args.draws} draws): "
               f"{time.perf_counter() - began:.1f} s")
     n = args.traces
     print(f"\ncoverage of the {100 * args.level:g} % intervals (truth inside), AR(1) noise "
