@@ -196,7 +196,7 @@ def test_auto_start_skips_the_release():
 
 
 def test_input_errors():
-    t, x = ansatz_trace(64)
+    t, x = ansatz_trace(1024)  # 10 s, 6 periods (a fit needs two)
     with pytest.raises(ValueError, match="free must name"):
         fit(t, x, free=("mu", "c"))
     with pytest.raises(ValueError, match="model must be"):
@@ -211,6 +211,14 @@ def test_input_errors():
         fit(t, x, p0={"k": 1.0})
     with pytest.raises(ValueError, match="sets free itself"):
         compare_models((t, x), free=("mu",))
+    with pytest.raises(ValueError, match="fit_omega0=False needs an oscillator"):
+        fit(t, x, fit_omega0=False)
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        fit(t, x, max_steps=0)
+    with pytest.raises(ValueError, match="starts must be a positive integer"):
+        fit(t, x, starts=0)
+    with pytest.raises(ValueError, match="units must be"):
+        fit(t, x, units="")
 
 
 def test_cli(tmp_path, capsys, monkeypatch):
@@ -264,6 +272,22 @@ def test_spring_runs_1_and_2_agree():
     for name in ("b", "D"):
         a, b = fits[0].params[name], fits[1].params[name]
         assert abs(a - b) / (0.5 * (a + b)) < 0.10, (name, a, b)
+    # issue 11: the intervals that allow for correlated residuals overlap. Run 3 (glitches,
+    # robust loss) starts at 8.2 cm instead of 7.0-7.2 cm, and the split between b and D
+    # (correlation -0.9) follows the amplitude range: from t = 5.5 s, where its swing is 7.1
+    # cm like the others', its b lies inside both intervals and its D inside their union
+    # (0.1 % below run 1's lower end); from the automatic start it does not (benchmarks/README)
+    ci = [res.conf_interval(0.95) for res in fits]
+    run3 = fit(load_trace(DATA / "spring_mass_airdrag" / "run3.csv"), oscillator=osc,
+               free=("b", "D"), fit_omega0=True, loss="soft_l1", start=5.5)
+    assert run3.success, run3.reason
+    assert run3.derived["A"] == pytest.approx(0.0708, abs=0.001)
+    for name in ("b", "D"):
+        (lo1, hi1), (lo2, hi2) = ci[0][name], ci[1][name]
+        assert max(lo1, lo2) < min(hi1, hi2), (name, ci[0][name], ci[1][name])
+        assert min(lo1, lo2) < run3.params[name] < max(hi1, hi2), (name, run3.params[name])
+    assert max(ci[0]["b"][0], ci[1]["b"][0]) < run3.params["b"] < min(ci[0]["b"][1],
+                                                                      ci[1]["b"][1])
 
 
 @needs_data
@@ -311,3 +335,267 @@ def test_reference_model_on_the_example_trace():
         assert abs(res.params[name] - truth[name]) < 3 * res.stderr[name]
         assert abs(res.params[name] / truth[name] - 1) < 0.05
     assert res.rms == pytest.approx(truth["noise"], rel=0.1)
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 11: identifiable defaults, global starts, named failures, intervals
+
+
+def test_per_unit_mass_default_and_units(synthetic):
+    """Without an oscillator w0 is fitted and the fit is per unit mass: D/m = 0.1 1/m for the
+    synthetic truth D = 0.02 kg/m, m = 0.2 kg; mu (a deceleration over g) is unchanged."""
+    t, x, known = synthetic
+    res = fit(t, x, free=("mu", "D"), start="data")
+    assert res.success and res.adequate and res.per_mass, res.reason
+    assert res.varied == ["mu", "D", "w0", "offset", "x0", "v0"]
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"] / M, "w0": math.sqrt(K / M)}
+    for name, value in truth.items():
+        assert abs(res.params[name] - value) < 3 * res.stderr[name], (name, res.params[name])
+    # the same optimum as with the known mass, rescaled by m
+    assert res.params["D"] == pytest.approx(known.params["D"] / M, rel=1e-5)
+    assert res.params["mu"] == pytest.approx(known.params["mu"], rel=1e-5)
+    assert res.derived["D/m"] == res.params["D"] and res.derived["mu_g"] > 0
+    text = res.report()
+    assert "per unit mass" in text and "1/m (D/m, per unit mass)" in text
+    assert "kg/m" not in text and "kg/s" not in text
+    known_text = known.report()
+    assert "kg/m" in known_text and "per unit mass" not in known_text
+    deg = fit(t, x * 100.0, free=("mu", "D"), start="data", units="deg")
+    text = deg.report()
+    assert "1/deg (D/m, per unit mass)" in text and "deg/s^2" in text and "kg/" not in text
+    assert deg.to_dict()["units"] == "deg" and deg.to_dict()["per_mass"] is True
+
+
+def test_global_starts_reach_the_optimum_of_an_independent_multistart(synthetic):
+    from scipy.optimize import least_squares
+
+    t, x, res = synthetic
+    assert res.starts is not None and res.starts.n == 32
+    assert 1 <= res.starts.reached <= 32 and np.isfinite(res.starts.costs).sum() >= 16
+    assert "jittered starts reached the best optimum" in res.report()
+    # numpy / scipy multi-start on the same residuals: 6 log-uniform starts of mu, D over
+    # two decades each side of the truth, from the data's offset, phase and frequency
+    fun, jac, names = residual_function(t, x, free=("mu", "D"), oscillator=KNOWN,
+                                        fit_omega0=True)
+    rng = np.random.default_rng(3)
+    best = math.inf
+    for _ in range(6):
+        start = np.array([TRUTH["mu"] * 10 ** rng.uniform(-2, 2),
+                          TRUTH["D"] * 10 ** rng.uniform(-2, 2), res.init["w0"],
+                          res.init["offset"], res.init["x0"], res.init["v0"]])
+        sol = least_squares(fun, start, jac=jac, x_scale="jac", max_nfev=100,
+                            bounds=([0, 0, 0, -np.inf, -np.inf, -np.inf], np.inf))
+        best = min(best, sol.cost)
+    ours = 0.5 * np.sum(fun(np.array([res.params[n] for n in names])) ** 2)
+    assert ours <= best * (1 + 1e-7)
+
+
+def _undamped(n=N):
+    t = np.arange(n) / RATE
+    noise = NOISE * np.random.default_rng(2).standard_normal(n)
+    return t, OFFSET + X0 * np.cos(math.sqrt(K / M) * t) + noise
+
+
+@pytest.mark.parametrize("case, reason", [
+    ("constant", "the trace is constant"),
+    ("noise", "no free oscillation"),
+    ("growing", "the amplitude grows"),
+    ("reversed", "the amplitude grows"),
+    ("constant time", "constant time"),
+    ("short", "fewer than two periods"),
+])
+def test_degenerate_input_raises_a_named_value_error(case, reason):
+    t, x = ansatz_trace(2048)
+    rng = np.random.default_rng(1)
+    data = {"constant": (t, np.full_like(t, 0.4)),
+            "noise": (t, rng.standard_normal(t.size)),
+            "growing": (t, OFFSET + (x - OFFSET) * np.exp(0.1 * t)),
+            "reversed": (t, x[::-1]),
+            "constant time": (np.full_like(t, 3.0), x),
+            "short": (t[:120], x[:120])}[case]
+    with pytest.raises(ValueError, match=reason):
+        fit(*data, free=("mu", "D"))
+
+
+def test_named_failures_undamped_and_max_steps(synthetic):
+    t, x = _undamped()
+    res = fit(t, x, free=("mu", "D"), start="data")
+    assert not res.success and "no measurable decay" in res.reason, res.reason
+    assert res.report().splitlines()[0].startswith("FIT FAILED: no measurable decay")
+    t, x, _ = synthetic
+    res = fit(t, x, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True, start="data",
+              max_steps=1, starts=1)
+    assert not res.success and not res.converged and res.n_iterations <= 1
+    assert "did not converge" in res.reason and "maximum number of steps" in res.reason
+
+
+def test_ranking_leaves_failed_fits_out(synthetic):
+    import dataclasses
+
+    from dampax._fit._result import rank
+
+    _, _, res = synthetic
+    broken = dataclasses.replace(res, success=False, reason="the optimizer did not converge",
+                                 bic=res.bic - 100.0, free=("D",))
+    ranking = rank({("mu", "D"): res, ("D",): broken}, "bic")
+    assert ranking.ranking == [("mu", "D")] and list(ranking.failed) == [("D",)]
+    assert ranking.best is res
+    assert "left out (fit failed): D: the optimizer did not converge" in ranking.report()
+    none = rank({("D",): broken}, "bic")
+    assert none.best is None and "no candidate fit succeeded" in none.report()
+
+
+def test_conf_interval_covers_and_widens_for_correlated_noise(synthetic):
+    t, x, res = synthetic
+    ci = res.conf_interval(0.95)
+    assert set(ci) == set(res.varied)
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"], "w0": math.sqrt(K / M), "offset": OFFSET}
+    for name, value in truth.items():
+        lo, hi = ci[name]
+        assert lo < value < hi, (name, lo, value, hi)
+        # white noise: the HAC sd is the delta-method stderr, within its sampling error
+        assert res.hac_stderr[name] == pytest.approx(res.stderr[name], rel=0.35), name
+    assert "[[Intervals]] 95 %" in res.report()
+    with pytest.raises(ValueError, match="level"):
+        res.conf_interval(1.5)
+    # AR(1) noise (coefficient 0.9): the HAC sd exceed the delta-method stderr ~3-4 times
+    e = np.zeros(N)
+    z = np.random.default_rng(4).standard_normal(N) * NOISE * math.sqrt(1 - 0.81)
+    for i in range(1, N):
+        e[i] = 0.9 * e[i - 1] + z[i]
+    red = fit(t, x - (x - ansatz_trace(N, noise=0.0)[1]) + e, oscillator=KNOWN,
+              free=("mu", "D"), fit_omega0=True, start="data")
+    for name in ("mu", "D"):
+        assert 2.0 < red.hac_stderr[name] / red.stderr[name] < 6.0, name
+
+
+def test_cli_help_documents_every_option():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for action in parser._actions:
+        assert action.help and action.help != argparse.SUPPRESS, action.option_strings
+    text = parser.format_help()
+    for needle in ("exit status", "per unit mass", "--units", "--intervals", "--posterior",
+                   "--starts", "--g", "--model", "--optimizer"):
+        assert needle in text, needle
+
+
+def test_cli_per_mass_and_exit_status(tmp_path, capsys, monkeypatch):
+    from dampax import _cli
+
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    t, x = ansatz_trace(N)
+    path = tmp_path / "trace.csv"
+    path.write_text("time;position\n" + "".join(f"{a:.4f};{b:.6f}\n"
+                                                for a, b in zip(t, x, strict=True)))
+    out = tmp_path / "out"
+    assert _cli.main(["fit", str(path), "--free", "mu,D", "--no-compare", "--intervals",
+                      "--start", "data", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "per unit mass" in text and "confidence intervals at 0.95" in text
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["fit"]["per_mass"] and summary["fit"]["success"]
+    assert abs(summary["fit"]["params"]["D"] / (TRUTH["D"] / M) - 1) < 0.05
+    assert set(summary["fit"]["conf_interval"]["intervals"]) >= {"mu", "D"}
+    # a failed fit: exit status 3, the reason on stderr and first in the report
+    assert _cli.main(["fit", str(path), "--m", str(M), "--k", str(K), "--fit-omega0",
+                      "--start", "data", "--no-compare", "--max-steps", "1", "--starts", "1",
+                      "--out", str(out)]) == 3
+    captured = capsys.readouterr()
+    assert "FIT FAILED: the optimizer did not converge" in captured.out
+    assert "fit failed" in captured.err
+    # degenerate input: one line, status 2, no traceback
+    flat = tmp_path / "flat.csv"
+    flat.write_text("time;position\n" + "".join(f"{a:.4f};0.4\n" for a in t[:500]))
+    assert _cli.main(["fit", str(flat), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the trace is constant" in err and "Traceback" not in err
+    assert _cli.main(["fit", str(path), "--k", "15", "--out", str(out)]) == 2
+    assert "--k needs --m" in capsys.readouterr().err
+
+
+@needs_data
+def test_torsion_releases_reach_their_best_optimum():
+    """Every release, per unit mass with Coulomb + viscous damping: the global starts agree
+    and the rms is the best the constant-frequency model allows (benchmarks/README.md, issue
+    11); 100 deg is named a failure: the model halts ~13 s before the data stop swinging."""
+    rms = {60: 0.683, 70: 1.007, 80: 0.466, 90: 1.186, 100: 4.349}  # deg
+    for deg, expected in rms.items():
+        trace = load_trace(DATA / "torsion_pendulum_friction" / f"release_{deg}deg.txt",
+                           time=1, position=2, rate="auto")
+        res = fit(trace, free=("mu", "b"))
+        assert res.units == "deg" and res.per_mass
+        assert res.rms == pytest.approx(expected, rel=0.01), (deg, res.rms)
+        assert res.starts.reached >= res.starts.n // 2, (deg, res.starts.summary())
+        if deg < 100:
+            assert res.success and res.adequate, (deg, res.reason, res.inadequacy)
+        else:
+            assert not res.success and not res.adequate
+            assert "stops moving" in res.reason and "before the data" in res.reason
+            assert res.report().startswith("FIT FAILED: the model stops moving")
+
+
+@pytest.mark.slow
+def test_posterior_and_cli_posterior(tmp_path, capsys, monkeypatch):
+    """NUTS with AR(1) noise on a short synthetic trace: the draws in the ArviZ layout, the
+    summary's intervals contain the truth, the chains agree; --posterior writes posterior.nc
+    and corner.png."""
+    import xarray as xr
+
+    from dampax import _cli
+
+    t, x = ansatz_trace(2048)
+    post = dp.posterior(t, x, free=("mu", "D"), start="data", num_samples=200, num_chains=2,
+                        num_warmup=150, seed=1)
+    assert post.draws["D"].dims == ("chain", "draw") and post.draws["D"].shape == (2, 200)
+    s = post.summary(0.95)
+    assert set(s) >= {"mu", "D", "w0", "offset", "x0", "v0", "sigma", "phi_noise"}
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"] / M}  # per unit mass
+    for name, value in truth.items():
+        assert s[name]["lo"] < value < s[name]["hi"], (name, s[name])
+        assert s[name]["r_hat"] < 1.05 and s[name]["ess"] > 100, (name, s[name])
+    assert s["sigma"]["lo"] < NOISE < s["sigma"]["hi"]
+    assert "[[Posterior]] NUTS" in post.report() and post.divergences < 10
+    path = post.to_netcdf(tmp_path / "p.nc")
+    assert xr.open_dataset(path, engine="scipy")["D"].shape == (2, 200)
+    assert post.corner(tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="num_samples"):
+        dp.posterior(t, x, num_samples=1)
+    # the command line
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    csv = tmp_path / "trace.csv"
+    csv.write_text("time;position\n" + "".join(f"{a:.4f};{b:.6f}\n"
+                                               for a, b in zip(t, x, strict=True)))
+    out = tmp_path / "out"
+    assert _cli.main(["fit", str(csv), "--start", "data", "--no-compare", "--posterior",
+                      "--draws", "200", "--chains", "2", "--out", str(out)]) == 0
+    assert "[[Posterior]]" in capsys.readouterr().out
+    assert (out / "posterior.nc").is_file() and (out / "corner.png").is_file()
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["posterior"]["D"]["lo"] < TRUTH["D"] / M < summary["posterior"]["D"]["hi"]
+
+
+def test_inadequate_model_is_named_and_exits_with_status_4(tmp_path, capsys, monkeypatch):
+    """A decay whose frequency rises 1.5 % over the window (as the torsion releases'): the fit
+    converges, but its residuals are 40 times the noise and 18 % of the amplitude (a phase
+    drift of 1.3 rad): adequate is False, the report says so, ``dampax fit`` exits with
+    status 4."""
+    from dampax import _cli
+
+    t = np.arange(N) / RATE
+    w = math.sqrt(K / M) * (1.0 + 0.015 * t / t[-1])
+    x = OFFSET + X0 * np.exp(-0.01 * t) * np.cos(np.cumsum(w) / RATE)
+    x = x + NOISE * np.random.default_rng(6).standard_normal(N)
+    res = fit(t, x, free=("b",), start="data")
+    assert res.success, res.reason
+    assert not res.adequate and any("times the noise level" in s for s in res.inadequacy)
+    assert res.diagnostics["phase_drift"] > 1.0 and res.diagnostics["rms/A"] > 0.1
+    assert "MODEL DOES NOT DESCRIBE THE DATA: " in res.report().splitlines()[0]
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    path = tmp_path / "chirp.csv"
+    path.write_text("".join(f"{a:.4f} {b:.6f}\n" for a, b in zip(t, x, strict=True)))
+    assert _cli.main(["fit", str(path), "--free", "b", "--start", "data", "--no-compare",
+                      "--starts", "8", "--out", str(tmp_path / "out")]) == 4
+    assert "does not describe the data" in capsys.readouterr().err

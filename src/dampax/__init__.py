@@ -16,6 +16,7 @@ _enable_compilation_cache()
 from ._fit import ArrayFit as ArrayFit  # noqa: E402
 from ._fit import FitResult as FitResult  # noqa: E402
 from ._fit import ModelComparison as ModelComparison  # noqa: E402
+from ._fit import Posterior as Posterior  # noqa: E402
 from ._fit import compare_envelope_models as compare_envelope_models  # noqa: E402
 from ._fit import compare_models as compare_models  # noqa: E402
 from ._fit import example_trace as example_trace  # noqa: E402
@@ -23,6 +24,7 @@ from ._fit import fit as fit  # noqa: E402
 from ._fit import fit_arrays as fit_arrays  # noqa: E402
 from ._fit import fit_envelope as fit_envelope  # noqa: E402
 from ._fit import initial_guess as initial_guess  # noqa: E402
+from ._fit import posterior as posterior  # noqa: E402
 from ._fit import residual_function as residual_function  # noqa: E402
 from ._global import global_sensitivity as global_sensitivity  # noqa: E402
 from ._maps import error_map as error_map  # noqa: E402

@@ -499,3 +499,60 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
     fig.savefig(path, dpi=dpi)
     fig.clear()
     return path
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 11: the posterior of a fit (corner plot)
+
+
+def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int = 40,
+                dpi: int = 110):
+    """Corner plot of posterior draws: histograms on the diagonal, pairwise scatter below.
+
+    Arguments:
+        draws: an xarray Dataset with dims (chain, draw) (``Posterior.draws``) or a mapping
+            name -> array.
+        names: the variables to draw.
+        path: where to save the PNG.
+        units: optional unit per name, for the axis labels.
+        bins, dpi: histogram bins and resolution.
+
+    Returns:
+        The path written.
+    """
+    from pathlib import Path
+
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    names = list(names)
+    if not names:
+        raise ValueError("names: give at least one variable to draw")
+    units = dict(units or {})
+    values = {n: np.asarray(draws[n]).reshape(-1) for n in names}
+    k = len(names)
+    fig = Figure(figsize=(2.4 * k + 0.8, 2.4 * k + 0.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_2d(fig.subplots(k, k, squeeze=False))
+    for i, ni in enumerate(names):
+        for j, nj in enumerate(names):
+            ax = axes[i, j]
+            if j > i:
+                ax.set_visible(False)
+                continue
+            if i == j:
+                ax.hist(values[ni], bins=bins, color="tab:blue", alpha=0.8)
+                ax.set_yticks([])
+            else:
+                ax.plot(values[nj], values[ni], ".", ms=1.5, alpha=0.3, color="tab:blue")
+            if i == k - 1:
+                unit = units.get(nj, "")
+                ax.set_xlabel(f"{nj} [{unit}]" if unit else nj, fontsize=8)
+            if j == 0 and i > 0:
+                unit = units.get(ni, "")
+                ax.set_ylabel(f"{ni} [{unit}]" if unit else ni, fontsize=8)
+            ax.tick_params(labelsize=7)
+    fig.suptitle("posterior draws (NUTS)", fontsize=10)
+    fig.savefig(str(path), dpi=dpi)
+    fig.clear()
+    return Path(path)

@@ -2,8 +2,11 @@
 
 Modules: ``_params`` (names, named parameter pytrees, internal coordinates, eq. 21),
 ``_core`` (the fit models, residuals, optimisers, covariance: pure and vmappable), ``_guess``
-(initial guesses from a trace, numpy), ``_result`` (FitResult, ModelComparison, ArrayFit) and
-``_api`` (the public functions). The command ``dampax fit`` lives in ``dampax._cli.fit``.
+(initial guesses from a trace, numpy), ``_starts`` (global starts in one vmapped batch),
+``_checks`` (degenerate input, named failures, adequacy), ``_intervals`` (intervals that allow
+for correlated residuals), ``_posterior`` (NUTS with AR(1) noise), ``_result`` (FitResult,
+ModelComparison, ArrayFit) and ``_api`` (the public functions). The command ``dampax fit``
+lives in ``dampax._cli.fit``.
 """
 
 from ._api import EXAMPLE as EXAMPLE
@@ -28,6 +31,8 @@ from ._params import PARAMS as PARAMS
 from ._params import EnvelopeParams as EnvelopeParams
 from ._params import TraceParams as TraceParams
 from ._params import check_free as check_free
+from ._posterior import Posterior as Posterior
+from ._posterior import posterior as posterior
 from ._result import ArrayFit as ArrayFit
 from ._result import FitResult as FitResult
 from ._result import ModelComparison as ModelComparison
@@ -37,5 +42,5 @@ __all__ = [
     "compare_models", "compare_envelope_models", "initial_guess", "example_trace",
     "residual_function", "PARAMS", "ENVELOPE_PARAMS", "CANDIDATES", "DAMPING", "MODELS",
     "LOSSES", "OPTIMIZERS", "METHOD_NAMES", "FIT_MODELS", "FitModel", "TraceParams",
-    "EnvelopeParams", "EXAMPLE", "check_free",
+    "EnvelopeParams", "EXAMPLE", "check_free", "posterior", "Posterior",
 ]

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import math
+import re
 import warnings
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from .._oscillator import Oscillator
 from .._trace import Trace, load_trace
+from ._checks import check_sampling, check_trace
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -49,6 +51,7 @@ from ._params import (
     vary_mask,
 )
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
+from ._starts import run_starts
 
 # ----------------------------------------------------------------------------------------------
 # data preparation
@@ -132,28 +135,68 @@ def _reference_options(model: FitModel, max_swings, rtol, atol, t, w0):
 # fits
 
 
+def _units_of(trace_or_t, units):
+    """The position unit: ``units``, else the unit in the position column's name of a Trace
+    ("Angle(deg)" -> "deg"), else "m"."""
+    if units is not None:
+        if not isinstance(units, str) or not units.strip():
+            raise ValueError(f"units must be a non-empty string such as 'm' or 'deg', "
+                             f"got {units!r}")
+        return units.strip()
+    if isinstance(trace_or_t, Trace):
+        found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
+        if found:
+            return found.group(1)
+    return "m"
+
+
+def _check_max_steps(max_steps):
+    if max_steps is None:
+        return None
+    if isinstance(max_steps, bool) or int(max_steps) != max_steps or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}")
+    return int(max_steps)
+
+
 def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
-        fit_omega0: bool = False, offset: bool = True, start="auto", end=None,
+        fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
-        rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None) -> FitResult:
+        rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
+        units: str | None = None, starts: int = 32, seed: int = 0) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
+
+    From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
+    offset) are identifiable. Without an ``oscillator`` the fit is per unit mass: w0 is
+    fitted, m = 1 kg, so ``params["b"]`` and ``params["D"]`` are b/m [1/s] and D/m
+    [1/unit]; the report says so. With an oscillator, m (and, unless ``fit_omega0``, k) are
+    its values and b, D are in kg/s and kg/m (positions in metres).
 
     Parameters: the damping constants named in ``free`` (mu, b, D >= 0), and always x0, v0 at
     the fit start, the equilibrium ``offset`` and, with ``fit_omega0``, w0 (m fixed,
-    k = m w0^2, so mu, b, D keep their units). Non-free damping constants stay at the
-    oscillator's values. With ``loss="soft_l1"`` the fit starts from a linear-loss fit whose
-    residuals set the scale (1.4826 MAD); a model with ``start_from`` (the reference) starts
-    from the optimum of that model (the ansatz).
+    k = m w0^2). Non-free damping constants stay at the oscillator's values. The fit is
+    global: ``starts`` jittered starts around the turning-point guess are optimised in one
+    vmapped call on a thinned copy of the trace (``_starts``), the best is polished on the
+    whole trace. With ``loss="soft_l1"`` the fit then restarts from the linear-loss optimum
+    with the scale from its residuals (1.4826 MAD); a model with ``start_from`` (the reference)
+    starts from the optimum of that model (the ansatz).
+
+    Failures are named: ``success`` is False, with a one-line ``reason``, when the optimizer
+    did not converge, a parameter ran to absurd values, the fitted w0 is more than 2 % off the
+    data's zero-crossing frequency, the model stops moving well before (or after) the data, or
+    a standard error is not finite. ``adequate`` says separately whether the model describes
+    the data (``_checks``). Input without a free decay in it (constant, pure noise, growing or
+    time-reversed, constant time, shorter than two periods) raises ValueError.
 
     Arguments:
         trace_or_t: a :class:`Trace` (from :func:`load_trace`), a file path, or the times t.
         x: the positions when ``trace_or_t`` holds the times.
         oscillator: the known constants (m, k, g; the damping constants not in ``free`` stay
-            at its values, usually 0). Default ``Oscillator(m=1.0, k=1.0)``.
+            at its values, usually 0). Default None: unit mass, w0 fitted (per-mass b, D).
         free: the damping constants to fit, among "mu", "b", "D".
         model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (diffrax
             integration of eq. 3, started from the ansatz fit).
-        fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m).
+        fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
+            True without an oscillator, False with one.
         offset: fit the equilibrium offset (else the trace is taken as centred on 0).
         start: where the fit window begins: "auto" (the first clear extreme after the largest
             excursion, which skips a hand release), "data" / None (the first sample) or a time.
@@ -161,24 +204,40 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         loss: "linear" or "soft_l1" (robust to outliers; scale from the MAD of a linear fit).
         optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
         p0: optional initial values (dict by parameter name) overriding the automatic guess.
-        max_steps, rtol, atol: optimizer budget and tolerances.
+        max_steps, rtol, atol: optimizer budget (honoured: at most max_steps steps per
+            optimisation) and tolerances.
         max_swings: reference model budget (default from the window length).
+        units: the unit of the positions, for the report ("m", "deg", ...); default: from the
+            position column's name of a Trace ("Angle(deg)"), else "m".
+        starts: number of global starts (1: the turning-point guess alone).
+        seed: seed of the jitter of the starts.
 
     Returns:
         A :class:`FitResult`.
+
+    Raises:
+        ValueError: bad arguments, or a trace without a free decay in it (the reason named).
     """
     check_choice("model", model, MODELS)
     check_choice("loss", loss, LOSSES)
     check_choice("optimizer", optimizer, OPTIMIZERS)
+    max_steps = _check_max_steps(max_steps)
+    if isinstance(starts, bool) or int(starts) != starts or starts < 1:
+        raise ValueError(f"starts must be a positive integer, got {starts!r}")
     spec = FIT_MODELS[model]
     free = check_free(free)
+    per_mass = oscillator is None
+    if fit_omega0 is None:
+        fit_omega0 = per_mass
+    if per_mass and not fit_omega0:
+        raise ValueError("fit_omega0=False needs an oscillator (m and k): without one, w0 is "
+                         "fitted per unit mass")
     osc = oscillator_values(oscillator)
+    unit = _units_of(trace_or_t, units)
     t_all, x_all, source = _prepare(trace_or_t, x)
+    check_sampling(t_all, x_all)
     warn = []
     an = analyse(t_all, x_all)
-    if an.n_cross < 3:
-        warn.append(f"only {an.n_cross} zero crossings found: is this a free-decay "
-                    "oscillation? initial guesses are rough")
     if not fit_omega0 and abs(an.omega / osc["w0"] - 1.0) > 0.03:
         warn.append(f"the data oscillate at {an.omega:.5g} rad/s but sqrt(k/m) = "
                     f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k")
@@ -188,7 +247,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if t.size < 10:
         raise ValueError(f"the fit window [{t_all[i0]:g}, {end}] holds fewer than 10 samples")
     an_w = analyse(t, xw)
-    an_w.omega = an.omega if an.n_cross >= an_w.n_cross else an_w.omega
+    check_trace(t, xw, an_w)
+    if per_mass:
+        osc = {**osc, "w0": an_w.omega, "k": an_w.omega ** 2}
     guess = guess_trace(t, xw, free, osc, fit_omega0, offset, an=an_w)
     if p0:
         unknown = set(p0) - set(PARAMS)
@@ -211,7 +272,15 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     stages = []
     fs = math.inf
     first = spec.start_from or spec.name
-    out = run(guess, first, fs)
+    found = None
+    start_p = guess
+    if starts > 1 and not FIT_MODELS[first].integrates:
+        found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts, f_scale=fs,
+                           n=int(starts), seed=int(seed), fit_omega0=fit_omega0,
+                           omega=an_w.omega, model=first, optimizer=optimizer,
+                           max_steps=steps, rtol=float(rtol), atol=float(atol))
+        start_p = found.params
+    out = run(start_p, first, fs)
     if loss == "soft_l1":
         r = xw - np.asarray(out.curve)[:n]
         fs = _robust_scale(r)
@@ -225,13 +294,14 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     return build_result(out, FitContext(
         model=model, free=free, vary=vary, consts=consts, t=t, x=xw, loss=loss,
         optimizer=optimizer, f_scale=fs, init=init, source=source, full_t=t_all, full_x=x_all,
-        warnings=tuple(warn), stages="; ".join(stages)))
+        warnings=tuple(warn), stages="; ".join(stages), per_mass=per_mass, units=unit,
+        analysis=an_w, starts=found))
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,
                  offset: bool = False, loss: str = "linear", optimizer: str = "lm",
                  max_steps: int | None = None, rtol: float = 1e-10,
-                 atol: float = 1e-12) -> FitResult:
+                 atol: float = 1e-12, units: str | None = None) -> FitResult:
     """Fit the closed-form amplitude E(t) = A f(t - t_1) of the ansatz to successive maxima.
 
     f solves f' = -(a f^2 + b' f + c), f(0) = 1 with a = d2 A, b' = d1, c = d0 / A (eq. 20),
@@ -248,10 +318,13 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
             its values.
         offset: also fit a constant added to the envelope (a zero offset of the angle).
         loss, optimizer, max_steps, rtol, atol: as in :func:`fit`.
+        units: the unit of the amplitudes (as in :func:`fit`).
 
     Returns:
-        A :class:`FitResult` with params mu, b, D, A (amplitude at t_1), offset.
+        A :class:`FitResult` with params mu, b, D, A (amplitude at t_1), offset; per unit
+        mass (b/m, D/m) without an oscillator.
     """
+    max_steps = _check_max_steps(max_steps)
     check_choice("loss", loss, LOSSES)
     check_choice("optimizer", optimizer, OPTIMIZERS)
     free = check_free(free)
@@ -285,7 +358,8 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     return build_result(out, FitContext(
         model="envelope", free=free, vary=vary, consts=consts, t=t, x=E, loss=loss,
-        optimizer=optimizer, f_scale=fs, init=init, source=source, stages=stages))
+        optimizer=optimizer, f_scale=fs, init=init, source=source, stages=stages,
+        per_mass=oscillator is None, units=_units_of(t_peaks, units)))
 
 
 def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: bool = True,
@@ -303,7 +377,8 @@ def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: 
             layout ``PARAMS`` = (mu, b, D, w0, offset, x0, v0), a dict by name or a
             ``TraceParams``. A free damping constant at 0 starts from a small positive value.
         free, fit_omega0, offset: which parameters vary (static); x0, v0 always vary.
-        m, g: mass and gravitational acceleration (fixed).
+        m, g: mass (default 1 kg: b and D per unit mass) and gravitational acceleration
+            (fixed).
         model: "ansatz" or "reference".
         loss: "linear" or "soft_l1"; ``f_scale`` (data units) defaults to 1.4826 MAD of the
             residuals at p0.
@@ -340,11 +415,10 @@ def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: 
                    max_steps=int(max_steps or MAX_STEPS[optimizer]), rtol=float(rtol),
                    atol=float(atol), opts=opts)
     return ArrayFit(flat(out.params), flat(out.stderr), out.code == FIT_RESULTS.successful,
-                    out.steps, out.chisqr,
-                    out.covariance)
+                    out.steps, out.chisqr, out.covariance, out.jac, out.resid)
 
 
-def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool = False,
+def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool | None = None,
                       offset: bool = True, model: str = "ansatz",
                       max_swings: int | None = None):
     """The residuals model(t; p) - x that :func:`fit` minimises, in physical parameters.
@@ -365,6 +439,10 @@ def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bo
     """
     check_choice("model", model, MODELS)
     spec = FIT_MODELS[model]
+    if fit_omega0 is None:
+        fit_omega0 = oscillator is None
+    if oscillator is None and not fit_omega0:
+        raise ValueError("fit_omega0=False needs an oscillator (m and k)")
     vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
     osc = oscillator_values(oscillator)
     names = varied_names(vary)

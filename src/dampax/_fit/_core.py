@@ -359,7 +359,8 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
     (Marquardt's scaling, per round). A round after a converged one with nothing changed is
     skipped. Returns (theta, code, steps, final) with final = (r, J) for one round.
     """
-    rounds = model.lm_rounds
+    # the step budget is honoured: never more rounds than steps, never more steps in all
+    rounds = max(min(model.lm_rounds, int(max_steps)), 1)
     # normal equations: 5-10x faster per step than the default QR on tall Jacobians; the
     # internal coordinates are normalised, so J^T J stays well conditioned
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
@@ -370,7 +371,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
         info = sol.state.f_info  # residuals and Jacobian at the returned (accepted) point
         return (_clamp_flat(sol.value, args, model), _result_code(sol.result),
                 sol.stats["num_steps"], (info.residual, info.jac.as_matrix()))
-    per_round = max(int(max_steps) // rounds, 16)
+    per_round = max(int(max_steps) // rounds, 1)
     vary = flat(args.vary)
     dref, lo = log_bounds(args.setup, args.vary)
     is_log = flat(on_damping(model.coords, Damping(True, True, True), False))
@@ -437,6 +438,9 @@ class CoreResult(NamedTuple):
         ndata, nvarys: samples with weight > 0, varied parameters.
         curve: the model at the (padded) data times.
         coords: the optimum in the model's coordinates.
+        jac, resid: the Jacobian of the data rows in the physical parameters (n_pad x 7,
+            zero columns for fixed ones) and the data rows (normalised, robust-weighted):
+            for the intervals that allow for correlated residuals (``_intervals``).
     """
 
     params: Any
@@ -449,6 +453,8 @@ class CoreResult(NamedTuple):
     nvarys: jax.Array
     curve: jax.Array
     coords: Any
+    jac: jax.Array = None
+    resid: jax.Array = None
 
 
 def _covariance(J, params_of, theta, vary, s2):
@@ -469,7 +475,7 @@ def _covariance(J, params_of, theta, vary, s2):
     cov = jnp.where(pair, s2 * C, 0.0)
     var = jnp.diag(cov)
     stderr = jnp.where(active, jnp.sqrt(jnp.where(var >= 0.0, var, jnp.nan)), jnp.nan)
-    return cov, stderr
+    return cov, stderr, jnp.where(vary[None, :], Jp, 0.0)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "optimizer", "max_steps", "rtol", "atol",
@@ -540,13 +546,13 @@ def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps
         return flat(spec.to_params(to_model(unflat(th, spec.coords), st, vary, False), consts))
 
     params = params_of(theta)
-    cov, stderr = _covariance(J, params_of, theta, vary_v, s2)
+    cov, stderr, Jp = _covariance(J, params_of, theta, vary_v, s2)
     finite = jnp.all(jnp.isfinite(params)) & jnp.isfinite(chi2_n)
     code = result_where(finite, code, FIT_RESULTS.failed)
     return CoreResult(params=unflat(params, spec.params), stderr=unflat(stderr, spec.params),
                       covariance=cov, code=code, steps=steps, chisqr=chi2_n * st.sx ** 2,
                       ndata=n, nvarys=nvary, curve=curve,
-                      coords=to_model(unflat(theta, spec.coords), st, vary))
+                      coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
 def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:

@@ -277,7 +277,7 @@ def guess_envelope(t, E, free, osc: dict, omega0: float) -> EnvelopeParams:
     return EnvelopeParams(**_damping_from_d(d, free, osc, omega0), A=E[0], offset=0.0)
 
 
-def initial_guess(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool = False,
+def initial_guess(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool | None = None,
                   offset: bool = True):
     """Initial parameters for :func:`~dampax.fit_arrays`, from a trace that starts at t[0].
 
@@ -289,8 +289,8 @@ def initial_guess(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool =
     Arguments:
         t, x: the trace.
         free: the damping constants to fit; the others stay at the oscillator's values.
-        oscillator: the known constants (default m = k = 1).
-        fit_omega0: w0 from the data (else sqrt(k/m)).
+        oscillator: the known constants (default None: unit mass, w0 from the data).
+        fit_omega0: w0 from the data (else sqrt(k/m)); default: True without an oscillator.
         offset: the offset from the data (else 0).
 
     Returns:
@@ -298,5 +298,9 @@ def initial_guess(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool =
     """
     t = np.asarray(t, dtype=float)
     x = np.asarray(x, dtype=float)
+    if fit_omega0 is None:
+        fit_omega0 = oscillator is None
+    if oscillator is None and not fit_omega0:
+        raise ValueError("fit_omega0=False needs an oscillator (m and k)")
     osc = oscillator_values(oscillator)
     return np.array(guess_trace(t, x, check_free(free), osc, fit_omega0, offset), dtype=float)

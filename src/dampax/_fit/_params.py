@@ -40,7 +40,31 @@ CANDIDATES = (("mu",), ("D",), ("b",), ("mu", "D"), ("b", "D"), ("mu", "b"), ("m
 LOSSES = ("linear", "soft_l1")
 UNITS = {"mu": "", "b": "kg/s", "D": "kg/m", "w0": "rad/s", "offset": "", "x0": "",
          "v0": "/s", "A": "", "k": "N/m"}
+#: position units that are lengths, in metres (b, D in kg/s, kg/m need lengths and a mass)
+LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "km": 1e3}
 MAD = 1.482602218505602  # 1 / Phi^-1(3/4): MAD -> sigma for Gaussian noise
+
+
+def unit_of(name: str, units: str = "m", per_mass: bool = False) -> str:
+    """The unit of a reported parameter or derived number, with positions in ``units``.
+
+    Per unit mass (no oscillator given: m = 1 kg) b and D are b/m [1/s] and D/m [1/unit]; in
+    kg/s and kg/m only with a given mass and positions that are lengths. mu is a coefficient
+    only for positions in metres (mu g is the friction deceleration, ``mu_g`` [unit/s^2]).
+    """
+    u = units or "m"
+    length = u in LENGTHS
+    if name == "mu":
+        return "" if u == "m" else f"(= mu_g / 9.81 m/s^2; positions in {u}: use mu_g)"
+    if name == "b":
+        return "1/s (b/m, per unit mass)" if per_mass or not length else "kg/s"
+    if name == "D":
+        return f"1/{u} (D/m, per unit mass)" if per_mass or not length else f"kg/{u}"
+    if name == "k":
+        return "1/s^2 (k/m = w0^2, per unit mass)" if per_mass or not length else f"N/{u}"
+    return {"w0": "rad/s", "offset": u, "x0": u, "v0": f"{u}/s", "A": u, "xc": u,
+            "mu_g": f"{u}/s^2", "b/m": "1/s", "D/m": f"1/{u}", "d0": f"{u}/s", "d1": "1/s",
+            "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad"}.get(name, "")
 
 
 class TraceParams(NamedTuple):
@@ -212,10 +236,12 @@ def oscillator_values(oscillator) -> dict:
     """m, k, mu, b, D, g and w0 = sqrt(k/m) of a single Oscillator, as floats.
 
     Arguments:
-        oscillator: an Oscillator, a dict of its constants, or None (m = k = 1).
+        oscillator: an Oscillator, a dict of its constants, or None: unit mass (m = 1 kg) and
+            an unknown w0 (NaN: it must be fitted); no damping, g = 9.81.
     """
     if oscillator is None:
-        oscillator = Oscillator(m=1.0, k=1.0)
+        return {"m": 1.0, "k": math.nan, "mu": 0.0, "b": 0.0, "D": 0.0, "g": 9.81,
+                "w0": math.nan}
     if isinstance(oscillator, dict):
         oscillator = Oscillator(**oscillator)
     if not isinstance(oscillator, Oscillator):

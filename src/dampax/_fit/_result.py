@@ -14,8 +14,9 @@ import jax
 import numpy as np
 
 from .._ansatz import decay, halt_time
+from . import _intervals
 from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
-from ._params import DAMPING, UNITS, Constants, check_choice, damping_d, varied_names
+from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
 
 
 @dataclass
@@ -34,8 +35,19 @@ class FitResult:
         success, message, n_iterations: optimizer outcome.
         chisqr, redchi, aic, bic, ndata, nvarys: fit statistics (lmfit's definitions:
             aic = n ln(chisqr/n) + 2 nvarys, bic = n ln(chisqr/n) + ln(n) nvarys).
-        derived: d0, d1, d2, xc, k, A (ansatz amplitude), phi, halt_time.
+        derived: d0, d1, d2, xc, k, A (ansatz amplitude), phi, halt_time, mu_g (the friction
+            deceleration mu g in position units/s^2), b/m [1/s], D/m [1/position unit].
         free, model, loss, optimizer, kind ("trace" or "envelope"), t_start, source.
+        success: the fit can be trusted as a fit: the optimizer converged and none of the
+            checks of ``_checks.assess`` failed; else ``reason`` says why in one line.
+        converged: the optimizer alone converged (``message``).
+        reason: "" or the failures, one line.
+        adequate: the model describes the data (residuals near the noise level, no phase
+            drift, halts where the data stop); ``inadequacy`` lists what is not.
+        diagnostics: the measured numbers behind the checks.
+        starts: the global starts (``_starts.Starts``) or None.
+        per_mass: no oscillator was given: m = 1 kg, so b and D are b/m and D/m.
+        units: the unit of the positions ("m", "deg", ...).
     """
 
     params: dict
@@ -71,6 +83,53 @@ class FitResult:
     full_x: np.ndarray | None = None
     f_scale: float = math.inf
     warnings: list = field(default_factory=list)
+    converged: bool = True
+    reason: str = ""
+    adequate: bool = True
+    inadequacy: list = field(default_factory=list)
+    diagnostics: dict = field(default_factory=dict)
+    starts: object = None
+    per_mass: bool = False
+    units: str = "m"
+    jac: np.ndarray | None = None
+    resid_rows: np.ndarray | None = None
+
+    def _hac(self):
+        """(HAC covariance over ``varied``, bandwidth) of ``_intervals.hac_covariance``."""
+        if self.jac is None or self.resid_rows is None:
+            raise ValueError("conf_interval: this result carries no Jacobian")
+        cached = getattr(self, "_hac_cache", None)
+        if cached is None:
+            w0 = self.params.get("w0", self.derived.get("w0", math.nan))
+            dt = float(np.median(np.diff(self.t))) if len(self.t) > 1 else 1.0
+            period = 2 * math.pi / w0 / dt if math.isfinite(w0) and w0 > 0 else 8.0
+            if self.kind == "envelope":
+                period = 1.0
+            cached = _intervals.hac_covariance(self.jac, self.resid_rows,
+                                               period_samples=period)
+            object.__setattr__(self, "_hac_cache", cached)
+        return cached
+
+    @property
+    def hac_stderr(self) -> dict:
+        """Standard errors from the HAC covariance (allowing for correlated residuals)."""
+        cov, _ = self._hac()
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return {name: float(v) for name, v in zip(self.varied, sd, strict=True)}
+
+    def conf_interval(self, level: float = 0.95) -> dict:
+        """Confidence intervals {name: (lo, hi)} of every fitted parameter that allow for
+        autocorrelated residuals: a Newey-West (HAC) sandwich covariance with a Bartlett
+        kernel whose bandwidth comes from the autocorrelation of the scores
+        (``dampax._fit._intervals``: why this method), normal intervals value +- z sd,
+        clipped at 0 for the damping constants.
+
+        Arguments:
+            level: two-sided coverage, in (0, 1).
+        """
+        sd = self.hac_stderr
+        return _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
+                                           level, nonneg=DAMPING)
 
     @property
     def rms(self) -> float:
@@ -85,13 +144,26 @@ class FitResult:
     def report(self, *, min_correl: float = 0.1) -> str:
         """A text report like lmfit's fit_report: statistics, values, correlations."""
         method = METHOD_NAMES.get(self.optimizer, self.optimizer)
-        lines = ["[[Model]]",
+        lines = []
+        if not self.success:
+            lines.append(f"FIT FAILED: {self.reason}")
+        if not self.adequate:
+            lines.append("MODEL DOES NOT DESCRIBE THE DATA: " + "; ".join(self.inadequacy))
+        lines += ["[[Model]]",
                  f"    {self.kind} fit, model = {self.model!r}, free damping = "
                  f"{', '.join(self.free) or 'none'}, loss = {self.loss}"
                  + (f" (f_scale = {self.f_scale:.4g})" if math.isfinite(self.f_scale) else ""),
                  ]
         if self.source:
             lines.append(f"    data: {self.source}")
+        if self.per_mass and self.kind == "trace":
+            lines.append("    no oscillator given: w0 fitted, unit mass (m = 1 kg): b and D are "
+                         f"per unit mass (b/m in 1/s, D/m in 1/{self.units}); positions in "
+                         f"{self.units}")
+        elif self.kind == "trace":
+            lines.append(f"    positions in {self.units}")
+        if self.starts is not None:
+            lines.append(f"    global starts: {self.starts.summary()}")
         lines += [
             "[[Fit Statistics]]",
             f"    # fitting method   = {method}",
@@ -104,13 +176,14 @@ class FitResult:
             f"    Bayesian info crit = {self.bic:.6g}",
             f"    rms residual       = {self.rms:.6g}",
             f"    success            = {self.success} ({self.message})",
+            f"    model adequate     = {self.adequate}",
         ]
         if self.kind == "trace":
             lines.append(f"    fit start t0       = {self.t_start:.6g}")
         lines.append("[[Variables]]")
         width = max(len(k) for k in self.params) + 1
         for name, value in self.params.items():
-            unit = UNITS.get(name, "")
+            unit = unit_of(name, self.units, self.per_mass)
             if name in self.varied:
                 err = self.stderr[name]
                 rel = abs(err / value) * 100 if value != 0 and math.isfinite(err) else math.nan
@@ -124,7 +197,23 @@ class FitResult:
         if self.derived:
             lines.append("[[Derived]]")
             for name, value in self.derived.items():
-                lines.append(f"    {name + ':':<{width}} {value:.6g}")
+                lines.append(f"    {name + ':':<{width}} {value:.6g} "
+                             f"{unit_of(name, self.units, self.per_mass)}".rstrip())
+        if self.jac is not None and self.varied:
+            try:
+                ci = self.conf_interval(0.95)
+                _, lags = self._hac()
+            except (ValueError, np.linalg.LinAlgError):
+                ci = None
+            if ci is not None:
+                lines.append(f"[[Intervals]] 95 %, allowing for correlated residuals "
+                             f"({_intervals.METHOD}, L = {lags} samples); delta-method "
+                             "stderr beside")
+                for name in self.varied:
+                    lo, hi = ci[name]
+                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  "
+                                 f"(stderr {self.stderr[name]:.4g}, HAC sd "
+                                 f"{self.hac_stderr[name]:.4g})")
         pairs = []
         n = len(self.varied)
         for i in range(n):
@@ -139,6 +228,8 @@ class FitResult:
                 lines.append(f"{label:<{w}} = {c:+.4f}")
         for note in self.warnings:
             lines.append(f"[[Warning]] {note}")
+        if "note" in self.diagnostics:
+            lines.append(f"[[Note]] {self.diagnostics['note']}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
@@ -161,7 +252,13 @@ class FitResult:
                            "aic": num(self.aic), "bic": num(self.bic), "ndata": self.ndata,
                            "nvarys": self.nvarys, "rms": num(self.rms),
                            "t_start": num(self.t_start)},
-            "success": bool(self.success), "message": self.message,
+            "success": bool(self.success), "message": self.message, "reason": self.reason,
+            "converged": bool(self.converged), "adequate": bool(self.adequate),
+            "inadequacy": list(self.inadequacy), "per_mass": bool(self.per_mass),
+            "units": self.units,
+            "diagnostics": {k: (v if isinstance(v, str) else num(v))
+                            for k, v in self.diagnostics.items()},
+            "starts": self.starts.to_dict() if self.starts is not None else None,
             "n_iterations": int(self.n_iterations), "warnings": list(self.warnings),
         }
 
@@ -216,20 +313,22 @@ class ModelComparison:
     """Candidate damping models fitted to the same data, ranked by an information criterion.
 
     Attributes:
-        results: candidate (tuple of free terms) -> FitResult, best first.
+        results: successful candidate (tuple of free terms) -> FitResult, best first.
         criterion: "bic" or "aic" (the ranking).
-        table: one dict per candidate, best first: free, aic, bic, delta (criterion minus the
-            best), chisqr, rms, nvarys, success.
+        table: one dict per successful candidate, best first: free, aic, bic, delta
+            (criterion minus the best), chisqr, rms, nvarys, success, adequate.
+        failed: the candidates whose fit failed (left out of the ranking): -> FitResult.
     """
 
     results: dict
     criterion: str
     table: list
+    failed: dict = field(default_factory=dict)
 
     @property
-    def best(self) -> FitResult:
-        """The fit of the best-ranked candidate."""
-        return next(iter(self.results.values()))
+    def best(self) -> FitResult | None:
+        """The fit of the best-ranked candidate (None when every candidate failed)."""
+        return next(iter(self.results.values()), None)
 
     @property
     def ranking(self) -> list:
@@ -238,13 +337,15 @@ class ModelComparison:
 
     @property
     def supported(self) -> tuple:
-        """Damping terms of the best-ranked model."""
-        return tuple(self.best.free)
+        """Damping terms of the best-ranked model (() when every candidate failed)."""
+        return tuple(self.best.free) if self.best is not None else ()
 
     def evidence(self) -> dict:
         """Per damping term: the criterion change when it is removed from / added to the best
         model (positive = the data support the best model's choice), where such a candidate
         was fitted."""
+        if self.best is None:
+            return {}
         best = tuple(self.best.free)
         score = {tuple(sorted(k)): getattr(r, self.criterion) for k, r in self.results.items()
                  if r.success}
@@ -265,7 +366,13 @@ class ModelComparison:
         for i, row in enumerate(self.table):
             lines.append(f"  {i + 1:>4}  {','.join(row['free']):<12} {row['aic']:>12.2f} "
                          f"{row['bic']:>12.2f} {row['delta']:>10.2f} {row['rms']:>10.4g}  "
-                         f"{'yes' if row['success'] else 'no':>3}")
+                         f"{'yes' if row['success'] else 'no':>3}"
+                         + ("" if row.get("adequate", True) else "  (model inadequate)"))
+        for cand, r in self.failed.items():
+            lines.append(f"  left out (fit failed): {','.join(cand)}: {r.reason}")
+        if self.best is None:
+            lines.append("  no candidate fit succeeded: the data support no model")
+            return "\n".join(lines)
         best = self.best.free
         lines.append(f"  the data support: {' + '.join(best)} "
                      f"({', '.join(f'{k} = {self.best.params[k]:.4g}' for k in best)})")
@@ -279,7 +386,8 @@ class ModelComparison:
     def to_dict(self) -> dict:
         return {"criterion": self.criterion,
                 "ranking": [{**row, "free": list(row["free"])} for row in self.table],
-                "supported": list(self.supported)}
+                "supported": list(self.supported),
+                "failed": {",".join(k): r.reason for k, r in self.failed.items()}}
 
 
 class ArrayFit(NamedTuple):
@@ -292,6 +400,9 @@ class ArrayFit(NamedTuple):
         n_iterations: optimizer steps.
         chisqr: sum of squared (robust-weighted) residuals in data units.
         covariance: 7 x 7 covariance of params (zero rows/columns for fixed entries).
+        jac, resid: the Jacobian of the (normalised) residuals in the physical parameters
+            (n x 7, zero columns for fixed entries) and those residuals: the input of
+            ``dampax._fit._intervals.hac_covariance`` (intervals for correlated residuals).
     """
 
     params: jax.Array
@@ -300,6 +411,8 @@ class ArrayFit(NamedTuple):
     n_iterations: jax.Array
     chisqr: jax.Array
     covariance: jax.Array
+    jac: jax.Array | None = None
+    resid: jax.Array | None = None
 
 
 @dataclass(frozen=True)
@@ -336,6 +449,10 @@ class FitContext:
     full_x: np.ndarray | None = None
     warnings: tuple = ()
     stages: str = ""
+    per_mass: bool = False
+    units: str = "m"
+    analysis: object = None
+    starts: object = None
 
 
 def _trace_derived(params: dict, coords, ctx: FitContext):
@@ -345,7 +462,8 @@ def _trace_derived(params: dict, coords, ctx: FitContext):
     w0 = params["w0"]
     d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
     derived = {"d0": d0, "d1": d1, "d2": d2, "xc": params["mu"] * g / w0 ** 2,
-               "k": m * w0 ** 2}
+               "k": m * w0 ** 2, "mu_g": params["mu"] * g, "b/m": params["b"] / m,
+               "D/m": params["D"] / m}
     A, phi = FIT_MODELS[ctx.model].amplitude_phase(params, coords, m, g)
     envelope = None
     t_start = float(ctx.t[0])
@@ -363,7 +481,8 @@ def _envelope_derived(params: dict, coords, ctx: FitContext):
     """(derived, None, fixed) of an envelope fit: eq. 21 at the fixed w0."""
     m, g, w0 = ctx.consts.m, ctx.consts.g, ctx.consts.w0
     d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
-    return {"d0": d0, "d1": d1, "d2": d2, "w0": w0}, None, {"m": m, "g": g, "w0": w0}
+    return ({"d0": d0, "d1": d1, "d2": d2, "w0": w0, "mu_g": params["mu"] * g,
+             "b/m": params["b"] / m, "D/m": params["D"] / m}, None, {"m": m, "g": g, "w0": w0})
 
 
 def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
@@ -386,10 +505,25 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     kind = FIT_MODELS[ctx.model].kind
     derive = _trace_derived if kind == "trace" else _envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
+    converged = bool(out.code == FIT_RESULTS.successful)
+    fails, bad, diag = [], [], {}
+    if ctx.analysis is not None or kind != "trace":
+        from ._checks import assess
+
+        fails, bad, diag = assess(t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
+                                  varied=varied_names(ctx.vary), derived=derived,
+                                  an=ctx.analysis, converged=converged, message=text,
+                                  kind=kind)
+    elif not converged:
+        fails = [f"the optimizer did not converge ({text})"]
+    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
+    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     return FitResult(
         params=params, stderr=stderr, varied=varied_names(ctx.vary), covariance=cov,
         correlation=corr, residuals=ctx.x - curve, t=ctx.t, x=ctx.x, model_x=curve,
-        success=bool(out.code == FIT_RESULTS.successful), message=message,
+        success=converged and not fails, message=message, converged=converged,
+        reason="; ".join(fails), adequate=not bad, inadequacy=bad, diagnostics=diag,
+        starts=ctx.starts, per_mass=ctx.per_mass, units=ctx.units, jac=jac, resid_rows=rows,
         n_iterations=int(out.steps), chisqr=chisqr,
         redchi=chisqr / max(ndata - nvarys, 1), aic=neg2ll + 2 * nvarys,
         bic=neg2ll + math.log(ndata) * nvarys, ndata=ndata, nvarys=nvarys, free=tuple(ctx.free),
@@ -400,17 +534,16 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
 
 
 def rank(results: dict, criterion: str) -> ModelComparison:
-    """A :class:`ModelComparison` of fits (candidate -> FitResult): the successful ones first,
-    by increasing ``criterion`` ("aic" or "bic")."""
+    """A :class:`ModelComparison` of fits (candidate -> FitResult): the successful ones by
+    increasing ``criterion`` ("aic" or "bic"); failed fits are left out of the ranking and
+    listed in ``failed`` (with their reasons in the report)."""
     check_choice("criterion", criterion, ("aic", "bic"))
-
-    def key(item):
-        r = item[1]
-        return (not r.success, getattr(r, criterion))
-
-    ordered = dict(sorted(results.items(), key=key))
-    best = getattr(next(iter(ordered.values())), criterion)
+    ok = {k: r for k, r in results.items() if r.success}
+    failed = {k: r for k, r in results.items() if not r.success}
+    ordered = dict(sorted(ok.items(), key=lambda item: getattr(item[1], criterion)))
+    best = getattr(next(iter(ordered.values())), criterion) if ordered else math.nan
     table = [dict(free=tuple(k), aic=r.aic, bic=r.bic,
                   delta=getattr(r, criterion) - best, chisqr=r.chisqr, rms=r.rms,
-                  nvarys=r.nvarys, success=r.success) for k, r in ordered.items()]
-    return ModelComparison(results=ordered, criterion=criterion, table=table)
+                  nvarys=r.nvarys, success=r.success, adequate=r.adequate)
+             for k, r in ordered.items()]
+    return ModelComparison(results=ordered, criterion=criterion, table=table, failed=failed)

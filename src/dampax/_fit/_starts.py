@@ -1,0 +1,144 @@
+"""Global starts (issue 11, item 2): a batch of jittered starts optimised in one compiled,
+vmapped call.
+
+The first start is the turning-point guess of ``_guess`` (the amplitude lost per swing
+regressed on the Coulomb, viscous and quadratic columns of eq. 21, dA/dt = -(d0 + d1 A +
+d2 A^2), by non-negative least squares). The others multiply each free damping constant by
+exp(1.5 z) (z standard normal: a spread of a factor 4.5 per sigma, in log-parameters), w0 by
+1 + 0.003 z and the initial amplitude by exp(0.1 z). The batch runs on the trace thinned to at
+most :data:`BATCH_SAMPLES` samples (every s-th sample, at least :data:`PER_PERIOD` per period;
+where that leaves more, the first BATCH_SAMPLES of them: the batch then sees the first part of
+the decay), padded to that length, so one compiled function serves every trace, with at most
+:data:`BATCH_STEPS` optimizer steps per start; the best start is then polished on the whole
+trace by the caller. The report says how many starts reached the best cost (within
+:data:`REACHED_RTOL`) and the spread of the costs.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._core import FIT_RESULTS, core
+from ._params import PARAMS, TraceParams, as_arrays
+
+#: samples of the thinned trace of the batch (its padded length)
+BATCH_SAMPLES = 1024
+#: fewest samples per period kept by the thinning (else the batch covers the trace's start)
+PER_PERIOD = 10
+#: step budget of each start (the best is polished on the whole trace afterwards)
+BATCH_STEPS = 64
+#: a start "reached" the best optimum when its cost is within this relative distance
+REACHED_RTOL = 1e-4
+
+
+@dataclass(frozen=True)
+class Starts:
+    """What the batch of starts found.
+
+    Attributes:
+        n: number of starts.
+        reached: how many reached the best cost (within ``REACHED_RTOL``).
+        costs: the final cost 0.5 sum r^2 of every start on the thinned trace (data units;
+            NaN where the optimizer failed), in the order of the starts.
+        best: index of the best start (0 is the turning-point guess).
+        stride: every stride-th sample was used.
+        params: the best start's optimum (physical), the start of the polishing fit.
+    """
+
+    n: int
+    reached: int
+    costs: np.ndarray
+    best: int
+    stride: int
+    params: TraceParams
+
+    def summary(self) -> str:
+        """One line for the report."""
+        c = self.costs[np.isfinite(self.costs)]
+        spread = (f"costs best {c.min():.4g}, median {np.median(c):.4g}, worst {c.max():.4g}"
+                  if c.size else "no finite cost")
+        thin = f", 1 sample in {self.stride}" if self.stride > 1 else ""
+        return (f"{self.reached} of {self.n} jittered starts reached the best optimum "
+                f"({spread}{thin})")
+
+    def to_dict(self) -> dict:
+        return {"n": self.n, "reached": self.reached, "best": self.best, "stride": self.stride,
+                "costs": [float(c) if math.isfinite(c) else None for c in self.costs]}
+
+
+def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool = True):
+    """``n`` starts around p0 (the first one is p0), as a (n, 7) array in the layout PARAMS."""
+    rng = np.random.default_rng(seed)
+    base = np.asarray(p0, dtype=float)
+    P = np.tile(base, (n, 1))
+    if n <= 1:
+        return P
+    z = rng.standard_normal((n - 1, len(PARAMS)))
+    for name in free:
+        i = PARAMS.index(name)
+        P[1:, i] = base[i] * np.exp(1.5 * z[:, i])
+    if fit_omega0:
+        P[1:, 3] = base[3] * (1.0 + 0.003 * z[:, 3])
+    amp = np.exp(0.1 * z[:, 5])
+    P[1:, 5] *= amp
+    P[1:, 6] *= amp
+    return P
+
+
+@functools.partial(jax.jit, static_argnames=("model", "optimizer", "max_steps", "rtol", "atol",
+                                             "opts"))
+def _batch(t, x, weight, p0s, vary, consts, f_scale, **static):
+    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, f_scale, **static))(p0s)
+
+
+def thin(t: np.ndarray, x: np.ndarray, omega: float):
+    """(t, x, weight, stride): every stride-th sample (at most BATCH_SAMPLES of them, at least
+    PER_PERIOD per period), padded to BATCH_SAMPLES with weight 0."""
+    n = t.size
+    dt = float(np.median(np.diff(t)))
+    per_period = 2.0 * math.pi / omega / dt
+    stride = max(1, math.ceil(n / BATCH_SAMPLES))
+    stride = max(1, min(stride, int(per_period // PER_PERIOD))) if n > BATCH_SAMPLES else 1
+    td, xd = t[::stride], x[::stride]
+    if td.size > BATCH_SAMPLES:  # too few samples per period to thin further: cut
+        td, xd = td[:BATCH_SAMPLES], xd[:BATCH_SAMPLES]
+    m = td.size
+    tp, xp, wt = np.full(BATCH_SAMPLES, td[-1]), np.full(BATCH_SAMPLES, xd[-1]), \
+        np.zeros(BATCH_SAMPLES)
+    tp[:m], xp[:m], wt[:m] = td, xd, 1.0
+    return tp, xp, wt, stride
+
+
+def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int, seed: int,
+               fit_omega0: bool, omega: float, model: str, optimizer: str, max_steps: int,
+               rtol: float, atol: float) -> Starts:
+    """Optimise ``n`` jittered starts around ``guess`` in one vmapped call on the thinned
+    trace; returns :class:`Starts` (the best optimum is the caller's next start)."""
+    P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0)
+    tp, xp, wt, stride = thin(np.asarray(t), np.asarray(x), omega)
+    p0s = as_arrays(TraceParams(*(jnp.asarray(P[:, i]) for i in range(P.shape[1]))))
+    out = _batch(jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt), p0s,
+                 as_arrays(vary, bool), as_arrays(consts), jnp.asarray(f_scale, dtype=float),
+                 model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
+                 rtol=rtol, atol=atol, opts=None)
+    costs = 0.5 * np.asarray(out.chisqr, dtype=float)
+    ok = np.asarray(out.code._value) == FIT_RESULTS.successful._value
+    params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
+    finite = np.isfinite(costs) & np.all(np.isfinite(params), axis=1)
+    costs = np.where(finite, costs, np.nan)
+    pick = np.where(finite & ok, costs, np.inf)
+    if not np.any(np.isfinite(pick)):
+        pick = np.where(finite, costs, np.inf)
+    if not np.any(np.isfinite(pick)):  # nothing finite: keep the guess
+        return Starts(n=n, reached=0, costs=costs, best=0, stride=stride, params=guess)
+    best = int(np.argmin(pick))
+    cbest = costs[best]
+    reached = int(np.sum(finite & (costs <= cbest * (1.0 + REACHED_RTOL) + 1e-300)))
+    return Starts(n=n, reached=reached, costs=costs, best=best, stride=stride,
+                  params=TraceParams(*(float(v) for v in params[best])))
