@@ -440,7 +440,7 @@ def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = 
                fontsize=9, frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 
@@ -496,7 +496,7 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
                  f"global sensitivity of {first.attrs.get('quantity', 'the quantity')}\n"
                  f"(S1 first order, ST total; "
                  f"{first.attrs.get('conf_level', 0.95):g} bootstrap bars)", fontsize=10)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
 
@@ -553,6 +553,6 @@ def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int =
                 ax.set_ylabel(f"{ni} [{unit}]" if unit else ni, fontsize=8)
             ax.tick_params(labelsize=7)
     fig.suptitle("posterior draws (NUTS)", fontsize=10)
-    fig.savefig(str(path), dpi=dpi)
+    save_figure(fig, path, dpi=dpi)
     fig.clear()
     return Path(path)

@@ -13,11 +13,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
@@ -34,9 +32,10 @@ from .._fit import (
     fit,
     fit_envelope,
 )
+from .._io import write_text
 from .._oscillator import Oscillator
 from .._trace import load_trace
-from ._common import PROG, fmt, split_names
+from ._common import PROG, fmt, prepare_out_dir, split_names
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -200,14 +199,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--free: name at least one of mu, b, D")
     if args.example == bool(args.path):
         raise ValueError("give a PATH or --example (one of them)")
-    out_dir = Path(args.out)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ValueError(f"--out: {str(out_dir)!r} exists and is not a folder")
-    parent = out_dir if out_dir.exists() else out_dir.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not os.access(parent, os.W_OK):
-        raise ValueError(f"--out: {str(out_dir)!r} cannot be written")
+    out_dir = prepare_out_dir(args.out)
     if args.starts < 1:
         raise ValueError(f"--starts must be >= 1, got {args.starts}")
     if args.max_steps is not None and args.max_steps < 1:
@@ -282,7 +274,6 @@ def run(args: argparse.Namespace) -> int:
         if args.model != "ansatz" and not args.envelope:
             print("(ranking with the ansatz model)")
         print(comparison.report())
-    out_dir.mkdir(parents=True, exist_ok=True)
     summary = {"fit": result.to_dict(), "ranking": comparison.to_dict() if comparison else None,
                "truth": truth, "trace": {"source": trace.source, "n": len(trace),
                                          "n_dropped": trace.n_dropped, "rate": trace.rate}}
@@ -300,7 +291,7 @@ def run(args: argparse.Namespace) -> int:
         summary["posterior"] = post.summary(args.level)
         written += [post.to_netcdf(out_dir / "posterior.nc"),
                     post.corner(out_dir / "corner.png")]
-    (out_dir / "fit.json").write_text(json.dumps(summary, indent=2, default=_jsonable))
+    write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
     result.plot(out_dir / "fit.png")
     print()
     print(f"  {elapsed:.1f} s (compilation included); written: "

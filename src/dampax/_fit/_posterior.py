@@ -117,7 +117,10 @@ class Posterior:
 
     def to_netcdf(self, path) -> Path:
         """Write the draws as netCDF (scipy backend); returns the path."""
-        self.draws.to_netcdf(str(path), engine="scipy")
+        from .._io import atomic_path
+
+        with atomic_path(path) as tmp:
+            self.draws.to_netcdf(str(tmp), engine="scipy")
         return Path(path)
 
     def corner(self, path, *, names=None) -> Path:

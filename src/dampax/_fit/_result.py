@@ -304,7 +304,9 @@ class FitResult:
         axr.axhline(0.0, color="k", lw=0.6)
         axr.set_ylabel("data - fit")
         axr.set_xlabel("t [s]")
-        fig.savefig(str(path), dpi=110)
+        from .._io import save_figure
+
+        save_figure(fig, path, dpi=110)
         return Path(path)
 
 
