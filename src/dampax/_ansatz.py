@@ -119,7 +119,7 @@ def halt_time(a, bp, c):
     Q = 0.25 * bp * bp - a * c_safe
     # Q > 0: atanh(q/k)/q = log1p(2q/(k - q))/(2q) with k - q = c (a + b' + c)/(k + q), free of
     # the cancellation in 1 - q/k when c << b'
-    hyper = Q >= _SERIES * k * k
+    hyper = (Q >= _SERIES * k * k) & (Q > 0.0)  # Q > 0: k * k may underflow for tiny c
     q = jnp.sqrt(jnp.where(hyper, Q, 1.0))
     k_minus_q = c_safe * (a + bp + c_safe) / (k + q)
     tau = jnp.where(hyper, jnp.log1p(2.0 * q / k_minus_q) / (2.0 * q), _atanc(Q, 1.0 / k))

@@ -512,7 +512,10 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     x_h = jnp.where(halts | stuck, x_h, jnp.nan)
     bracketed = found | stuck | ~halts
     # a start at rest inside the band is exact for any b and D: the block never moves
+    # the exact motion only loses energy: a rest point beyond A0 is the model's artefact
+    gains = ~stuck & (jnp.abs(x_h) > A0)
     result = first_failure(*input_checks(osc, x0, v0), (~(coulomb | stuck), RESULTS.coulomb_only),
-                           (~bracketed, RESULTS.halt_not_found))
+                           (~bracketed, RESULTS.halt_not_found),
+                           (gains, RESULTS.rizcallah_gains_energy))
     return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.result), proto,
                        (t_h, x_h, result))

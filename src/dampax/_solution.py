@@ -54,6 +54,10 @@ class RESULTS(eqx.Enumeration):
         "b: the ansatz oscillates at w0 and needs underdamping, d1 = b/(2m) < w0 = sqrt(k/m) "
         "(b < 2 sqrt(k m)); use method='reference'")
     invalid_t_end = "t_end: the reference's end time must be finite and > 0"
+    rizcallah_gains_energy = (
+        "mu: Rizcallah's model comes to rest farther out than its undamped amplitude A0, with "
+        "more energy than it started with (friction too strong for the amplitude: xc is not "
+        "small against A0); use method='reference'")
 
 
 def result_where(pred, a: RESULTS, b: RESULTS) -> RESULTS:
