@@ -136,6 +136,36 @@ def test_reference_t_end_traced_out_of_domain():
     assert bool(f(2.0).valid)
 
 
+def test_registry_leaves_out_what_does_not_apply():
+    # overdamped with friction: only the reference applies; each listed model solves eagerly
+    over = dp.Oscillator(m=1.0, k=30.0, mu=0.05, b=3.0 * 2.0 * math.sqrt(30.0))
+    assert dp._models.applicable_models(over) == ("reference",)
+    under = dp.Oscillator(m=1.0, k=30.0, mu=0.05, b=0.5)
+    assert dp._models.applicable_models(under) == ("matched", "undamped", "matched_tail",
+                                                   "coulomb_exact", "reference")
+
+
+def test_rizcallah_does_not_rest_beyond_its_amplitude():
+    # xc = 1.57 A0 and a small start velocity: the model would swing out to 2.13 A0 and rest
+    # there, with four times its initial energy (found by the property test)
+    sol = jax.jit(lambda v0: dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=0.16012195), 0.96891242,
+                                      v0, method="rizcallah"))(-0.24740396)
+    assert bool(sol.result == dp.RESULTS.rizcallah_gains_energy)
+    with pytest.raises(ValueError, match="^mu: Rizcallah"):
+        dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=0.16012195), 0.96891242, -0.24740396,
+                 method="rizcallah")
+
+
+def test_tiny_friction_stays_finite():
+    # mu = 1e-300: c = d0/A of eq. 20 is so small that (c + b'/2)^2 underflows; the halt time
+    # is then the series value 1/c (found by the property test: it was NaN with valid = True)
+    for model in ("undamped", "matched", "matched_tail"):
+        valid, _, x, _, e, halt_t, _ = solve_jit(model, mu=1e-300, x0=1.0)
+        assert bool(valid) and np.all(np.isfinite(x)) and np.all(np.isfinite(e)), model
+        assert float(halt_t) > 1e290, model
+        np.testing.assert_allclose(x, np.cos(S), atol=1e-12)  # the undamped motion
+
+
 # ------------------------------------------------------------------------------------------
 # a start at rest inside the band: the trivial answer from every model
 

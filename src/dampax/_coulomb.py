@@ -468,7 +468,11 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
 
     Returns:
         A :class:`RizcallahSolution`; for kappa = 4/pi and a start at rest its turning points
-        at n pi/w0 equal the exact x_n = (-1)^n (x0 - 2 n xc).
+        at n pi/w0 equal the exact x_n = (-1)^n (x0 - 2 n xc). ``result`` is
+        ``RESULTS.coulomb_only`` for b or D != 0, ``rizcallah_gains_energy`` where the model
+        would come to rest beyond A0 (xc not small against A0), ``invalid_constants`` or
+        ``nonfinite_state`` outside every model's domain; a start at rest inside the band stays
+        there.
     """
     w0 = osc.omega0
     A0, phi0 = initial_amplitude_phase(osc, x0, v0)
