@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
-from ._solution import RESULTS, AbstractSolution, first_failure
+from ._solution import RESULTS, AbstractSolution, first_failure, input_checks, stuck_at_start
 
 Array = jax.Array
 
@@ -119,7 +119,7 @@ def halt_time(a, bp, c):
     Q = 0.25 * bp * bp - a * c_safe
     # Q > 0: atanh(q/k)/q = log1p(2q/(k - q))/(2q) with k - q = c (a + b' + c)/(k + q), free of
     # the cancellation in 1 - q/k when c << b'
-    hyper = Q >= _SERIES * k * k
+    hyper = (Q >= _SERIES * k * k) & (Q > 0.0)  # Q > 0: k * k may underflow for tiny c
     q = jnp.sqrt(jnp.where(hyper, Q, 1.0))
     k_minus_q = c_safe * (a + bp + c_safe) / (k + q)
     tau = jnp.where(hyper, jnp.log1p(2.0 * q / k_minus_q) / (2.0 * q), _atanc(Q, 1.0 / k))
@@ -271,7 +271,9 @@ class AnsatzSolution(AbstractSolution):
     ``matched=False``: the earlier approach, A = A0, phi = phi0 (eq. 8), velocity without the
     f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
     Where no admissible amplitude exists, ``result`` is ``RESULTS.no_amplitude`` (``valid``
-    False) and the values are NaN.
+    False) and the values are NaN; likewise ``RESULTS.ansatz_overdamped`` for d1 >= w0 and
+    ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
+    there: x(t) = x0, v = 0, halt time 0.
     """
 
     A: Array  # amplitude, finite even where invalid (see ``amplitude``)
@@ -283,6 +285,8 @@ class AnsatzSolution(AbstractSolution):
     halt_time: Array
     osc: Oscillator
     result: RESULTS
+    stuck: Array  # started at rest inside the band: x(t) = x0 (the model's A is then 0)
+    x0: Array
     matched: bool = eqx.field(static=True)
 
     @property
@@ -298,10 +302,16 @@ class AnsatzSolution(AbstractSolution):
     def _mask(self, value):
         return jnp.where(self.valid, value, jnp.nan)
 
+    def _rest(self, x):
+        """x0 where the block is stuck from the start (there A = 0: x is 0, NaN for t < 0)."""
+        return jnp.where(self.stuck, x + self.x0, x)
+
     @property
     def halt_position(self) -> Array:
-        """Where the model comes to rest: x(tau) = 0 when it halts, NaN when it never does."""
-        return self._mask(jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan))
+        """Where the model comes to rest: x(tau) = 0 when it halts (x0 for a start at rest
+        inside the band), NaN when it never does."""
+        return self._mask(jnp.where(self.stuck, self.x0,
+                                    jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan)))
 
     def _decay(self) -> _DecayConstants:
         """The per-point constants of f(t), shared by x, v and energy (computed once per call,
@@ -324,12 +334,17 @@ class AnsatzSolution(AbstractSolution):
         v = -self.omega0 * self.A * f * sth
         if self.matched:
             v = v + self.A * decay_rate(f, k.a, k.bp, k.c) * cth
-        return self._mask(x), self._mask(v)
+        return self._mask(self._rest(x)), self._mask(v)
 
     @jit_method
     def x(self, t) -> Array:
         """Displacement A f(t) cos(w0 t + phi) (eq. 11)."""
-        return self._mask(self.A * self.f(t) * jnp.cos(self._phase(t)))
+        return self._mask(self._rest(self.A * self.f(t) * jnp.cos(self._phase(t))))
+
+    def _undamped_energy(self, f):
+        """m w0^2 A^2 f^2 / 2 (eq. 10); k x0^2 / 2 for a start at rest inside the band."""
+        return self._mask(jnp.where(self.stuck, 0.5 * self.osc.k * self._rest(0.0 * f) ** 2,
+                                    0.5 * self.osc.m * (self.omega0 * self.A * f) ** 2))
 
     @jit_method
     def v(self, t) -> Array:
@@ -346,15 +361,15 @@ class AnsatzSolution(AbstractSolution):
         """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
         if self.matched:
             return self.osc.energy(*self._state(t))
-        return self._mask(0.5 * self.osc.m * (self.omega0 * self.A * self.f(t)) ** 2)
+        return self._undamped_energy(self.f(t))
 
     def _x_energy(self, t, grid=None):
         if self.matched:
             x, v = self._state(t)
             return x, self.osc.energy(x, v)
         f = self.f(t)
-        return (self._mask(self.A * f * jnp.cos(self._phase(t))),
-                self._mask(0.5 * self.osc.m * (self.omega0 * self.A * f) ** 2))
+        return (self._mask(self._rest(self.A * f * jnp.cos(self._phase(t)))),
+                self._undamped_energy(f))
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
@@ -421,10 +436,19 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
         phase: "matched" (A, phi from eqs. 22-23) or "undamped" (A0, phi0; eqs. 8-10).
 
     Returns:
-        An :class:`AnsatzSolution`.
+        An :class:`AnsatzSolution`: ``result`` is ``RESULTS.invalid_constants`` or
+        ``nonfinite_state`` outside every model's domain, ``ansatz_overdamped`` where
+        d1 = b/(2m) >= w0, ``no_amplitude`` where eq. 22 has no admissible root; a start at rest
+        inside the sticking band stays there (x = x0, halt time 0).
     """
     if phase not in ("matched", "undamped"):
         raise ValueError(f"phase must be 'matched' or 'undamped', got {phase!r}")
+    x_start, v_start = jnp.asarray(x0, dtype=float), jnp.asarray(v0, dtype=float)
+    stuck = stuck_at_start(osc, x_start, v_start)
+    # stuck: the model is solved from the origin (its trivial, gradient-safe branch, A = 0)
+    # and x0 added back (AnsatzSolution._rest)
+    x0 = jnp.where(stuck, 0.0, x_start)
+    v0 = jnp.where(stuck, 0.0, v_start)
     w0 = osc.omega0
     d0, d1, d2 = osc.damping_coefficients
     A0, phi0 = initial_amplitude_phase(osc, x0, v0)
@@ -448,9 +472,11 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     c = d0 / A_div
     bp = d1 + 0.0 * a
     tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
+    result = first_failure(*input_checks(osc, x_start, v_start),
+                           (~stuck & ~(d1 < w0), RESULTS.ansatz_overdamped),
+                           (~stuck & ~valid, RESULTS.no_amplitude))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
-                          halt_time=tau, osc=osc,
-                          result=first_failure((~valid, RESULTS.no_amplitude)),
-                          matched=phase == "matched")
+                          halt_time=tau, osc=osc, result=result, stuck=stuck,
+                          x0=x_start, matched=phase == "matched")
 
 

@@ -184,4 +184,8 @@ def solution_estimate(sol, *, bound: bool = False) -> Array:
     start = _start(sol)
     if start is None:
         return jnp.asarray(jnp.nan)
-    return estimate(model_of(sol), *start, bound=bound)
+    value = estimate(model_of(sol), *start, bound=bound)
+    head = sol.ansatz if hasattr(sol, "ansatz") else sol
+    if hasattr(head, "stuck"):  # at rest inside the band from the start: the answer is exact
+        value = jnp.where(head.stuck, 0.0, value)
+    return value

@@ -18,7 +18,15 @@ import jax.numpy as jnp
 
 from ._ansatz import AnsatzSolution, _atanc
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
-from ._solution import RESULTS, AbstractSolution, first_failure, is_successful, result_where
+from ._solution import (
+    RESULTS,
+    AbstractSolution,
+    first_failure,
+    input_checks,
+    is_successful,
+    result_where,
+    stuck_at_start,
+)
 
 Array = jax.Array
 
@@ -161,7 +169,9 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
 
     Arguments:
         osc: the oscillator; its D is not used (the caller checks D = 0 where it matters).
-            Needs underdamping, b < 2 sqrt(k m) (else ``RESULTS.overdamped``).
+            Needs underdamping, b < 2 sqrt(k m) (else ``RESULTS.overdamped``), unless the
+            block is at rest inside the band |x_s| <= xc (it stays there);
+            ``RESULTS.invalid_constants`` outside every model's domain.
         t_s, x_s, v_s: start time and state.
 
     Returns:
@@ -169,10 +179,11 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
     """
     t_s, x_s, v_s, xc, gamma, w0 = (jnp.asarray(v, dtype=float)
                                     for v in (t_s, x_s, v_s, osc.xc, osc.gamma, osc.omega0))
-    result = first_failure((~(jnp.isfinite(x_s) & jnp.isfinite(v_s)), RESULTS.nonfinite_state),
-                           (~(gamma < w0), RESULTS.overdamped))
+    underdamped = gamma < w0
+    result = first_failure(*input_checks(osc, x_s, v_s),
+                           (~(underdamped | stuck_at_start(osc, x_s, v_s)), RESULTS.overdamped))
     valid = is_successful(result)
-    wd = jnp.sqrt(jnp.where(valid, w0 * w0 - gamma * gamma, 1.0))
+    wd = jnp.sqrt(jnp.where(valid & underdamped, w0 * w0 - gamma * gamma, 1.0))
     moving = v_s != 0.0
     # first partial swing: u = x - cen0 is a damped cosine; its velocity vanishes at
     # wd tau1 = atan2(|V|, sgn(V) K) in (0, pi)
@@ -206,12 +217,13 @@ def solve_coulomb_exact(osc: Oscillator, x0, v0) -> SwingSolution:
     """Exact solution of eq. 3 with sliding friction (and viscous damping), D = 0.
 
     Half-swing by half-swing from any initial state, including a start at rest inside the
-    sticking band (the block stays there). Exact for mu >= 0, 0 <= b < 2 sqrt(k m), D = 0;
-    with D != 0 ``result`` is ``RESULTS.no_drag``.
+    sticking band (the block stays there, for any b and D). Exact for mu >= 0,
+    0 <= b < 2 sqrt(k m), D = 0; with D != 0 ``result`` is ``RESULTS.no_drag``.
     """
     sol = swings_from(osc, 0.0, x0, v0)
+    drag = (osc.D != 0.0) & ~stuck_at_start(osc, x0, v0)
     return eqx.tree_at(lambda s: s.result, sol,
-                       result_where(sol.valid & (osc.D != 0.0), RESULTS.no_drag, sol.result))
+                       result_where(sol.valid & drag, RESULTS.no_drag, sol.result))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -456,7 +468,11 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
 
     Returns:
         A :class:`RizcallahSolution`; for kappa = 4/pi and a start at rest its turning points
-        at n pi/w0 equal the exact x_n = (-1)^n (x0 - 2 n xc).
+        at n pi/w0 equal the exact x_n = (-1)^n (x0 - 2 n xc). ``result`` is
+        ``RESULTS.coulomb_only`` for b or D != 0, ``rizcallah_gains_energy`` where the model
+        would come to rest beyond A0 (xc not small against A0), ``invalid_constants`` or
+        ``nonfinite_state`` outside every model's domain; a start at rest inside the band stays
+        there.
     """
     w0 = osc.omega0
     A0, phi0 = initial_amplitude_phase(osc, x0, v0)
@@ -499,6 +515,11 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     t_h = jnp.where(halts | stuck, t_h, jnp.inf)
     x_h = jnp.where(halts | stuck, x_h, jnp.nan)
     bracketed = found | stuck | ~halts
-    result = first_failure((~coulomb, RESULTS.coulomb_only), (~bracketed, RESULTS.halt_not_found))
+    # a start at rest inside the band is exact for any b and D: the block never moves
+    # the exact motion only loses energy: a rest point beyond A0 is the model's artefact
+    gains = ~stuck & (jnp.abs(x_h) > A0)
+    result = first_failure(*input_checks(osc, x0, v0), (~(coulomb | stuck), RESULTS.coulomb_only),
+                           (~bracketed, RESULTS.halt_not_found),
+                           (gains, RESULTS.rizcallah_gains_energy))
     return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.result), proto,
                        (t_h, x_h, result))

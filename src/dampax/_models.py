@@ -21,6 +21,14 @@ def _has_friction(osc: Oscillator) -> bool:
     return as_float(osc.mu) > 0.0
 
 
+def _underdamped(osc: Oscillator) -> bool:
+    return as_float(osc.gamma) < as_float(osc.omega0)
+
+
+def _tail_applies(osc: Oscillator) -> bool:
+    return _has_friction(osc) and _underdamped(osc)
+
+
 def _coulomb_only(osc: Oscillator) -> bool:
     return _has_friction(osc) and as_float(osc.b) == 0.0 and as_float(osc.D) == 0.0
 
@@ -39,7 +47,11 @@ class Model:
         label: legend and table label.
         options: keyword arguments of :func:`dampax.solve` that select the model.
         equations: where it is in the papers.
-        domain: in words, where the model is worth drawing (``applies`` tests it).
+        domain: in words, where the model is defined and worth drawing (``applies`` tests
+            it). Every model also needs m, k, g finite and > 0, mu, b, D finite and >= 0 and a
+            finite start; outside, ``solve`` sets ``valid = False`` with a ``RESULTS`` reason
+            (ValueError eagerly). A start at rest inside the band (v0 = 0, k |x0| <= mu m g)
+            is answered exactly by every model: the block stays at x0.
         applies: a concrete, scalar Oscillator -> whether the model is meant for it (the
             commands and plots leave the others out; ``solve`` still flags what it cannot do
             with ``result``).
@@ -81,18 +93,23 @@ class Model:
 #: Every model, in table and legend order; ``reference`` is the diffrax integrator of eq. 3.
 MODELS: dict[str, Model] = {m.name: m for m in (
     Model("matched", "matched ansatz (eqs. 22-23)", (("method", "ansatz"),),
-          "Lelas & Pezer eqs. 11, 20-23", "any damping; needs an admissible root of eq. 22",
-          _always, "tab:red", "-", 2.0, 3.0, ("0.5 (III)", "0.05 (IV)*")),
+          "Lelas & Pezer eqs. 11, 20-23",
+          "underdamped (b < 2 sqrt(k m)); needs an admissible root of eq. 22",
+          _underdamped, "tab:red", "-", 2.0, 3.0, ("0.5 (III)", "0.05 (IV)*")),
     Model("undamped", "undamped-phase ansatz (eqs. 8-10)",
           (("method", "ansatz"), ("phase", "undamped")),
-          "Lelas & Pezer eqs. 8-10", "any damping", _always, "tab:blue", "-", 1.6, 2.5,
+          "Lelas & Pezer eqs. 8-10", "underdamped (b < 2 sqrt(k m))", _underdamped, "tab:blue",
+          "-", 1.6, 2.5,
           ("0.1 (eq. 25)", "0.03 (eq. 25)")),
     Model("matched_tail", "matched + Coulomb tail (eqs. 41, 52)",
           (("method", "ansatz"), ("tail", "coulomb")),
-          "Lelas & Pezer eqs. 41, 52, 54", "sliding friction (mu > 0)", _has_friction,
+          "Lelas & Pezer eqs. 41, 52, 54",
+          "sliding friction (mu > 0), underdamped (b < 2 sqrt(k m))", _tail_applies,
           "tab:green", "-.", 1.6, 2.8, ("0.5 (III)", "0.05 (IV)")),
     Model("rizcallah", "Rizcallah, sinusoidal friction (b = D = 0)", (("method", "rizcallah"),),
-          "Rizcallah (2019)", "sliding friction only (mu > 0, b = D = 0)", _coulomb_only,
+          "Rizcallah (2019)",
+          "sliding friction only (mu > 0, b = D = 0), 0 < kappa <= 2; at rest no farther out "
+          "than A0", _coulomb_only,
           "tab:orange", (0, (5, 2)), 1.4, 2.2),
     Model("coulomb_exact", "exact half-swings (D = 0)", (("method", "coulomb_exact"),),
           "Lelas & Pezer eq. 54 generalised; docs/DESIGN.md 2.6",
@@ -136,9 +153,9 @@ def applicable_models(osc: Oscillator, *, reference: bool = True) -> tuple[str, 
         reference: include the reference integrator.
 
     Returns:
-        Keys of :data:`MODELS`: both ansatz phases always; the Coulomb tail when mu > 0;
-        Rizcallah's model when mu > 0 and b = D = 0; the exact half-swings when mu > 0, D = 0
-        and b < 2 sqrt(k m); the reference when asked for.
+        Keys of :data:`MODELS`: both ansatz phases when b < 2 sqrt(k m); the Coulomb tail
+        when also mu > 0; Rizcallah's model when mu > 0 and b = D = 0; the exact half-swings
+        when mu > 0, D = 0 and b < 2 sqrt(k m); the reference when asked for.
     """
     return tuple(k for k, m in MODELS.items()
                  if (k != "reference" or reference) and m.applies(osc))

@@ -42,6 +42,58 @@ def check_finite(name: str, value) -> None:
             raise ValueError(f"{name} must be finite, got {value!r}")
 
 
+def check_count(name: str, value, *, minimum: int = 0) -> int:
+    """An integer option (``back``, ``n``, ...) as a Python int; ValueError naming ``name``.
+
+    Arguments:
+        name: the option's name, for the message.
+        value: an integer (Python or numpy; a float such as 2.0 or a bool is refused).
+        minimum: the smallest value allowed.
+
+    Returns:
+        ``int(value)``.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def check_real(name: str, value, *, low: float, high: float = math.inf,
+               low_open: bool = False, high_open: bool = False, hint: str = "") -> float:
+    """A real option (``rtol``, ``atol``, ``kappa``) as a Python float in a range.
+
+    Arguments:
+        name: the option's name, for the message.
+        value: a real number (a concrete scalar).
+        low, high: the bounds; ``low_open``/``high_open`` exclude them.
+        hint: what the option means, appended to the message.
+
+    Returns:
+        ``float(value)``.
+
+    Raises:
+        ValueError: naming ``name``, when the value is not a real scalar, not finite or out of
+            the range.
+    """
+    if isinstance(value, jax.core.Tracer):
+        raise ValueError(f"{name} is static: pass a Python number, not a traced value")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+        ok = False
+    else:
+        ok = math.isfinite(x) and (x > low if low_open else x >= low) and (
+            x < high if high_open else x <= high)
+    if not ok:
+        lo = f"{'>' if low_open else '>='} {low:g}"
+        hi = "" if high == math.inf else f" and {'<' if high_open else '<='} {high:g}"
+        raise ValueError(f"{name} must be a finite number {lo}{hi}{hint}, got {value!r}")
+    return x
+
+
 def check_choices(name: str, values, choices) -> tuple[str, ...]:
     """Validate a non-empty list of distinct names from ``choices``; ValueError naming ``name``."""
     values = (values,) if isinstance(values, str) else tuple(values)

@@ -40,8 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._oscillator import Oscillator, check_finite, is_concrete
-from ._solution import RESULTS, AbstractSolution, first_failure
+from ._oscillator import Oscillator, check_count, check_finite, check_real, is_concrete
+from ._solution import RESULTS, AbstractSolution, first_failure, input_checks
 
 Array = jax.Array
 
@@ -311,7 +311,15 @@ def _state_at(sol: ReferenceSolution, K, t, left):
     x, v = _hermite(h, th, y_a, y_b, args)
     x = jnp.where(moving, x, jnp.where(resting, sol.halt_position, jnp.nan))
     v = jnp.where(moving, v, jnp.where(resting, 0.0, jnp.nan))
-    return x, v
+    # input out of the domain: nothing was integrated (see _solve_single)
+    bad = _bad_input(sol.result)
+    return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
+
+
+def _bad_input(result):
+    """True where the reference's result says its input is out of the domain."""
+    return ((result == RESULTS.invalid_constants) | (result == RESULTS.nonfinite_state)
+            | (result == RESULTS.invalid_t_end))
 
 
 def _grid_left(K, start, step, n: int):
@@ -516,7 +524,7 @@ class ReferenceSolution(AbstractSolution):
         Returns:
             (t_n, x_n), each of shape (n,) (batch shape in front for a batched solution).
         """
-        n = int(n)
+        n = check_count("n", n)
         length = self.swing_times.shape[-1]
 
         def pick(a):
@@ -531,6 +539,15 @@ class ReferenceSolution(AbstractSolution):
 def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_swing,
                   solver_name, root_finder, adjoint):
     """Unbatched core of `solve_reference` (all inputs scalars)."""
+    # out of the domain (non-finite or non-positive m, k, g, negative mu, b, D, a non-finite
+    # state, t_end not > 0): integrate a harmless stand-in (at rest, one step) and flag it
+    checks = (*input_checks(osc, x0, v0),
+              (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end))
+    ok_in = ~(checks[0][0] | checks[1][0] | checks[2][0])
+    osc_in, x0_in, v0_in, t_end_in = osc, x0, v0, t_end
+    osc = jax.tree_util.tree_map(lambda a: jnp.where(ok_in, a, 1.0), osc)
+    x0, v0, t_end = (jnp.where(ok_in, x0, 0.0), jnp.where(ok_in, v0, 0.0),
+                     jnp.where(ok_in, t_end, 1.0))
     solver = _UnrolledERK(solver_name)
     w0 = osc.omega0
     xc = osc.xc
@@ -647,14 +664,14 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
 
     final, out = jax.lax.scan(slot, carry0, None, length=max_swings)
 
-    result = first_failure((final["failed"], RESULTS.solver_failed),
+    result = first_failure(*checks, (final["failed"], RESULTS.solver_failed),
                            (final["active"], RESULTS.max_swings_reached))
-    halted = final["halted"]
+    halted = final["halted"] & ok_in
     slot = jnp.where(out["fired"], jnp.cumsum(out["fired"]) - 1, max_swings)
     nan_row = jnp.full((max_swings,), jnp.nan)
     return ReferenceSolution(
-        osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted,
-        halt_time=jnp.where(halted, final["t_halt"], jnp.inf),
+        osc=osc_in, x0=x0_in, v0=v0_in, t_end=t_end_in, halted=halted,
+        halt_time=jnp.where(halted, final["t_halt"], jnp.where(ok_in, jnp.inf, jnp.nan)),
         halt_position=jnp.where(halted, final["x_halt"], jnp.nan),
         result=result, n_swings=final["n_swings"],
         swing_times=nan_row.at[slot].set(out["t_sw"], mode="drop"),
@@ -699,7 +716,8 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         v0: initial velocity [m/s].
         t_end: end of the time interval [s]; default 25 undamped periods (50 pi / w0), about
             50 swings. May be traced.
-        rtol, atol: tolerances of the PID step-size controller (static).
+        rtol, atol: tolerances of the PID step-size controller (static): 0 < rtol < 1,
+            atol >= 0, both finite.
         max_swings: scan slots (static). A slot holds one swing, or the part of a swing that
             fits in `max_steps_per_swing` steps (the swing then continues in the next slot).
         max_steps_per_swing: solver steps (accepted and rejected) per slot (static). Every
@@ -729,6 +747,10 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
     if jnp.asarray(0.0, dtype=float).dtype != jnp.float64:
         raise ValueError("solve_reference needs float64: call "
                          "jax.config.update('jax_enable_x64', True) first")
+    rtol = check_real("rtol", rtol, low=0.0, low_open=True, high=1.0, high_open=True,
+                      hint=" (the relative tolerance of the step-size controller)")
+    atol = check_real("atol", atol, low=0.0,
+                      hint=" (the absolute tolerance of the step-size controller)")
     if int(max_swings) < 1 or int(max_steps_per_swing) < 2:
         raise ValueError("max_swings must be >= 1 and max_steps_per_swing >= 2, got "
                          f"{max_swings} and {max_steps_per_swing}")
@@ -743,7 +765,7 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         if is_concrete(t_end) and np.any(np.asarray(t_end, dtype=float) <= 0):
             raise ValueError(f"t_end must be > 0, got {t_end!r}")
         t_end = jnp.asarray(t_end, dtype=float)
-    sol = _solve_jit(osc, x0, v0, t_end, rtol=float(rtol), atol=float(atol),
+    sol = _solve_jit(osc, x0, v0, t_end, rtol=rtol, atol=atol,
                      max_swings=int(max_swings), max_steps_per_swing=int(max_steps_per_swing),
                      solver_name=solver, root_finder=root_finder, adjoint=adjoint)
     if is_concrete(sol.result._value) and sol.message:

@@ -48,6 +48,16 @@ class RESULTS(eqx.Enumeration):
         "max_steps_per_swing, or shorten t_end")
     solver_failed = ("the reference's ODE solver failed (non-finite state or step size too "
                      "small); check the oscillator's parameters")
+    invalid_constants = (
+        "m, k, g must be finite and > 0; mu, b, D finite and >= 0: fix the Oscillator's fields")
+    ansatz_overdamped = (
+        "b: the ansatz oscillates at w0 and needs underdamping, d1 = b/(2m) < w0 = sqrt(k/m) "
+        "(b < 2 sqrt(k m)); use method='reference'")
+    invalid_t_end = "t_end: the reference's end time must be finite and > 0"
+    rizcallah_gains_energy = (
+        "mu: Rizcallah's model comes to rest farther out than its undamped amplitude A0, with "
+        "more energy than it started with (friction too strong for the amplitude: xc is not "
+        "small against A0); use method='reference'")
 
 
 def result_where(pred, a: RESULTS, b: RESULTS) -> RESULTS:
@@ -73,6 +83,48 @@ def first_failure(*checks: tuple[Array, RESULTS]) -> RESULTS:
     for failed, reason in reversed(checks):
         out = result_where(failed, reason, out)
     return out
+
+
+def constants_ok(osc) -> Array:
+    """True where the oscillator's constants are in every model's domain (elementwise).
+
+    m, k and g must be finite and > 0; mu, b and D finite and >= 0. Works on traced fields
+    (under ``jit``/``vmap``), where the Oscillator's construction checks nothing.
+    """
+    ok = jnp.asarray(True)
+    for value in (osc.m, osc.k, osc.g):
+        ok = ok & jnp.isfinite(value) & (value > 0.0)
+    for value in (osc.mu, osc.b, osc.D):
+        ok = ok & jnp.isfinite(value) & (value >= 0.0)
+    return ok
+
+
+def input_checks(osc, x0, v0) -> tuple[tuple[Array, RESULTS], ...]:
+    """The (failed, reason) checks every model starts with (see :func:`first_failure`).
+
+    Arguments:
+        osc: the Oscillator; x0, v0: the initial state.
+
+    Returns:
+        ((constants out of domain, ``RESULTS.invalid_constants``), (x0 or v0 not finite,
+        ``RESULTS.nonfinite_state``)).
+    """
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    return ((~constants_ok(osc), RESULTS.invalid_constants),
+            (~(jnp.isfinite(x0) & jnp.isfinite(v0)), RESULTS.nonfinite_state))
+
+
+def stuck_at_start(osc, x0, v0) -> Array:
+    """True where the block starts at rest inside the sticking band and never moves.
+
+    v0 = 0 and |x0| <= xc = mu m g / k (static friction holds the spring's pull); only where
+    the constants are in the domain (:func:`constants_ok`). Every model then gives the trivial
+    answer: x(t) = x0, v = 0, halt_time 0, halt_position x0.
+    """
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    return constants_ok(osc) & (v0 == 0.0) & (jnp.abs(x0) <= osc.xc)
 
 
 def is_successful(result: RESULTS) -> Array:

@@ -12,11 +12,18 @@ import numpy as np
 from ._ansatz import AnsatzSolution, solve_ansatz
 from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
 from ._models import METHODS
-from ._oscillator import Oscillator, check_finite, is_concrete
+from ._oscillator import Oscillator, check_count, check_finite, check_real, is_concrete
+
+#: Rizcallah's default amplitude factor (least squares)
+KAPPA = 4.0 / math.pi
+#: kappa above this makes the envelope lose more than pi xc per half period: the model halts
+#: within a couple of swings whatever the start, a band it was never meant for (Rizcallah's
+#: kappas are 4/pi, pi/2 and sqrt(2))
+KAPPA_MAX = 2.0
 
 
 def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matched",
-          tail: str | None = None, back: int = 0, kappa: float = 4.0 / math.pi,
+          tail: str | None = None, back: int = 0, kappa: float | None = None,
           tolerance: float = 1e-2, throw: bool = False, **options):
     """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
 
@@ -32,14 +39,15 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             eq. 3 with exact stick-slip); or "auto": the matched ansatz where the error atlas
             puts max |x - x_ref| / A0 below ``tolerance`` with a margin (twice the largest
             error at the atlas points around this one, see ``dampax._atlas``), else the
-            reference. The
-            solution's ``model`` says which ("matched" or "reference"); eager, scalar input
-            only (the choice depends on the values).
+            reference. The solution's ``model`` says which ("matched" or "reference");
+            eager, scalar input only (the choice depends on the values).
         phase: ansatz only: "matched" (A, phi from eqs. 22-23) or "undamped" (eqs. 8-10).
         tail: ansatz only: None, or "coulomb" for the improved solutions (eqs. 41, 52, 54): the
             exact Coulomb (+ viscous) motion from the last turning point with |x| > xc.
-        back: with tail="coulomb": start the tail this many turning points earlier (eq. 54: 1).
-        kappa: rizcallah only: 4/pi (least squares), pi/2 (impulse) or sqrt(2) (rms).
+        back: with tail="coulomb": start the tail this many turning points earlier (eq. 54: 1);
+            an integer >= 0.
+        kappa: rizcallah only: 4/pi (least squares, the default), pi/2 (impulse) or sqrt(2)
+            (rms); a number in (0, 2].
         tolerance: auto only: the largest acceptable expected error of the ansatz, in A0
             (``solution.error_estimate``), > 0.
         throw: under ``jit``/``vmap``, raise the failure's message at run time
@@ -53,15 +61,23 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         it failed and what to do), ``valid`` (``result`` is successful), and ``amplitude``,
         ``phase`` for the ansatz.
 
+    Every model states its domain (``dampax.MODELS[...].domain``): m, k, g finite and > 0;
+    mu, b, D finite and >= 0; x0, v0 finite; plus the model's own conditions (the ansatz:
+    d1 = b/(2m) < w0 and an admissible amplitude; rizcallah: b = D = 0; coulomb_exact: D = 0,
+    b < 2 sqrt(k m)). A start at rest inside the sticking band (v0 = 0, k |x0| <= mu m g) is
+    answered by every model with the exact rest: x(t) = x0, v = 0, halt_time 0.
+
     Called eagerly, invalid input (non-finite x0/v0, a model that does not exist for these
     parameters, e.g. no admissible amplitude of eq. 22) raises ValueError with the result's
     message, which names the parameter; under jit/vmap the solution carries ``result`` (and
-    ``valid = False``) with NaN values instead, or raises with ``throw=True``.
+    ``valid = False``) with NaN values instead, or raises with ``throw=True``. The options
+    (kappa, back, rtol, atol, ...) are static and always checked at once (ValueError naming
+    the option).
     """
     if not isinstance(osc, Oscillator):
         raise TypeError(f"osc must be a dampax.Oscillator, got {type(osc).__name__}")
     if method == "auto":
-        if tail is not None or phase != "matched" or back != 0 or kappa != 4.0 / math.pi:
+        if tail is not None or phase != "matched" or back != 0 or kappa is not None:
             raise ValueError("method='auto' chooses between the matched ansatz and the "
                              "reference: phase, tail, back and kappa do not apply")
         return _solve_auto(osc, x0, v0, tolerance=tolerance, throw=throw, options=options)
@@ -73,6 +89,15 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         raise ValueError(f"phase, tail and back apply to method='ansatz' only, not {method!r}")
     if method != "reference" and options:
         raise ValueError(f"options {sorted(options)} apply to method='reference' only")
+    if kappa is not None and method != "rizcallah":
+        raise ValueError(f"kappa applies to method='rizcallah' only, not {method!r}")
+    kappa = KAPPA if kappa is None else check_real(
+        "kappa", kappa, low=0.0, low_open=True, high=KAPPA_MAX,
+        hint=" (Rizcallah's amplitude factor: 4/pi, pi/2 or sqrt(2); beyond 2 the"
+        " model can halt outside the band with growing energy)")
+    back = check_count("back", back)
+    if back and tail is None:
+        raise ValueError(f"back applies to tail='coulomb' only, got back={back} and tail=None")
     check_finite("x0", x0)
     check_finite("v0", v0)
     piecewise = method in ("rizcallah", "coulomb_exact") or tail is not None
@@ -91,7 +116,7 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         x0 = jnp.asarray(x0, dtype=float)
         v0 = jnp.asarray(v0, dtype=float)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
-                              back=int(back), kappa=float(kappa))
+                              back=back, kappa=kappa)
     if eager and is_concrete(sol.result._value) and sol.message:
         raise ValueError(sol.message)
     if throw:
@@ -152,11 +177,12 @@ def turning_points(sol, n: int):
 
     Arguments:
         sol: a solution returned by :func:`solve`.
-        n: how many (static).
+        n: how many (static), an integer >= 0.
 
     Returns:
         (t, x), two arrays of shape (n,).
     """
+    n = check_count("n", n)
     if isinstance(sol, AnsatzSolution):
         # an ansatz solved for array fields: its leaves broadcast to a batch shape; map the
         # per-trajectory search over it
