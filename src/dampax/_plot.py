@@ -19,6 +19,17 @@ from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._summary import ModelRun, damping_ratios
 
 
+def _finish(fig, handles, labels, path, *, title, dpi):
+    """Legend below the panels, optional title, the file written whole; returns ``path``."""
+    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
+               fontsize=9, frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    save_figure(fig, path, dpi=dpi)
+    fig.clear()
+    return path
+
+
 def _grid(osc: Oscillator, t_end: float, n_points: int | None) -> np.ndarray:
     if n_points is None:
         periods = t_end * as_float(osc.omega0) / (2.0 * math.pi)
@@ -358,13 +369,7 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
 
         handles.append(Line2D([], [], color="0.4", linestyle="--", linewidth=0.8))
         labels.append("halt time")
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
-               fontsize=9, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    save_figure(fig, path, dpi=dpi)
-    fig.clear()
-    return path
+    return _finish(fig, handles, labels, path, title=title, dpi=dpi)
 
 
 def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = None,
@@ -436,13 +441,7 @@ def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = 
     handles += [Line2D([], [], color="0.3", linestyle="--", linewidth=1.0),
                 Line2D([], [], color="0.3", linestyle="-", linewidth=1.8, alpha=0.5)]
     labels += ["local derivative (tangent)", "trend (least-squares slope)"]
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
-               fontsize=9, frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    save_figure(fig, path, dpi=dpi)
-    fig.clear()
-    return path
+    return _finish(fig, handles, labels, path, title=title, dpi=dpi)
 
 
 def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int = 120):
