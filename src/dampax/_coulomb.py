@@ -271,8 +271,11 @@ class TailSolution(AbstractSolution):
         early = t <= self.t_switch
         t_head = jnp.where(early, t, 0.0)
         t_tail = jnp.where(early, self.t_switch, t)
-        return jax.tree_util.tree_map(lambda h, s: jnp.where(early, h, s), head(t_head),
-                                      tail(t_tail))
+        # NaN wherever the piecewise solution is not valid (e.g. the switch point was not
+        # bracketed), even where its two parts are
+        return jax.tree_util.tree_map(
+            lambda h, s: jnp.where(self.valid, jnp.where(early, h, s), jnp.nan),
+            head(t_head), tail(t_tail))
 
     def _x_energy(self, t, grid=None):
         x, v = self._pick(t, self.ansatz._state, self.tail._state)
