@@ -407,11 +407,17 @@ def _params(i):
 
 
 def _finite_differences(values, p, eps=1e-5):
-    """Central differences of values(p) (an array) in every component of p."""
+    """Central differences of values(p) (an array) in every component of p; one-sided (second
+    order) for a damping constant (mu, b, D: the first three) at 0, where p - eps is outside the
+    domain (negative constants are flagged invalid, NaN)."""
     cols = []
-    for e in np.eye(len(p)):
-        cols.append((np.asarray(values(p + eps * e)) - np.asarray(values(p - eps * e)))
-                    / (2 * eps))
+    for j, e in enumerate(np.eye(len(p))):
+        if j < 3 and float(p[j]) - eps < 0.0:
+            cols.append((-3.0 * np.asarray(values(p)) + 4.0 * np.asarray(values(p + eps * e))
+                         - np.asarray(values(p + 2 * eps * e))) / (2 * eps))
+        else:
+            cols.append((np.asarray(values(p + eps * e)) - np.asarray(values(p - eps * e)))
+                        / (2 * eps))
     return np.stack(cols, axis=1)
 
 
