@@ -32,6 +32,15 @@ def trace_count() -> int:
     return eqx.debug.get_num_traces(maps._per_point)
 
 
+@pytest.fixture(scope="module", autouse=True)
+def no_exported_programs():
+    """Trace counts need the serialized-program cache off (``DAMPAX_CACHE=0`` is read per call):
+    a program loaded from ``exported/`` is not traced, and an earlier test may have written it."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("DAMPAX_CACHE", "0")
+        yield
+
+
 # the settings of `dampax errormap --quick` (keep in step with dampax._cli.errormap.ERRORMAP_QUICK)
 QUICK = dict(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
              d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
