@@ -301,3 +301,23 @@ def test_array_fields_without_vmap(model):
         t1, x1 = dp.turning_points(one, 3)
         np.testing.assert_allclose(t[i], t1, rtol=1e-12)
         np.testing.assert_allclose(x[i], x1, rtol=1e-12)
+
+
+def test_turning_point_just_before_the_halt_under_vmap():
+    # the matched ansatz turns at 1.4405 s, 0.027 s before its halt; Newton started at the halt
+    # once stuck there under vmap (f = 0 exactly) and lost that turning point, while the
+    # unbatched program (f a rounding error above 0) found it. Its residual must vanish there:
+    # w0 t + phi = 3 pi + atan(f'/(w0 f)), i.e. v(t) = 0
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.1, b=0.2, D=0.5)
+
+    def turning(mu):
+        sol = dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=mu, b=0.2, D=0.5), 0.2, -0.3)
+        return dp.turning_points(sol, 3)
+
+    one = dp.solve(osc, 0.2, -0.3)
+    t, x = (np.asarray(a) for a in dp.turning_points(one, 3))
+    tb, xb = (np.asarray(a) for a in jax.jit(jax.vmap(turning))(jnp.array([0.1, 0.1])))
+    assert 0.0 < float(one.halt_time) - t[2] < 0.05
+    assert abs(float(one.v(t[2]))) < 1e-10
+    np.testing.assert_allclose(tb, np.stack([t, t]), rtol=1e-12)
+    np.testing.assert_allclose(xb, np.stack([x, x]), rtol=1e-12)

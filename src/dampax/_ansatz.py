@@ -392,14 +392,20 @@ class AnsatzSolution(AbstractSolution):
     def _turning_newton(self, n):
         """Turning point n (v = 0 near w0 t + phi = n pi) by Newton's method, no gradient."""
         frozen = jax.lax.stop_gradient(self._params())
+        # the iterates stay short of the halt: at t = tau itself f is 0 or a rounding error
+        # away from it, whichever the compiled program gives (it differed between jit and
+        # vmap), and at f = 0 the residual is meaningless (Newton stuck at tau and missed a
+        # turning point just before the halt); one that ends at the cap found none: tau
         tau = frozen[5]
+        t_max = tau * (1.0 - 1e-9)
 
         def newton(_, t):
             val, der = self._turning_residual(t, n, frozen)
-            return jnp.clip(t - val / der, 0.0, tau)
+            return jnp.clip(t - val / der, 0.0, t_max)
 
-        t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, tau)
-        return jax.lax.fori_loop(0, 6, newton, t)
+        t = jnp.clip((n * jnp.pi - frozen[1]) / frozen[0], 0.0, t_max)
+        t = jax.lax.fori_loop(0, 6, newton, t)
+        return jnp.where(t >= t_max, tau, t)
 
     def _turning_refine(self, n, t):
         """One Newton step at the converged t: exact first derivatives (implicit function)."""
