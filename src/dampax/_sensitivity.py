@@ -2,14 +2,17 @@
 
 :func:`sensitivity` differentiates one model of :func:`dampax.solve` with respect to any of the
 oscillator's fields (m, k, mu, b, D, g) and the initial state (x0, v0), for the displacement
-and the energy at given times and for the halt time and position, and next to each local
-derivative of the halt time and position a *trend* derivative: the least-squares slope of the
+and the energy at given times, for the halt time and position and (opt-in) for the first few
+turning points, and next to each local derivative of the halt time and position (and of the
+number of swings and the turning points) a *trend* derivative: the least-squares slope of the
 quantity over a window of +-5 % (``window``) of each parameter, from one vmapped sweep. The halt
 jumps where a swing is lost or gained, so the local derivative (the slope between jumps) and the
-trend (the slope the jumps set) can differ by orders of magnitude. Forward mode (``jax.jacfwd``)
-is the default: a handful of parameters against many outputs (x and E at every time). The
-whole evaluation is compiled once per (method, options, wrt, shape of ts) and re-used for new
-numbers; it runs under ``jax.vmap`` for a grid of parameters.
+trend (the slope the jumps set) can differ by orders of magnitude; a turning point of the exact
+motion does not jump (it only appears or disappears with its swing), so there its two
+derivatives agree where it exists. Forward mode (``jax.jacfwd``) is the default: a handful of
+parameters against many outputs (x and E at every time). The whole evaluation is compiled
+once per (method, options, wrt, shape of ts) and re-used for new numbers; it runs under
+``jax.vmap`` for a grid of parameters.
 
 :func:`dampax.plot_sensitivity` (in ``_plot``) draws d x(t)/d theta of several models, and
 ``dampax._cli.sensitivity`` is the ``dampax sensitivity`` command.
@@ -26,9 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._models import METHODS
-from ._oscillator import Oscillator, check_choices, check_finite, is_concrete
+from ._oscillator import Oscillator, check_choices, check_count, check_finite, is_concrete
 from ._solution import RESULTS, is_successful, message
-from ._solve import solve, turning_points
+from ._solve import solve
+from ._solve import turning_points as _turning_points
 
 Array = jax.Array
 
@@ -78,11 +82,29 @@ class Sensitivity(eqx.Module):
             local derivative is 0 where defined; NaN if it never halts, beyond 64 turning
             points, or without ``swings=True`` (and ``trend=True``).
         dswings_trend: the trend derivative of ``swings`` (swings per unit of the parameter).
+        turning_times, turning_positions: the first N = ``turning_points`` turning points
+            (t_n, x_n), n = 1 ... N, as :func:`dampax.turning_points` lists them (v = 0, t > 0,
+            the rest point last where the model stops at a turning point), shape (N,); NaN
+            where the motion has fewer (it halted before, or the reference's t_end or
+            max_swings ended it). Empty (N = 0) unless ``turning_points`` > 0.
+        dturning_time, dturning_position: their local derivatives d t_n/d theta,
+            d x_n/d theta, shape (len(wrt), N); NaN where the turning point does not exist.
+        dturning_time_trend, dturning_position_trend: their trend derivatives, shape
+            (len(wrt), N): the least-squares slope of t_n (x_n) over the window points where
+            turning point n exists (NaN on the sweep elsewhere); NaN where fewer than
+            :data:`MIN_TREND_POINTS` window points have it, or where theta = 0. In the exact
+            motion (reference, coulomb_exact) and the plain ansatz a turning point is smooth in
+            the parameters where it exists (a swing lost or gained removes or adds the last one
+            and does not move the others), so trend and local derivative agree up to the
+            window's curvature; with tail="coulomb" the points after the switch to the exact
+            tail jump where the switch moves.
         window_values: the parameter values of the sweeps, shape (len(wrt), window_points):
             row i varies wrt[i] alone, the others held.
         window_halt_time, window_halt_position, window_swings: the halt time, position and
             number of swings on the sweeps,
             shape (len(wrt), window_points) (for :func:`dampax.plot_trend`).
+        window_turning_times, window_turning_positions: the turning points on the sweeps,
+            shape (len(wrt), window_points, N).
         result: the model's ``RESULTS`` member (why it failed: NaN values, e.g. no admissible
             amplitude); ``valid`` is ``result == RESULTS.successful``.
         wrt: the parameter names (static).
@@ -109,6 +131,14 @@ class Sensitivity(eqx.Module):
     window_halt_time: Array
     window_halt_position: Array
     window_swings: Array
+    turning_times: Array
+    turning_positions: Array
+    dturning_time: Array
+    dturning_position: Array
+    dturning_time_trend: Array
+    dturning_position_trend: Array
+    window_turning_times: Array
+    window_turning_positions: Array
     result: RESULTS
     wrt: tuple[str, ...] = eqx.field(static=True)
     window: float = eqx.field(static=True)
@@ -134,7 +164,9 @@ class Sensitivity(eqx.Module):
             {"x": d x(ts)/d name, "energy": d E(ts)/d name, "halt_time": d tau/d name,
             "halt_position": d x_halt/d name, "halt_time_trend": the trend derivative of tau,
             "halt_position_trend": that of x_halt, "swings_trend": that of the number of
-            swings}, with the batch axes in front when batched.
+            swings, "turning_time": d t_n/d name (shape (N,), n = 1 ... N),
+            "turning_time_trend", "turning_position": d x_n/d name, "turning_position_trend"},
+            with the batch axes in front when batched.
         """
         i = self.index(name)
         axis = jnp.ndim(self.dhalt_time) - 1  # the wrt axis comes after the batch axes
@@ -144,7 +176,12 @@ class Sensitivity(eqx.Module):
                 "halt_position": jnp.take(self.dhalt_position, i, axis=axis),
                 "halt_time_trend": jnp.take(self.dhalt_time_trend, i, axis=axis),
                 "halt_position_trend": jnp.take(self.dhalt_position_trend, i, axis=axis),
-                "swings_trend": jnp.take(self.dswings_trend, i, axis=axis)}
+                "swings_trend": jnp.take(self.dswings_trend, i, axis=axis),
+                "turning_time": jnp.take(self.dturning_time, i, axis=axis),
+                "turning_time_trend": jnp.take(self.dturning_time_trend, i, axis=axis),
+                "turning_position": jnp.take(self.dturning_position, i, axis=axis),
+                "turning_position_trend": jnp.take(self.dturning_position_trend, i,
+                                                   axis=axis)}
 
     def as_dict(self) -> dict[str, dict[str, Array]]:
         """{name: self.of(name)} for every name of ``wrt``, in order."""
@@ -154,16 +191,42 @@ class Sensitivity(eqx.Module):
         """Where the local and the trend derivative differ by more than a factor 2.
 
         Returns:
-            {name: {"halt_time": bool, "halt_position": bool}} for an unbatched result; see
-            :func:`differ_by_factor` (a NaN trend is never flagged).
+            {name: {"halt_time": bool, "halt_position": bool, "swings": bool,
+            "turning_time_1": bool, "turning_position_1": bool, ...}} for an unbatched result,
+            one pair of turning-point keys per n = 1 ... N; see :func:`differ_by_factor` (a NaN
+            trend is never flagged; a derivative d with |d| theta w < :data:`NEGLIGIBLE` times
+            the quantity counts as 0). The local derivative of the number of swings is 0 (an
+            integer), so "swings" is True wherever its trend is not 0: a swing is lost or
+            gained inside the window.
         """
         if jnp.ndim(self.dhalt_time) != 1:
             raise ValueError("disagreements: needs an unbatched Sensitivity")
+        values = {"halt_time": self.halt_time, "halt_position": self.halt_position,
+                  "swings": self.swings, "turning_time": self.turning_times,
+                  "turning_position": self.turning_positions}
         out = {}
-        for name in self.wrt:
+        for i, name in enumerate(self.wrt):
             g = self.of(name)
-            out[name] = {q: differ_by_factor(float(g[q]), float(g[q + "_trend"]))
-                         for q in ("halt_time", "halt_position")}
+            g["swings"] = jnp.zeros(())  # an integer: 0 locally, where it is defined
+            # rounding (e.g. a trend of 1e-27 s where the quantity does not depend on the
+            # parameter): |d| theta w below NEGLIGIBLE |quantity|
+            theta = abs(float(np.asarray(self.window_values)[i, 0] + np.asarray(
+                self.window_values)[i, -1])) / 2.0
+            span = theta * self.window
+
+            def flag(local, trend, value, span=span):
+                value = abs(float(value))
+                tiny = NEGLIGIBLE * value / span if span > 0.0 and math.isfinite(value) else 0.0
+                return differ_by_factor(float(local), float(trend), negligible=tiny)
+
+            flags = {q: flag(g[q], g[q + "_trend"], values[q])
+                     for q in ("halt_time", "halt_position", "swings")}
+            for q in ("turning_time", "turning_position"):
+                for j, (local, trend, value) in enumerate(zip(
+                        np.asarray(g[q]), np.asarray(g[q + "_trend"]), np.asarray(values[q]),
+                        strict=True)):
+                    flags[f"{q}_{j + 1}"] = flag(local, trend, value)
+            out[name] = flags
         return out
 
     def report(self, *, digits: int = 4) -> str:
@@ -174,13 +237,18 @@ class Sensitivity(eqx.Module):
 
         Returns:
             The text (several lines): one row per parameter, '*' where the local and the trend
-            derivative differ by more than a factor 2, and then one line saying why.
+            derivative differ by more than a factor 2, the number of swings and its trend
+            (with ``swings=True``), then one row per parameter and turning point (with
+            ``turning_points`` > 0), and one line saying why where something is flagged.
         """
         flags = self.disagreements()
 
         def num(v):
             v = float(v)
             return "-" if math.isnan(v) else f"{v:.{digits}g}"
+
+        def star(flag):
+            return "*" if flag else " "
 
         counted = math.isfinite(float(self.swings))
         lines = [f"halt time {num(self.halt_time)} s, halt position {num(self.halt_position)} m"
@@ -192,12 +260,32 @@ class Sensitivity(eqx.Module):
                  + (f"  {'d swings trend':>14}" if counted else "")]
         for name in self.wrt:
             g = self.of(name)
-            ft = "*" if flags[name]["halt_time"] else " "
-            fp = "*" if flags[name]["halt_position"] else " "
+            f = flags[name]
             lines.append(f"{name:<10} {num(g['halt_time']):>13} {num(g['halt_time_trend']):>12}"
-                         f"{ft}  {num(g['halt_position']):>15} "
-                         f"{num(g['halt_position_trend']):>12}{fp}"
-                         + (f"  {num(g['swings_trend']):>14}" if counted else ""))
+                         f"{star(f['halt_time'])}  {num(g['halt_position']):>15} "
+                         f"{num(g['halt_position_trend']):>12}{star(f['halt_position'])}"
+                         + (f"  {num(g['swings_trend']):>13}{star(f['swings'])}"
+                            if counted else ""))
+        n_turning = int(np.shape(self.turning_times)[-1])
+        if n_turning:
+            lines.append("turning points (t_n [s], x_n [m]): " + ", ".join(
+                f"{j + 1}: ({num(t)}, {num(x)})" for j, (t, x) in enumerate(
+                    zip(np.asarray(self.turning_times), np.asarray(self.turning_positions),
+                        strict=True))))
+            lines.append(f"{'parameter':<10} {'n':>2} {'d t_n':>13} {'trend':>13}  "
+                         f"{'d x_n':>13} {'trend':>13}")
+            for name in self.wrt:
+                g = self.of(name)
+                f = flags[name]
+                for j in range(n_turning):
+                    lines.append(
+                        f"{name if j == 0 else '':<10} {j + 1:>2} "
+                        f"{num(g['turning_time'][j]):>13} "
+                        f"{num(g['turning_time_trend'][j]):>12}"
+                        f"{star(f[f'turning_time_{j + 1}'])}  "
+                        f"{num(g['turning_position'][j]):>13} "
+                        f"{num(g['turning_position_trend'][j]):>12}"
+                        f"{star(f[f'turning_position_{j + 1}'])}")
         if any(any(f.values()) for f in flags.values()):
             lines.append(f"* {TREND_NOTE}")
         return "\n".join(lines)
@@ -209,12 +297,15 @@ TREND_NOTE = ("local and trend differ by more than a factor 2: the quantity jump
               "jumps; for changes wider than the jumps use the trend")
 
 
-def differ_by_factor(local: float, trend: float, factor: float = 2.0) -> bool:
+def differ_by_factor(local: float, trend: float, factor: float = 2.0, *,
+                     negligible: float = 0.0) -> bool:
     """Whether two derivatives differ by more than ``factor`` (or in sign).
 
     Arguments:
         local, trend: the two numbers (a NaN gives False: nothing to compare).
         factor: the ratio allowed, > 1.
+        negligible: magnitudes up to this count as 0 (rounding: e.g. a trend of 1e-27 s where
+            the quantity does not depend on the parameter at all).
 
     Returns:
         True when the signs differ, or max(|local|, |trend|) > factor * min(|local|, |trend|)
@@ -222,12 +313,20 @@ def differ_by_factor(local: float, trend: float, factor: float = 2.0) -> bool:
     """
     if not (math.isfinite(local) and math.isfinite(trend)):
         return False
+    local = 0.0 if abs(local) <= negligible else local
+    trend = 0.0 if abs(trend) <= negligible else trend
     if local == 0.0 and trend == 0.0:
         return False
     if local * trend < 0.0:
         return True
     small, big = sorted((abs(local), abs(trend)))
     return big > factor * small
+
+
+#: A derivative d with |d| theta w below this fraction of the quantity (a change over the
+#: half-window that no one could see: rounding, or the reference's integration error) counts as
+#: 0 in :meth:`Sensitivity.disagreements`.
+NEGLIGIBLE = 1e-6
 
 
 def check_wrt(wrt) -> tuple[str, ...]:
@@ -265,14 +364,18 @@ def _check_ts(ts) -> Array:
 
 #: Turning points counted by :func:`count_swings` (more are reported as NaN).
 MAX_SWINGS = 64
+#: The fewest window points a turning point's trend is fitted over (else NaN).
+MIN_TREND_POINTS = 3
 
 
-def count_swings(sol) -> Array:
+def count_swings(sol, t_turning=None) -> Array:
     """Number of turning points (t > 0, v = 0) before the halt, the rest point included where
     the model stops at a turning point (as :func:`dampax.turning_points`); NaN when the model
-    never halts or has more than :data:`MAX_SWINGS` of them."""
-    t, _ = turning_points(sol, MAX_SWINGS)
-    count = jnp.sum(jnp.isfinite(t)).astype(float)
+    never halts or has more than :data:`MAX_SWINGS` of them. ``t_turning``: the times of its
+    first MAX_SWINGS (or more) turning points, if computed already."""
+    if t_turning is None:
+        t_turning, _ = _turning_points(sol, MAX_SWINGS)
+    count = jnp.sum(jnp.isfinite(t_turning[..., :MAX_SWINGS]), axis=-1).astype(float)
     ok = jnp.isfinite(sol.halt_time) & (count < MAX_SWINGS)
     return jnp.where(ok, count, jnp.nan)
 
@@ -290,11 +393,37 @@ def least_squares_slope(u: Array, y: Array) -> Array:
     return jnp.where(ok, slope, jnp.nan)
 
 
+def least_squares_slope_where_finite(u: Array, y: Array,
+                                     min_points: int = MIN_TREND_POINTS) -> Array:
+    """Least-squares slope of y against u along the last axis over the points where y is
+    finite (NaN if fewer than ``min_points`` of them, or u constant there); NaN-safe under grad.
+
+    Arguments:
+        u, y: the abscissae and values, same shape (or broadcastable).
+        min_points: the fewest finite points to fit a slope through.
+
+    Returns:
+        The slopes, shaped like y without its last axis.
+    """
+    u, y = jnp.broadcast_arrays(u, y)
+    mask = jnp.isfinite(y)
+    w = mask.astype(float)
+    count = jnp.sum(w, axis=-1, keepdims=True)
+    count_safe = jnp.maximum(count, 1.0)
+    y_safe = jnp.where(mask, y, 0.0)
+    du = (u - jnp.sum(w * u, axis=-1, keepdims=True) / count_safe) * w
+    dy = (y_safe - jnp.sum(y_safe, axis=-1, keepdims=True) / count_safe) * w
+    den = jnp.sum(du * du, axis=-1)
+    ok = (count[..., 0] >= min_points) & (den > 0.0)
+    slope = jnp.sum(du * dy, axis=-1) / jnp.where(ok, den, 1.0)
+    return jnp.where(ok, slope, jnp.nan)
+
+
 @eqx.filter_jit
 def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points, trend,
-              swings):
-    """Values and Jacobians of (x(ts), E(ts), tau, x_halt) w.r.t. ``wrt``, and the trend
-    sweeps, compiled."""
+              swings, n_turning):
+    """Values and Jacobians of (x(ts), E(ts), tau, x_halt, turning points) w.r.t. ``wrt``, and
+    the trend sweeps, compiled."""
     base = dict(m=osc.m, k=osc.k, mu=osc.mu, b=osc.b, D=osc.D, g=osc.g, x0=x0, v0=v0)
     theta = jnp.stack([base[name] for name in wrt])
     if method == "reference":
@@ -308,49 +437,71 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points
         o = Oscillator(**{f: values[f] for f in FIELDS})
         return solve(o, values["x0"], values["v0"], method=method, **options)
 
+    def turning(sol, n):
+        if n == 0:  # nothing asked: leave the program as it was
+            empty = jnp.zeros((0,))
+            return empty, empty
+        return _turning_points(sol, n)
+
+    count_on = swings and trend  # the swing count is only given with its trend
+
     def outputs(p):
         sol = solution(p)
-        out = (sol.x(ts), sol.energy(ts), sol.halt_time, sol.halt_position)
-        return out, (out, sol.result)
+        # the swing count and the turning points share one search
+        t_all, x_all = turning(sol, max(n_turning, MAX_SWINGS) if count_on else n_turning)
+        out = (sol.x(ts), sol.energy(ts), sol.halt_time, sol.halt_position,
+               t_all[:n_turning], x_all[:n_turning])
+        count = count_swings(sol, t_all) if count_on else jnp.array(jnp.nan)
+        return out, (out, count, sol.result)
 
-    jac = jax.jacfwd if mode == "forward" else jax.jacrev
-    d, ((x, e, tau, xh), result) = jac(outputs, has_aux=True)(theta)
-    dx, de, dtau, dxh = (jnp.moveaxis(a, -1, 0) for a in d)
-    # the halt time and position have no derivative where the model never halts
-    dtau = jnp.where(jnp.isfinite(tau), dtau, jnp.nan)
-    dxh = jnp.where(jnp.isfinite(xh), dxh, jnp.nan)
     # trend: one sweep per parameter over theta_i (1 - w) ... theta_i (1 + w), the others held
     n = len(wrt)
     grid = theta[:, None] * (1.0 + window * jnp.linspace(-1.0, 1.0, points))  # (n, points)
+    eye = jnp.eye(n, dtype=bool)
+    P = jnp.where(eye[:, None, :], grid[:, :, None], theta[None, None, :])  # (n, pts, n)
+    P = P.reshape(n * points, n)
+    jac = jax.jacfwd if mode == "forward" else jax.jacrev
+    d, (values, count, result) = jac(outputs, has_aux=True)(theta)
+    # the sweep, values only (one vmapped Jacobian over the nominal point and the sweep would
+    # compile the model once instead of twice, but for the reference that saves only ~5 % of
+    # the compilation and costs 20-50 times the run time)
+    swept = jax.vmap(lambda p: outputs(p)[1][:2])(P) if trend else None
+    x, e, tau, xh, tt, xt = values
+    dx, de, dtau, dxh, dtt, dxt = (jnp.moveaxis(a, -1, 0) for a in d)
+    # the halt time and position have no derivative where the model never halts, a turning
+    # point none where the motion does not reach it
+    dtau = jnp.where(jnp.isfinite(tau), dtau, jnp.nan)
+    dxh = jnp.where(jnp.isfinite(xh), dxh, jnp.nan)
+    dtt = jnp.where(jnp.isfinite(tt), dtt, jnp.nan)
+    dxt = jnp.where(jnp.isfinite(xt), dxt, jnp.nan)
     if trend:
-        eye = jnp.eye(n, dtype=bool)
-        P = jnp.where(eye[:, None, :], grid[:, :, None], theta[None, None, :])  # (n, pts, n)
-
-        def halt(p):
-            sol = solution(p)
-            count = count_swings(sol) if swings else jnp.array(jnp.nan)
-            return sol.halt_time, sol.halt_position, count
-
-        wtau, wxh, wsw = jax.vmap(jax.vmap(halt))(P)
+        (_, _, wtau, wxh, wtt, wxt), wsw = jax.tree_util.tree_map(
+            lambda a: a.reshape((n, points) + a.shape[1:]), swept)
         ttau, txh = least_squares_slope(grid, wtau), least_squares_slope(grid, wxh)
         tsw = least_squares_slope(grid, wsw)
-        n_swings = halt(theta)[2]
+        # turning point j: over the window points where it exists; axes (n, N, points)
+        ttt = least_squares_slope_where_finite(grid[:, None, :], jnp.moveaxis(wtt, -1, 1))
+        txt = least_squares_slope_where_finite(grid[:, None, :], jnp.moveaxis(wxt, -1, 1))
     else:
         wtau = wxh = wsw = jnp.full(grid.shape, jnp.nan)
         ttau = txh = tsw = jnp.full((n,), jnp.nan)
-        n_swings = jnp.array(jnp.nan)
+        wtt = wxt = jnp.full(grid.shape + (n_turning,), jnp.nan)
+        ttt = txt = jnp.full((n, n_turning), jnp.nan)
     return Sensitivity(ts=ts, x=x, dx=dx, energy=e, denergy=de, halt_time=tau, dhalt_time=dtau,
                        halt_position=xh, dhalt_position=dxh, dhalt_time_trend=ttau,
                        dhalt_position_trend=txh, window_values=grid, window_halt_time=wtau,
-                       window_halt_position=wxh, swings=n_swings, dswings_trend=tsw,
-                       window_swings=wsw, result=result, wrt=wrt, window=window)
+                       window_halt_position=wxh, swings=count, dswings_trend=tsw,
+                       window_swings=wsw, turning_times=tt, turning_positions=xt,
+                       dturning_time=dtt, dturning_position=dxt, dturning_time_trend=ttt,
+                       dturning_position_trend=txt, window_turning_times=wtt,
+                       window_turning_positions=wxt, result=result, wrt=wrt, window=window)
 
 
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
                 method: str = "ansatz", mode: str = "forward", trend: bool = True,
                 window: float = 0.05, window_points: int = 41, swings: bool = False,
-                **solve_options) -> Sensitivity:
-    """First derivatives of a model's x(t), E(t), halt time and halt position, local and trend.
+                turning_points: int = 0, **solve_options) -> Sensitivity:
+    """First derivatives of a model's x(t), E(t), halt time and position, local and trend.
 
     Differentiates ``dampax.solve(osc, x0, v0, method=method, **solve_options)`` with respect to
     each name in ``wrt``, exactly (automatic differentiation through the closed forms, or
@@ -395,6 +546,12 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
             :func:`dampax.turning_points`, at most 64) at the nominal point and on the sweeps,
             and give their trend ``dswings_trend`` (default False: for the analytic models the
             count costs a Newton solve per turning point and about doubles the compilation).
+        turning_points: also give the first N = ``turning_points`` turning points (t_n, x_n)
+            (v = 0, t > 0, as :func:`dampax.turning_points`), their local derivatives
+            (``dturning_time``, ``dturning_position``) and, on the same sweeps, their trends
+            (``dturning_time_trend``, ``dturning_position_trend``: the least-squares slope over
+            the window points where turning point n exists); default 0 (none: like
+            ``swings``, this costs compilation time for the analytic models).
 
     Returns:
         A :class:`Sensitivity`: ``dx`` has shape (len(wrt),) + ts.shape, ``dx[i]`` in m per
@@ -412,7 +569,8 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     Raises:
         ValueError: unknown or repeated names in ``wrt``; ``ts`` not finite or negative;
             a non-scalar oscillator or initial state; an unknown method or mode; an adjoint that
-            does not suit the mode; window not in (0, 1); window_points < 3; and, called
+            does not suit the mode; window not in (0, 1); window_points < 3; turning_points
+            not an integer >= 0; and, called
             eagerly, a model that is invalid for these
             parameters (dampax.solve's reason). Under jit/vmap an invalid model gives
             ``valid = False`` and NaN instead.
@@ -439,6 +597,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     if isinstance(window_points, bool) or not isinstance(window_points, int | np.integer) \
             or window_points < 3:
         raise ValueError(f"window_points must be an integer >= 3, got {window_points!r}")
+    n_turning = check_count("turning_points", turning_points)
     check_finite("x0", x0)
     check_finite("v0", v0)
     for name, value in (("osc", osc), ("x0", x0), ("v0", v0)):
@@ -462,7 +621,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     elif t_end is not None:
         options["t_end"] = t_end  # dampax.solve names the misplaced option
     result = _evaluate(osc, x0, v0, ts, t_end, names, method, mode, options, window,
-                       int(window_points), bool(trend), bool(swings))
+                       int(window_points), bool(trend), bool(swings), n_turning)
     if is_concrete(result.result._value) and not np.all(np.asarray(result.valid)):
         raise ValueError(f"method={method!r}: {message(result.result)}")
     return result

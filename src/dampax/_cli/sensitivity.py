@@ -1,8 +1,9 @@
 """``dampax sensitivity``: how the halt time and position depend on the parameters.
 
 Local mode (default): local (autodiff) and trend (least-squares slope over a window)
-derivatives of the halt time and position, a plot of d x(t)/d theta and one of the halt over
-each parameter's window. Global mode (``--global "mu=0.01:0.05,D=0.5:3"``): Sobol' indices S1,
+derivatives of the halt time and position (with ``--swings`` the number of swings, with
+``--turning-points N`` the first N turning points), a plot of d x(t)/d theta and one of the halt
+over each parameter's window. Global mode (``--global "mu=0.01:0.05,D=0.5:3"``): Sobol' indices S1,
 ST with bootstrap half-widths and DGSM over those ranges, and a bar chart.
 """
 
@@ -24,7 +25,6 @@ from .._sensitivity import (
     Sensitivity,
     check_window,
     check_wrt,
-    differ_by_factor,
     sensitivity,
 )
 from .._solve import solve
@@ -62,6 +62,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "i.e. +-5 %%)")
     what.add_argument("--window-points", type=int, default=41, metavar="N",
                       help="parameter values per trend window, >= 3 (default: %(default)s)")
+    what.add_argument("--swings", action="store_true",
+                      help="also count the swings (turning points before the halt, the rest "
+                           "point included) and give their trend over the window; the local "
+                           "derivative of a count is 0, so a non-zero trend is flagged: a swing "
+                           "is lost or gained inside the window (costs compilation time)")
+    what.add_argument("--turning-points", type=int, default=0, metavar="N",
+                      help="also give the first N turning points (t_n, x_n: v = 0, t > 0) with "
+                           "their local and trend derivatives; the trend is fitted over the "
+                           "window points where turning point n exists, '-' where fewer than 3 "
+                           "have it (default: %(default)s, none; costs compilation time)")
     glob = parser.add_argument_group(
         "global sensitivity (Sobol' indices over ranges instead of derivatives at a point)")
     glob.add_argument("--global", dest="global_spec", default=None, metavar="SPEC",
@@ -157,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--{err}") from None
     if args.window_points < 3:
         raise ValueError(f"--window-points must be >= 3, got {args.window_points}")
+    if args.turning_points < 0:
+        raise ValueError(f"--turning-points must be >= 0, got {args.turning_points}")
     check_plot_path(args.plot)
     trend_path = _trend_path(args)
     check_plot_path(trend_path, "--trend-plot")
@@ -173,7 +185,10 @@ def run(args: argparse.Namespace) -> int:
     results: dict[str, Sensitivity] = {}
     for k in models:
         results[k] = sensitivity(osc, args.x0, args.v0, ts, wrt=names, window=window,
-                                 window_points=args.window_points, **MODELS[k].solve_options)
+                                 window_points=args.window_points, swings=args.swings,
+                                 turning_points=args.turning_points,
+                                 **MODELS[k].solve_options)
+    flags = {k: r.disagreements() for k, r in results.items()}
 
     d = args.digits
     print(f"{PROG} sensitivity: {oscillator_text(args)}")
@@ -190,7 +205,6 @@ def run(args: argparse.Namespace) -> int:
           f"slope over +-{100 * window:g} % of the parameter); '-' where undefined")
     print(f"  {'parameter':<14}  {'model':<{width}}  {'d halt time [s]':>15}  {'trend':>11}  "
           f"{'d halt position [m]':>19}  {'trend':>11}")
-    flagged = False
     for name in names:
         unit = UNITS[name] or "1"
         first = f"{name} [{unit}]"
@@ -200,13 +214,16 @@ def run(args: argparse.Namespace) -> int:
             for q in ("halt_time", "halt_position"):
                 local = float(np.asarray(g[q]))
                 trend = float(np.asarray(g[q + "_trend"]))
-                flag = differ_by_factor(local, trend)
-                flagged |= flag
-                cells.append((fmt(local, d), fmt(trend, d) + ("*" if flag else " ")))
+                star = "*" if flags[k][name][q] else " "
+                cells.append((fmt(local, d), fmt(trend, d) + star))
             print(f"  {first:<14}  {labels[k]:<{width}}  {cells[0][0]:>15}  {cells[0][1]:>12} "
                   f"{cells[1][0]:>19}  {cells[1][1]:>12}")
             first = ""
-    if flagged:
+    if args.swings:
+        _print_swings(results, names, flags, labels, width, d)
+    if args.turning_points:
+        _print_turning_points(results, names, flags, labels, width, d)
+    if any(any(f.values()) for per_model in flags.values() for f in per_model.values()):
         print(f"  * {TREND_NOTE}")
     title = (rf"m = {args.m:g} kg, k = {args.k:g} N/m, $\mu$ = {args.mu:g}, b = {args.b:g} kg/s, "
              rf"D = {args.D:g} kg/m, $x_0$ = {args.x0:g} m, $v_0$ = {args.v0:g} m/s")
@@ -217,6 +234,51 @@ def run(args: argparse.Namespace) -> int:
     print(f"  halt over the trend windows written to {tpath}")
     sys.stdout.flush()
     return 0
+
+
+def _print_swings(results, names, flags, labels, width, d) -> None:
+    """The number of swings of each model and its trend per parameter ('*': not 0)."""
+    print()
+    print("  number of swings (turning points before the halt, the rest point included): "
+          + ", ".join(f"{labels[k]} {fmt(float(np.asarray(r.swings)), d)}"
+                      for k, r in results.items()))
+    print(f"  {'parameter':<14}  {'model':<{width}}  {'d swings':>9}  {'trend':>11}")
+    for name in names:
+        first = f"{name} [{UNITS[name] or '1'}]"
+        for k, r in results.items():
+            local = 0.0 if math.isfinite(float(np.asarray(r.swings))) else math.nan
+            trend = float(np.asarray(r.of(name)["swings_trend"]))
+            star = "*" if flags[k][name]["swings"] else " "
+            print(f"  {first:<14}  {labels[k]:<{width}}  {fmt(local, d):>9}  "
+                  f"{fmt(trend, d) + star:>12}")
+            first = ""
+
+
+def _print_turning_points(results, names, flags, labels, width, d) -> None:
+    """The first N turning points of each model with their local and trend derivatives."""
+    print()
+    print("  turning points (v = 0, t > 0): t_n [s], x_n [m]; '-' where the motion has fewer")
+    for k, r in results.items():
+        points = ", ".join(f"{j + 1}: ({fmt(float(t), d)}, {fmt(float(x), d)})"
+                           for j, (t, x) in enumerate(zip(np.asarray(r.turning_times),
+                                                          np.asarray(r.turning_positions),
+                                                          strict=True)))
+        print(f"  {labels[k]:<{width}}  {points}")
+    print(f"  {'parameter':<14}  {'model':<{width}}  {'n':>2}  {'d t_n [s]':>11}  "
+          f"{'trend':>11}  {'d x_n [m]':>11}  {'trend':>11}")
+    for name in names:
+        first = f"{name} [{UNITS[name] or '1'}]"
+        for k, r in results.items():
+            g = r.of(name)
+            for j in range(int(np.shape(r.turning_times)[-1])):
+                cells = []
+                for q in ("turning_time", "turning_position"):
+                    star = "*" if flags[k][name][f"{q}_{j + 1}"] else " "
+                    cells.append(fmt(float(np.asarray(g[q])[j]), d))
+                    cells.append(fmt(float(np.asarray(g[q + "_trend"])[j]), d) + star)
+                print(f"  {first:<14}  {labels[k] if j == 0 else '':<{width}}  {j + 1:>2}  "
+                      f"{cells[0]:>11}  {cells[1]:>12} {cells[2]:>11}  {cells[3]:>12}")
+                first = ""
 
 
 def run_global(args: argparse.Namespace) -> int:
