@@ -87,6 +87,16 @@ def _halt_times(P):
     return jax.vmap(one)(P)
 
 
+def _halt_times_np(X, rows=1024):
+    """_halt_times on the rows of X in chunks of ``rows`` (the last one padded): one compiled
+    shape for every call in this module."""
+    X = np.asarray(X, dtype=float)
+    pad = -len(X) % rows
+    Xp = np.concatenate([X, np.repeat(X[-1:], pad, axis=0)])
+    out = [np.asarray(_halt_times(jnp.asarray(Xp[i:i + rows]))) for i in range(0, len(Xp), rows)]
+    return np.concatenate(out)[:len(X)]
+
+
 @pytest.fixture(scope="module")
 def oscillator_study():
     return dp.global_sensitivity(bounds=BOUNDS, oscillator=OSC, x0=0.2, v0=0.0, n=1024, seed=1)
@@ -98,7 +108,7 @@ def test_oscillator_against_salib_sampler_and_analyze(oscillator_study):
     # SALib's own design (other seed, other points) and analysis of the same model
     problem = dict(num_vars=3, names=list(BOUNDS), bounds=[list(b) for b in BOUNDS.values()])
     X = salib_sample.sample(problem, 1024, calc_second_order=False, seed=7)
-    Y = np.asarray(_halt_times(jnp.asarray(X)))
+    Y = _halt_times_np(X)
     si = salib_sobol.analyze(problem, Y, calc_second_order=False, seed=7)
     for key in ("S1", "ST"):
         diff = np.abs(ds[key].values - si[key])
@@ -106,8 +116,7 @@ def test_oscillator_against_salib_sampler_and_analyze(oscillator_study):
     # friction dominates the halt time, then drag; the start matters little
     assert ds.ST.values[0] > 0.6 and 0.1 < ds.ST.values[1] < 0.4 and ds.ST.values[2] < 0.1
     # the outputs are dampax.solve's halt times at the design's rows
-    np.testing.assert_allclose(ds.Y.values[:50], _halt_times(jnp.asarray(ds.X.values[:50])),
-                               rtol=1e-12)
+    np.testing.assert_allclose(ds.Y.values, _halt_times_np(ds.X.values), rtol=1e-12)
 
 
 def test_dgsm_against_finite_differences(oscillator_study):
@@ -119,8 +128,7 @@ def test_dgsm_against_finite_differences(oscillator_study):
     for i in range(3):
         step = np.zeros(3)
         step[i] = h[i]
-        grads.append((np.asarray(_halt_times(jnp.asarray(A + step)))
-                      - np.asarray(_halt_times(jnp.asarray(A - step)))) / (2 * h[i]))
+        grads.append((_halt_times_np(A + step) - _halt_times_np(A - step)) / (2 * h[i]))
     nu = np.mean(np.square(grads), axis=1)
     np.testing.assert_allclose(ds.nu.values, nu, rtol=1e-5)
     V = ds.attrs["variance"]
@@ -191,16 +199,23 @@ def test_ansatz_against_reference():
     assert np.all(np.isfinite(err.ST.values)) and np.all(err.ST.values > 0.05)
 
 
-def test_cli_global(tmp_path, capsys, monkeypatch):
+def test_cli_global(tmp_path, capsys, monkeypatch, oscillator_study):
+    # the ranges and sample size of oscillator_study: its compiled programs serve the command
     parser = argparse.ArgumentParser(prog="dampax sensitivity")
     add_arguments(parser)
     path = tmp_path / "global.png"
-    args = parser.parse_args(["--global", "mu=0.01:0.05,D=0.5:3", "--n", "64",
-                              "--plot", str(path)])
+    args = parser.parse_args(["--global", "mu=0.01:0.05,D=0.5:3,x0=0.15:0.25", "--n", "1024",
+                              "--seed", "1", "--plot", str(path)])
     assert run(args) == 0
     out = capsys.readouterr().out
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "S1" in out and "ST" in out and "DGSM" in out and "mu in [0.01, 0.05]" in out
+    # the command's numbers are the library's (same design, seed and model; the other
+    # parameters, mu = 0.05 and D = 1 of the command's defaults, are all inside the ranges)
+    row = next(line.split() for line in out.splitlines() if line.split()[:1] == ["D"])
+    ds = oscillator_study.sel(parameter="D")
+    assert row[-5:] == [f"{float(ds.S1):.4g}", f"{float(ds.S1_conf):.2g}", f"{float(ds.ST):.4g}",
+                       f"{float(ds.ST_conf):.2g}", f"{float(ds.DGSM):.4g}"], row
     # bad specs: one line, exit status 2, before any computing
     from dampax import _cli
 
