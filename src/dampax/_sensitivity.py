@@ -515,7 +515,10 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     Local derivative: the response to an infinitesimal change (between jumps); trend: the
     response to changes of the order of the window, jumps included. Where the two differ by
     more than a factor 2 (``Sensitivity.disagreements``, flagged by ``report``), the quantity
-    jumps inside the window and the local number must not be read as the trend.
+    jumps inside the window and the local number must not be read as the trend. Opt-in, the
+    same for the number of swings (``swings=True``) and for the first few turning points
+    (``turning_points=N``; their trend is fitted over the window points where turning point n
+    exists).
 
     Arguments:
         osc: a scalar :class:`~dampax.Oscillator` (for a batch, use ``jax.vmap``, below).
@@ -555,7 +558,8 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
 
     Returns:
         A :class:`Sensitivity`: ``dx`` has shape (len(wrt),) + ts.shape, ``dx[i]`` in m per
-        unit of ``wrt[i]``; ``result.of("mu")["x"]`` is d x(ts)/d mu, ``result.as_dict()`` all.
+        unit of ``wrt[i]``; ``result.of("mu")["x"]`` is d x(ts)/d mu, ``result.as_dict()`` all;
+        ``dturning_time`` has shape (len(wrt), turning_points).
 
     Non-smooth points: the ansatz's x(t) has a kink at its halt time, so its d x(t)/d theta
     jumps there (to 0, or to the rest position's derivative with tail="coulomb"); for every
