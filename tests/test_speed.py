@@ -170,3 +170,27 @@ def test_traced_error_map_step_is_reused_across_processes(tmp_path):
     for other in (first, second, damaged):
         np.testing.assert_array_equal(other, plain)
     assert files[0].read_bytes() != b"not a program"  # rewritten
+
+
+def test_eager_sensitivity_is_kept_compiled_and_equals_the_traced_path():
+    """An eager dp.sensitivity runs a kept program (in this process, and exported for the next
+    one: a repeated `dampax sensitivity` neither traces nor compiles); its numbers are those of
+    the traced path to rounding (under jax.jit the inputs are tracers and the plain path runs)."""
+    from dampax import _cache
+
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=2.0)
+    ts = jnp.linspace(0.0, 2.0, 9)
+    kw = dict(wrt=("mu", "D"), trend=False)  # the mechanism, not the sweep: a short compile
+    eager = dp.sensitivity(osc, 0.2, 0.0, ts, **kw)
+    kept = len(_cache._EXECUTABLES)
+    again = dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=0.04, D=2.0), 0.2, 0.0, ts, **kw)
+    assert len(_cache._EXECUTABLES) == kept  # new values, same program
+    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxexport"))
+    traced = jax.jit(lambda mu: dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=mu, D=2.0),
+                                               0.2, 0.0, ts, **kw))(0.03)
+    for name in ("x", "dx", "energy", "dhalt_time", "dhalt_position"):
+        np.testing.assert_allclose(np.asarray(getattr(eager, name)),
+                                   np.asarray(getattr(traced, name)), rtol=1e-12, atol=1e-15,
+                                   err_msg=name)  # two programs: rounding may differ
+    assert eager.wrt == traced.wrt and bool(eager.valid) and bool(again.valid)
+    assert float(again.halt_time) < float(eager.halt_time)  # more friction: halts sooner

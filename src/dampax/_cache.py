@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 
 _OFF = ("0", "off", "false", "no")
 _MIN_COMPILE_S = 0.5
@@ -140,3 +141,34 @@ def compile_cached(name: str, key, fn, *specs):
         except (OSError, ImportError):  # read-only cache, or no flatbuffers: not kept
             pass
     return jax.jit(exported.call).lower(*specs).compile()
+
+
+_EXECUTABLES: dict = {}  # (name, repr(key), specs) -> compiled, for the life of the process
+
+
+def call_cached(name: str, key, fn, *args):
+    """``fn(*args)`` for concrete arrays, through :func:`compile_cached` (eager calls only).
+
+    The executable is kept for the life of the process (so a second call neither traces nor
+    compiles) and, through the exported-program and compilation caches, across processes: a
+    repeated command-line call deserializes the program instead of tracing it.
+
+    Arguments:
+        name: a readable prefix of the cached file's name.
+        key: a hashable description of everything static that ``fn`` closes over (its repr
+            must determine the program).
+        fn: a function of the flat arrays ``args`` returning a pytree of arrays (standard
+            containers only: dicts, tuples, lists).
+        args: concrete arrays (or scalars), positional.
+
+    Returns:
+        ``fn(*args)``, computed by the compiled program.
+    """
+    arrays = [jnp.asarray(a) for a in args]
+    specs = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in arrays)
+    memo = (name, repr(key), tuple((s.shape, str(s.dtype)) for s in specs))
+    executable = _EXECUTABLES.get(memo)
+    if executable is None:
+        executable = compile_cached(name, key, jax.jit(fn), *specs)
+        _EXECUTABLES[memo] = executable
+    return executable(*arrays)

@@ -20,6 +20,7 @@ once per (method, options, wrt, shape of ts) and re-used for new numbers; it run
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -28,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._cache import call_cached
 from ._models import METHODS
 from ._oscillator import Oscillator, check_choices, check_count, check_finite, is_concrete
 from ._solution import RESULTS, is_successful, message
@@ -497,6 +499,39 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points
                        window_turning_positions=wxt, result=result, wrt=wrt, window=window)
 
 
+#: The array fields of a Sensitivity (all but the result and the static wrt, window).
+_ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(Sensitivity)
+                      if f.name not in ("result", "wrt", "window"))
+
+
+def _cacheable(osc, x0, v0, ts, t_end, options) -> bool:
+    """True for an eager call whose options are plain values (their repr names the program)."""
+    leaves = jax.tree_util.tree_leaves((osc, x0, v0, ts, t_end))
+    plain = all(v is None or isinstance(v, str | int | float | bool) for v in options.values())
+    return plain and all(is_concrete(leaf) for leaf in leaves)
+
+
+def _evaluate_cached(osc, x0, v0, ts, t_end, static) -> Sensitivity:
+    """`_evaluate` for concrete input through a kept compiled program (`call_cached`): a
+    repeated call, also in a new process, neither traces nor compiles the Jacobians and sweeps."""
+    leaves, treedef = jax.tree_util.tree_flatten(osc)
+    n = len(leaves)
+
+    def arrays(*flat):
+        sens = _evaluate(jax.tree_util.tree_unflatten(treedef, flat[:n]), *flat[n:n + 3],
+                         flat[n + 3] if len(flat) > n + 3 else None, *static)
+        out = {name: getattr(sens, name) for name in _ARRAY_FIELDS}
+        out["result"] = sens.result._value
+        return out
+
+    args = (*leaves, x0, v0, ts) + (() if t_end is None else (t_end,))
+    key = (str(treedef), static, t_end is None)
+    out = call_cached("sensitivity", key, arrays, *args)
+    result = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(RESULTS.successful),
+                                          [out.pop("result")])
+    return Sensitivity(**out, result=result, wrt=static[0], window=static[4])
+
+
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
                 method: str = "ansatz", mode: str = "forward", trend: bool = True,
                 window: float = 0.05, window_points: int = 41, swings: bool = False,
@@ -624,8 +659,12 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
             t_end = jnp.asarray(t_end, dtype=float)
     elif t_end is not None:
         options["t_end"] = t_end  # dampax.solve names the misplaced option
-    result = _evaluate(osc, x0, v0, ts, t_end, names, method, mode, options, window,
-                       int(window_points), bool(trend), bool(swings), n_turning)
+    static = (names, method, mode, options, window, int(window_points), bool(trend),
+              bool(swings), n_turning)
+    if _cacheable(osc, x0, v0, ts, t_end, options):
+        result = _evaluate_cached(osc, x0, v0, ts, t_end, static)
+    else:
+        result = _evaluate(osc, x0, v0, ts, t_end, *static)
     if is_concrete(result.result._value) and not np.all(np.asarray(result.valid)):
         raise ValueError(f"method={method!r}: {message(result.result)}")
     return result
