@@ -24,7 +24,14 @@ import jax
 import jax.numpy as jnp
 
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
-from ._solution import RESULTS, AbstractSolution, first_failure, input_checks, stuck_at_start
+from ._solution import (
+    RESULTS,
+    AbstractSolution,
+    cubic_checks,
+    first_failure,
+    input_checks,
+    stuck_at_start,
+)
 
 Array = jax.Array
 
@@ -472,7 +479,10 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     c = d0 / A_div
     bp = d1 + 0.0 * a
     tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
+    # no cubic stiffness in the ansatz yet (issue 14): say so rather than ignore k3
+    ((cubic, no_cubic),) = cubic_checks(osc)
     result = first_failure(*input_checks(osc, x_start, v_start),
+                           (cubic & ~stuck, no_cubic),
                            (~stuck & ~(d1 < w0), RESULTS.ansatz_overdamped),
                            (~stuck & ~valid, RESULTS.no_amplitude))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,

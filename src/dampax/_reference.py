@@ -29,6 +29,7 @@ function theorem), and the turning point x(t*) then carries the total derivative
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 import math
 
@@ -542,8 +543,9 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
     # out of the domain (non-finite or non-positive m, k, g, negative mu, b, D, a non-finite
     # state, t_end not > 0): integrate a harmless stand-in (at rest, one step) and flag it
     checks = (*input_checks(osc, x0, v0),
-              (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end))
-    ok_in = ~(checks[0][0] | checks[1][0] | checks[2][0])
+              (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end),
+              (osc.k3 != 0.0, RESULTS.no_cubic))  # not integrated yet (issue 14)
+    ok_in = ~functools.reduce(jnp.logical_or, [failed for failed, _ in checks])
     osc_in, x0_in, v0_in, t_end_in = osc, x0, v0, t_end
     osc = jax.tree_util.tree_map(lambda a: jnp.where(ok_in, a, 1.0), osc)
     x0, v0, t_end = (jnp.where(ok_in, x0, 0.0), jnp.where(ok_in, v0, 0.0),
