@@ -21,6 +21,7 @@ import numpy as np
 
 from .._fit import (
     FIT_MODELS,
+    FREE,
     LOSSES,
     METHOD_NAMES,
     MODELS,
@@ -194,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         line); 4 the fit converged but the model does not describe the data. Invalid input
         raises ValueError (status 2 from ``dampax._cli.main``).
     """
-    free = check_free(split_names(args.free))
+    free = check_free(split_names(args.free), allowed=FREE)
     if not free:
         raise ValueError("--free: name at least one of mu, b, D")
     if args.example == bool(args.path):

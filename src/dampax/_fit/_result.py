@@ -92,6 +92,7 @@ class FitResult:
     per_mass: bool = False
     units: str = "m"
     jac: np.ndarray | None = None
+    profiled: dict = field(default_factory=dict)
     resid_rows: np.ndarray | None = None
 
     def _hac(self):
@@ -128,8 +129,15 @@ class FitResult:
             level: two-sided coverage, in (0, 1).
         """
         sd = self.hac_stderr
-        return _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
-                                           level, nonneg=DAMPING)
+        out = _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
+                                          level, nonneg=DAMPING)
+        if self.profiled:  # k3 of fit(free=(..., "k3")): from the profile's curvature
+            from scipy.stats import norm
+
+            z = float(norm.ppf(0.5 + 0.5 * level))
+            for name, pr in self.profiled.items():
+                out[name] = (pr["value"] - z * pr["stderr"], pr["value"] + z * pr["stderr"])
+        return out
 
     @property
     def rms(self) -> float:
