@@ -83,8 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "to mu (default: %(default)s)")
     model = parser.add_argument_group("model and fit")
     model.add_argument("--free", default="mu,D",
-                       help="damping constants to fit, comma list of mu, b, D "
-                            "(default: %(default)s)")
+                       help="constants to fit, comma list of mu, b, D and k3 (the cubic "
+                            "stiffness, profiled; trace fits only) (default: %(default)s)")
     model.add_argument("--model", default="ansatz", choices=MODELS,
                        help="; ".join(f"{name}: {FIT_MODELS[name].description}"
                                       for name in MODELS) + " (default: %(default)s)")
