@@ -316,3 +316,11 @@ def test_error_map_k3_axis():
                                rtol=1e-12, atol=1e-15)
     err = cubic["max_error"].sel(model="matched", d2_ratio=0.0).squeeze()
     assert float(err.sel(k3_ratio=0.05)) < 0.01 and bool(cubic["valid"].all())
+
+
+def test_no_atlas_estimate_with_k3():
+    """The error atlas holds k3 = 0 only: NaN with a cubic stiffness, and method="auto" then
+    takes the reference."""
+    osc = dp.Oscillator(m=M, k=K, D=0.5, k3=k3_of(0.05))
+    assert np.isnan(float(dp.solve(osc, A, 0.0).error_estimate))
+    assert dp.solve(osc, A, 0.0, method="auto", t_end=2.0).model == "reference"
