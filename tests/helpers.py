@@ -22,24 +22,31 @@ def ratios_to_constants(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30
 
 
 def scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, *, g=9.81, rtol=1e-12, atol=1e-14,
-                     max_swings=10_000):
+                     max_swings=10_000, k3=0.0):
     """Integrate eq. 3 swing by swing with DOP853 and a v = 0 event.
+
+    With ``k3`` the spring force is k x + k3 x^3, and the block sticks at a velocity zero where
+    |k x + k3 x^3| <= mu m g.
 
     Returns (segments, turning, rest): a list of dense-output pieces (t0, t1, sol), the turning
     points [(t, x)] and the rest state (t, x) or None.
     """
-    xc = mu * g * m / k
     t, x, v = 0.0, float(x0), float(v0)
     segments, turning = [], []
+
+    def holds(x):
+        return abs(k * x + k3 * x**3) <= mu * m * g
+
     if v == 0.0:
-        if abs(x) <= xc:
+        if holds(x):
             return segments, turning, (0.0, x)
         s = -math.copysign(1.0, x)
     else:
         s = math.copysign(1.0, v)
     for _ in range(max_swings):
         def rhs(_t, y, s=s):
-            return [y[1], (-k * y[0] - s * mu * m * g - b * y[1] - D * s * y[1] ** 2) / m]
+            return [y[1], (-k * y[0] - k3 * y[0] ** 3 - s * mu * m * g - b * y[1]
+                           - D * s * y[1] ** 2) / m]
 
         def event(_t, y, s=s):
             return s * y[1]
@@ -55,7 +62,7 @@ def scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, *, g=9.81, rtol=1e-12, atol=
         x = float(sol.y_events[0][0][0])
         v = 0.0
         turning.append((t, x))
-        if abs(x) <= xc:
+        if holds(x):
             return segments, turning, (t, x)
         s = -math.copysign(1.0, x)
     raise RuntimeError("max_swings exhausted")

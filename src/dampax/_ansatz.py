@@ -22,9 +22,17 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
-from ._solution import RESULTS, AbstractSolution, first_failure, input_checks, stuck_at_start
+from ._solution import (
+    RESULTS,
+    AbstractSolution,
+    cubic_checks,
+    first_failure,
+    input_checks,
+    stuck_at_start,
+)
 
 Array = jax.Array
 
@@ -261,6 +269,148 @@ def matched_amplitude(cphi, sphi, e0, e1, e2, *, steps=16, newton=3):
 
 
 # ----------------------------------------------------------------------------------------------
+# cubic stiffness (issue 14, docs/cubic_stiffness.md): the amplitude-dependent phase
+# theta(t) = phi + int_0^t w(A f(s)) ds with w(a) = w0 sqrt(1 + (3/4) (k3/k) a^2) (harmonic
+# balance), the first (Lindstedt) harmonic correction A f eps (cos 3 theta - cos theta) with
+# eps = (k3/(32 k)) (A f)^2, and the matched amplitude and phase extended to both
+
+#: Gauss--Legendre rules of the phase integral: over t while f changes by less than
+#: _F_SWITCH, over f (ds = -df / (a f^2 + b' f + c)) beyond
+_GL_T = np.polynomial.legendre.leggauss(6)
+_GL_F = np.polynomial.legendre.leggauss(20)
+_F_SWITCH = 0.1
+
+
+def excess_frequency(f, w0, kappa):
+    """w(A f) - w0 = w0 (sqrt(1 + kappa f^2) - 1), kappa = (3/4) k3 A^2 / k (harmonic balance).
+
+    Written w0 kappa f^2 / (sqrt(1 + kappa f^2) + 1): no cancellation for small kappa, and
+    exactly 0 when kappa = 0.
+    """
+    kf2 = kappa * f * f
+    return w0 * kf2 / (jnp.sqrt(jnp.maximum(1.0 + kf2, 1e-300)) + 1.0)
+
+
+def _nodes(rule, ndim):
+    """Gauss--Legendre nodes on [0, 1] and weights (summing to 1), shaped (n,) + (1,) * ndim."""
+    x, w = rule
+    shape = (x.size,) + (1,) * ndim
+    return jnp.asarray(0.5 * (1.0 + x)).reshape(shape), jnp.asarray(0.5 * w).reshape(shape)
+
+
+def phase_excess(k: _DecayConstants, w0, kappa, t, f):
+    """P(t) = int_0^min(t, tau) (w(A f(s)) - w0) ds, the phase the cubic stiffness adds.
+
+    A fixed-order Gauss--Legendre quadrature (no closed form for every damping case, see
+    docs/cubic_stiffness.md): over s in [0, t] (6 nodes, f from :func:`_decay_from`) while
+    1 - f(t) <= 0.1, where the integrand hardly changes; else over f in [f(t), 1] with
+    ds = -df / (a f^2 + b' f + c) (eq. 20; 20 nodes, no further f(t) needed: rational
+    functions only), smooth on that interval because a f^2 + b' f + c > 0 there; the roots of
+    a f^2 + b' f + c near f = 0 (weak Coulomb and viscous terms beside drag) set the number of
+    nodes. Exactly 0 when kappa = 0; finite, with finite
+    gradients, under jit/vmap/grad (both rules evaluated, the unused one on safe values).
+
+    Arguments:
+        k: the decay constants; w0: [rad/s]; kappa: (3/4) k3 A^2 / k.
+        t: times (any shape broadcasting with the constants); f: f(t) at those times.
+
+    Returns:
+        P(t) [rad] (0 for t < 0).
+    """
+    t = jnp.asarray(t, dtype=float)
+    t_e = jnp.clip(t, 0.0, k.tau)
+    gone = 1.0 - f
+    over_f = gone > _F_SWITCH  # False where f is NaN (t < 0): the t rule on t_e = 0
+    nd = jnp.ndim(gone)
+    # over t
+    u, wt = _nodes(_GL_T, max(nd, jnp.ndim(t_e)))
+    t_q = jnp.where(over_f, 0.0, t_e)
+    p_t = t_q * jnp.sum(wt * excess_frequency(_decay_from(k, u * t_q), w0, kappa), axis=0)
+    # over f
+    v, wf = _nodes(_GL_F, nd)
+    span = jnp.where(over_f, gone, 0.0)
+    f_q = (1.0 - span) + span * v
+    R = k.a * f_q * f_q + k.bp * f_q + k.c
+    R = jnp.where(over_f & (R > 0.0), R, 1.0)
+    p_f = span * jnp.sum(wf * excess_frequency(f_q, w0, kappa) / R, axis=0)
+    return jnp.where(over_f, p_f, p_t)
+
+
+def _cubic_residual(dy, dphi, y, phi, e0, e1, e2, e3):
+    """Matching conditions of the cubic ansatz at t = 0, minus those of the linear one at (y, phi).
+
+    With y' = y + dy, phi' = phi + dphi, g = e2 y + e1 + e0/y (f'(0) = -w0 g),
+    kappa = (3/4) e3 y'^2, eps = e3 y'^2 / 32, r = sqrt(1 + kappa):
+        x0/A0  = y' (cos phi' + eps (cos 3phi' - cos phi'))
+        -v0/(w0 A0) = y' (g' (cos phi' + 3 eps (cos 3phi' - cos phi'))
+                          + r (sin phi' + eps (3 sin 3phi' - sin phi')))
+    (x = A f (cos th + eps f^2 (cos 3th - cos th)) and its velocity at t = 0). The linear
+    conditions y cos phi = x0/A0, y (g cos phi + sin phi) = -v0/(w0 A0) hold at (y, phi), so
+    their differences are written out (exactly 0 at dy = dphi = 0) and the cubic terms added
+    (exactly 0 at e3 = 0).
+    """
+    y1 = y + dy
+    half = 0.5 * dphi
+    sh = jnp.sin(half)
+    dc = -2.0 * jnp.sin(phi + half) * sh  # cos phi' - cos phi
+    ds = 2.0 * jnp.cos(phi + half) * sh  # sin phi' - sin phi
+    c1, s1 = jnp.cos(phi + dphi), jnp.sin(phi + dphi)
+    g = e2 * y + e1 + e0 / y
+    g1 = e2 * y1 + e1 + e0 / y1
+    r1 = dy * c1 + y * dc
+    r2 = (e2 * dy * (2.0 * y + dy) + e1 * dy) * c1 + y * g * dc + dy * s1 + y * ds
+    kappa = 0.75 * e3 * y1 * y1
+    eps = e3 * y1 * y1 / 32.0
+    root = jnp.sqrt(jnp.maximum(1.0 + kappa, 1e-300))
+    c3 = -4.0 * c1 * s1 * s1  # cos 3phi' - cos phi'
+    s3 = 4.0 * s1 * (2.0 - 3.0 * s1 * s1)  # 3 sin 3phi' - sin phi'
+    r1 = r1 + y1 * eps * c3
+    r2 = r2 + y1 * (3.0 * g1 * eps * c3 + kappa / (root + 1.0) * s1 + root * eps * s3)
+    return r1, r2
+
+
+def cubic_match(y, phi, e0, e1, e2, e3, *, newton=4):
+    """The matched amplitude ratio and phase of the cubic ansatz, as corrections (dy, dphi).
+
+    Newton's method on :func:`_cubic_residual` from the linear solution (y = A/A0, phi of
+    eqs. 22-23); ``newton`` steps with the derivative held fixed, then one more that carries
+    it (implicit function theorem: exact first derivatives, including d/dk3 at k3 = 0).
+    Exactly (0, 0) when e3 = k3 A0^2 / k = 0.
+
+    Arguments:
+        y, phi: the linear matched solution (finite, y > 0); e0, e1, e2: the damping ratios
+            d0/(w0 A0), d1/w0, d2 A0/w0; e3: k3 A0^2 / k.
+
+    Returns:
+        (dy, dphi, ok): ok is False where Newton's method did not converge.
+    """
+    args = jnp.broadcast_arrays(*(jnp.asarray(a, dtype=float) for a in (y, phi, e0, e1, e2, e3)))
+    frozen = jax.lax.stop_gradient(args)
+    zero = jnp.zeros_like(args[0])
+    one = jnp.ones_like(zero)
+
+    def step(d, params):
+        def res(dy, dphi):
+            return _cubic_residual(dy, dphi, *params)
+
+        (r1, r2), (j11, j21) = jax.jvp(res, d, (one, zero))
+        _, (j12, j22) = jax.jvp(res, jax.lax.stop_gradient(d), (zero, one))
+        j11, j21, j12, j22 = (jax.lax.stop_gradient(j) for j in (j11, j21, j12, j22))
+        det = j11 * j22 - j12 * j21
+        det = jnp.where(det != 0.0, det, 1.0)
+        return (d[0] - (j22 * r1 - j12 * r2) / det, d[1] - (j11 * r2 - j21 * r1) / det), (r1, r2)
+
+    d = (zero, zero)
+    for _ in range(newton):
+        d = jax.lax.stop_gradient(step(d, frozen)[0])
+    d, _ = step(d, args)
+    r1, r2 = _cubic_residual(*jax.lax.stop_gradient(d), *frozen)
+    ok = (jnp.isfinite(d[0]) & jnp.isfinite(d[1]) & (jnp.abs(r1) < 1e-10)
+          & (jnp.abs(r2) < 1e-10) & (y + d[0] > 0.0))
+    return d[0], d[1], ok
+
+
+# ----------------------------------------------------------------------------------------------
 # the solution object
 
 
@@ -274,6 +424,12 @@ class AnsatzSolution(AbstractSolution):
     False) and the values are NaN; likewise ``RESULTS.ansatz_overdamped`` for d1 >= w0 and
     ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
     there: x(t) = x0, v = 0, halt time 0.
+
+    With a cubic stiffness k3 (matched phase only; docs/cubic_stiffness.md):
+        x(t) = A f [cos th + eps f^2 (cos 3th - cos th)],  eps = beta = k3 A^2 / (32 k),
+        th(t) = w0 t + phi + P(t),  th' = w(A f) = w0 sqrt(1 + kappa f^2),
+        kappa = (3/4) k3 A^2 / k;
+    every k3 term is exactly zero when k3 = 0.
     """
 
     A: Array  # amplitude, finite even where invalid (see ``amplitude``)
@@ -287,6 +443,8 @@ class AnsatzSolution(AbstractSolution):
     result: RESULTS
     stuck: Array  # started at rest inside the band: x(t) = x0 (the model's A is then 0)
     x0: Array
+    kappa: Array  # (3/4) k3 A^2 / k: w(A f)^2 = w0^2 (1 + kappa f^2)
+    beta: Array  # k3 A^2 / (32 k): the third harmonic's relative amplitude at f = 1
     matched: bool = eqx.field(static=True)
 
     @property
@@ -322,72 +480,120 @@ class AnsatzSolution(AbstractSolution):
         """Amplitude factor f(t) (eq. 20 in closed form), 0 after the halt."""
         return _decay_from(self._decay(), t)
 
-    def _phase(self, t):
-        return self.omega0 * jnp.asarray(t, dtype=float) + self.phi
+    def _phase(self, t, k, f):
+        """th(t) = (w0 t + phi) + P(t) (P = 0 exactly without cubic stiffness)."""
+        t = jnp.asarray(t, dtype=float)
+        return self.omega0 * t + self.phi + phase_excess(k, self.omega0, self.kappa, t, f)
 
     def _state(self, t):
+        t = jnp.asarray(t, dtype=float)
         k = self._decay()
         f = _decay_from(k, t)
-        th = self._phase(t)
+        th = self.omega0 * t + self.phi
         cth, sth = jnp.cos(th), jnp.sin(th)
         x = self.A * f * cth
         v = -self.omega0 * self.A * f * sth
+        rate = decay_rate(f, k.a, k.bp, k.c)
         if self.matched:
-            v = v + self.A * decay_rate(f, k.a, k.bp, k.c) * cth
+            v = v + self.A * rate * cth
+        # cubic stiffness (all exactly 0 when k3 = 0): the phase P(t) enters by rotating
+        # (cos th, sin th) by P, as differences dc = cos(th + P) - cos th, ds = sin(th + P) -
+        # sin th added to the linear model above (whose expression stays as it was); then the
+        # third harmonic and th' - w0
+        p = phase_excess(k, self.omega0, self.kappa, t, f)
+        sp, vers = jnp.sin(p), 2.0 * jnp.sin(0.5 * p) ** 2  # sin P, 1 - cos P
+        dc = -(cth * vers + sth * sp)
+        ds = cth * sp - sth * vers
+        cth, sth = cth + dc, sth + ds
+        eps = self.beta * f * f
+        c3 = -4.0 * cth * sth * sth  # cos 3th - cos th
+        s3 = 4.0 * sth * (2.0 - 3.0 * sth * sth)  # 3 sin 3th - sin th
+        dw = excess_frequency(f, self.omega0, self.kappa)
+        x = x + self.A * f * (dc + eps * c3)
+        v = v - self.A * f * (self.omega0 * ds + dw * sth + (self.omega0 + dw) * eps * s3)
+        if self.matched:
+            v = v + self.A * rate * (dc + 3.0 * eps * c3)
         return self._mask(self._rest(x)), self._mask(v)
 
     @jit_method
     def x(self, t) -> Array:
-        """Displacement A f(t) cos(w0 t + phi) (eq. 11)."""
-        return self._mask(self._rest(self.A * self.f(t) * jnp.cos(self._phase(t))))
+        """Displacement A f(t) cos(w0 t + phi) (eq. 11; with k3 see the class docstring)."""
+        return self._state(t)[0]
 
     def _undamped_energy(self, f):
         """m w0^2 A^2 f^2 / 2 (eq. 10); k x0^2 / 2 for a start at rest inside the band."""
         return self._mask(jnp.where(self.stuck, 0.5 * self.osc.k * self._rest(0.0 * f) ** 2,
                                     0.5 * self.osc.m * (self.omega0 * self.A * f) ** 2))
 
-    @jit_method
     def v(self, t) -> Array:
         """Velocity: eq. 12 (matched) or eq. 9 (undamped phase)."""
-        return self._state(t)[1]
+        # x and v compiled together, as in `state` (XLA's fused multiply-adds depend on the
+        # fusion: this keeps v bit for bit what it was before k3 when k3 = 0)
+        return self.state(t)[1]
 
     @jit_method
     def state(self, t) -> tuple[Array, Array]:
         """(x(t), v(t)) together, sharing f(t), f'(t), cos and sin (eqs. 11-12 or 8-9)."""
         return self._state(t)
 
-    @jit_method
     def energy(self, t) -> Array:
         """Energy: k x^2/2 + m v^2/2 (eq. 15) or m w0^2 A0^2 f^2/2 (eq. 10)."""
         if self.matched:
-            return self.osc.energy(*self._state(t))
+            return self._energy_xv(t)[2]
+        return self._energy_undamped(t)
+
+    @jit_method
+    def _energy_undamped(self, t):
         return self._undamped_energy(self.f(t))
+
+    @jit_method
+    def _energy_xv(self, t):
+        """(x, v, energy) compiled together (see `v`)."""
+        x, v = self._state(t)
+        return x, v, self.osc.energy(x, v)
 
     def _x_energy(self, t, grid=None):
         if self.matched:
             x, v = self._state(t)
             return x, self.osc.energy(x, v)
-        f = self.f(t)
-        return (self._mask(self._rest(self.A * f * jnp.cos(self._phase(t)))),
+        k = self._decay()
+        f = _decay_from(k, t)
+        return (self._mask(self._rest(self.A * f * jnp.cos(self._phase(t, k, f)))),
                 self._undamped_energy(f))
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
     def _turning_residual(self, t, n, params):
-        """G(t) = w0 t + phi - n pi - atan(f'/(w0 f)) and G'(t); G = 0 at turning point n."""
-        w0, ph, a, bp, c, tau = params
-        f = decay(t, a, bp, c, tau)
+        """G(t) = th(t) - n pi - atan(q f'/(w f)) and G'(t); G = 0 at turning point n.
+
+        th = w0 t + phi (+ P(t)) and w = th' = w(A f) (w0 without cubic stiffness). With the
+        third harmonic v = 0 reads tan th = q f'/(w f), q = (1 - 12 e s^2)/(1 + 8 e - 12 e s^2),
+        e = beta f^2, s = sin th (q = 1 exactly when k3 = 0); G' leaves out dq/dt.
+        """
+        w0, ph, a, bp, c, tau, kappa, beta = params
+        k = _decay_constants(a, bp, c, tau)
+        f = _decay_from(k, t)
         f_safe = jnp.where(f > 0.0, f, 1.0)
         fp = -(a * f_safe**2 + bp * f_safe + c)
         fpp = -(2.0 * a * f_safe + bp) * fp
-        r = fp / (w0 * f_safe)
-        dr = (fpp * f_safe - fp * fp) / (w0 * f_safe * f_safe)
+        dw = excess_frequency(f_safe, w0, kappa)
+        w = w0 + dw
+        w_dot = w0 * kappa * f_safe * fp / (w / w0)  # dw/dt
+        r = fp / (w * f_safe)
+        dr = (fpp * f_safe - fp * fp) / (w * f_safe * f_safe) - fp * w_dot / (w * w * f_safe)
+        th = w0 * t + ph + phase_excess(k, w0, kappa, t, f)
+        e = beta * f_safe * f_safe
+        s2 = jnp.sin(th) ** 2
+        q = (1.0 - 12.0 * e * s2) / (1.0 + 8.0 * e - 12.0 * e * s2)
+        r, dr = r * q, dr * q
         if not self.matched:  # eq. 9: v ~ sin(w0 t + phi0)
             r, dr = 0.0 * r, 0.0 * dr
-        return w0 * t + ph - n * jnp.pi - jnp.arctan(r), w0 - dr / (1.0 + r * r)
+        return th - n * jnp.pi - jnp.arctan(r), (w0 + excess_frequency(f, w0, kappa)) - dr / (
+            1.0 + r * r)
 
     def _params(self):
-        return (self.omega0, self.phi, self.a, self.bp, self.c, self.halt_time)
+        return (self.omega0, self.phi, self.a, self.bp, self.c, self.halt_time, self.kappa,
+                self.beta)
 
     def _turning_newton(self, n):
         """Turning point n (v = 0 near w0 t + phi = n pi) by Newton's method, no gradient."""
@@ -418,7 +624,10 @@ class AnsatzSolution(AbstractSolution):
 
     def _first_index(self):
         """Index n of the first turning point w0 t + phi = n pi + atan(f'/(w0 f)) with t > 0."""
-        r0 = decay_rate(1.0, self.a, self.bp, self.c) / self.omega0 if self.matched else 0.0
+        w_a = self.omega0 + excess_frequency(1.0, self.omega0, self.kappa)
+        s2 = jnp.sin(self.phi) ** 2
+        q0 = (1.0 - 12.0 * self.beta * s2) / (1.0 + 8.0 * self.beta - 12.0 * self.beta * s2)
+        r0 = decay_rate(1.0, self.a, self.bp, self.c) / w_a * q0 if self.matched else 0.0
         return jax.lax.stop_gradient(
             jnp.floor((self.phi - jnp.arctan(r0)) / jnp.pi + 1e-9) + 1.0)
 
@@ -463,13 +672,20 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     if phase == "matched":
         cphi = jnp.where(at_rest, 1.0, jnp.asarray(x0, dtype=float) / A0_safe)
         sphi = jnp.where(at_rest, 0.0, -jnp.asarray(v0, dtype=float) / (w0 * A0_safe))
-        y, h, valid = matched_amplitude(cphi, sphi, d0 / (w0 * A0_safe), d1 / w0,
-                                        d2 * A0_safe / w0)
+        e0, e1, e2 = d0 / (w0 * A0_safe), d1 / w0, d2 * A0_safe / w0
+        y, h, valid = matched_amplitude(cphi, sphi, e0, e1, e2)
+        usable = valid & ~at_rest
+        phi_lin = jnp.arctan2(jnp.where(usable, h, 0.0), jnp.where(usable, cphi, 1.0))
+        # cubic stiffness: Newton corrections from the linear match (exactly 0 when k3 = 0)
+        e3 = jnp.where(usable, osc.k3 * A0_safe * A0_safe / osc.k, 0.0)
+        dy, dphi, ok3 = cubic_match(jnp.where(usable, y, 1.0), phi_lin, e0, e1, e2, e3)
+        dy = jnp.where(usable, dy, 0.0)
+        dphi = jnp.where(usable, dphi, 0.0)
+        valid = valid & ok3
         usable = valid & ~at_rest
         valid = valid | at_rest
-        A = jnp.where(at_rest, 0.0, A0_safe * jnp.where(usable, y, 1.0))
-        phi = jnp.where(usable, jnp.arctan2(jnp.where(usable, h, 0.0),
-                                            jnp.where(usable, cphi, 1.0)), 0.0)
+        A = jnp.where(at_rest, 0.0, A0_safe * jnp.where(usable, y + dy, 1.0))
+        phi = jnp.where(usable, phi_lin + dphi, 0.0)
         A_div = jnp.where(at_rest, 1.0, A)
     else:
         A, phi, A_div = A0, phi0, A0_safe
@@ -478,11 +694,20 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     c = d0 / A_div
     bp = d1 + 0.0 * a
     tau = jnp.where(at_rest, 0.0, halt_time(a, bp, c))
+    kappa = 0.75 * osc.k3 * A * A / osc.k
+    beta = osc.k3 * A * A / (32.0 * osc.k)
+    # w(A f)^2 = w0^2 (1 + kappa f^2) must stay > 0 for 0 <= f <= 1 (a softening spring)
+    valid = valid & (1.0 + kappa > 0.0)
+    # the undamped phase (eqs. 8-10) has no cubic stiffness; the matched phase has
+    ((cubic, no_cubic),) = cubic_checks(osc)
+    if phase == "matched":
+        cubic = cubic & False
     result = first_failure(*input_checks(osc, x_start, v_start),
+                           (cubic & ~stuck, no_cubic),
                            (~stuck & ~(d1 < w0), RESULTS.ansatz_overdamped),
                            (~stuck & ~valid, RESULTS.no_amplitude))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
                           halt_time=tau, osc=osc, result=result, stuck=stuck,
-                          x0=x_start, matched=phase == "matched")
+                          x0=x_start, kappa=kappa, beta=beta, matched=phase == "matched")
 
 

@@ -180,11 +180,14 @@ def _start(sol):
 
 
 def solution_estimate(sol, *, bound: bool = False) -> Array:
-    """Expected max |x - x_ref| / A0 of a solution (NaN for the reference and off the atlas)."""
+    """Expected max |x - x_ref| / A0 of a solution (NaN for the reference, off the atlas and
+    for k3 != 0)."""
     start = _start(sol)
     if start is None:
         return jnp.asarray(jnp.nan)
     value = estimate(model_of(sol), *start, bound=bound)
+    # the atlas holds the linear spring only (k3 = 0): no estimate with a cubic stiffness
+    value = jnp.where(start[0].k3 != 0.0, jnp.nan, value)
     head = sol.ansatz if hasattr(sol, "ansatz") else sol
     if hasattr(head, "stuck"):  # at rest inside the band from the start: the answer is exact
         value = jnp.where(head.stuck, 0.0, value)

@@ -21,6 +21,7 @@ from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
 from ._solution import (
     RESULTS,
     AbstractSolution,
+    cubic_checks,
     first_failure,
     input_checks,
     is_successful,
@@ -180,8 +181,12 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
     t_s, x_s, v_s, xc, gamma, w0 = (jnp.asarray(v, dtype=float)
                                     for v in (t_s, x_s, v_s, osc.xc, osc.gamma, osc.omega0))
     underdamped = gamma < w0
-    result = first_failure(*input_checks(osc, x_s, v_s),
-                           (~(underdamped | stuck_at_start(osc, x_s, v_s)), RESULTS.overdamped))
+    stuck = stuck_at_start(osc, x_s, v_s)
+    # the half-swings are those of the linear spring: k3 != 0 is out of their domain (a block
+    # at rest inside the band stays there whatever the spring)
+    ((cubic, no_cubic),) = cubic_checks(osc)
+    result = first_failure(*input_checks(osc, x_s, v_s), (cubic & ~stuck, no_cubic),
+                           (~(underdamped | stuck), RESULTS.overdamped))
     valid = is_successful(result)
     wd = jnp.sqrt(jnp.where(valid & underdamped, w0 * w0 - gamma * gamma, 1.0))
     moving = v_s != 0.0
@@ -521,7 +526,10 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     # a start at rest inside the band is exact for any b and D: the block never moves
     # the exact motion only loses energy: a rest point beyond A0 is the model's artefact
     gains = ~stuck & (jnp.abs(x_h) > A0)
-    result = first_failure(*input_checks(osc, x0, v0), (~(coulomb | stuck), RESULTS.coulomb_only),
+    ((cubic, no_cubic),) = cubic_checks(osc)
+    result = first_failure(*input_checks(osc, x0, v0),
+                           (cubic & ~stuck_at_start(osc, x0, v0), no_cubic),
+                           (~(coulomb | stuck), RESULTS.coulomb_only),
                            (~bracketed, RESULTS.halt_not_found),
                            (gains, RESULTS.rizcallah_gains_energy))
     return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.result), proto,

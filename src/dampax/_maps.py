@@ -30,7 +30,7 @@ import numpy as np
 
 from ._cache import compile_cached
 from ._models import ANALYTIC, MODELS, check_models
-from ._oscillator import from_ratios
+from ._oscillator import Oscillator, from_ratios
 from ._solve import solve
 from ._version import __version__
 
@@ -79,6 +79,8 @@ _COORD_ATTRS = {
     "d2_ratio": dict(long_name="d2 A0/w0, quadratic (d2 = 4 D w0/(3 pi m))", units="1"),
     "phi0": dict(long_name="undamped initial phase, x0 = A0 cos(phi0), v0 = -w0 A0 sin(phi0)",
                  units="rad"),
+    "k3_ratio": dict(long_name="k3 A0^2/k, cubic stiffness (m x'' = -k x - k3 x^3 - ...)",
+                     units="1"),
 }
 
 @dataclasses.dataclass(frozen=True)
@@ -95,6 +97,11 @@ class _Config:
     max_swings: int  # of the reference, per segment
     max_steps_per_swing: int
     seg_blocks: int  # blocks per segment of the reference (all of them: one segment)
+    cubic: bool = False  # rows carry a fifth column, k3_ratio (issue 14)
+
+    @property
+    def width(self) -> int:
+        return 5 if self.cubic else 4
 
     @property
     def n_blocks(self) -> int:
@@ -142,6 +149,8 @@ def _per_point(cfg: _Config, row):
     d0r, d1r, d2r, phi0 = row[0], row[1], row[2], row[3]
     m, k, A0 = 1.0, 1.0, 1.0
     osc = from_ratios(d0r, d1r, d2r, m=m, k=k, A0=A0)
+    if cfg.cubic:  # k3 A0^2 / k = row[4] at k = A0 = 1
+        osc = Oscillator(m=osc.m, k=osc.k, mu=osc.mu, b=osc.b, D=osc.D, g=osc.g, k3=row[4])
     w0 = osc.omega0
     period = 2.0 * math.pi / w0
     dt = period / cfg.samples_per_period
@@ -260,7 +269,8 @@ def _executable(cfg: _Config, device_ids: tuple[int, ...], step: int):
     from jax.sharding import PartitionSpec as P
 
     fn, mesh = _compiled(cfg, device_ids)
-    rows = jax.ShapeDtypeStruct((step, 4), jnp.float64, sharding=NamedSharding(mesh, P("points")))
+    rows = jax.ShapeDtypeStruct((step, cfg.width), jnp.float64,
+                                sharding=NamedSharding(mesh, P("points")))
     return compile_cached("error_map", (cfg, device_ids), fn, rows)
 
 
@@ -294,7 +304,8 @@ def _positive_int(name: str, value, minimum: int = 1) -> int:
     return int(value)
 
 
-def _config(models, reference, periods, samples_per_period, rtol, atol) -> _Config:
+def _config(models, reference, periods, samples_per_period, rtol, atol,
+            cubic: bool = False) -> _Config:
     """The static settings of the compiled step (arguments already checked)."""
     n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
     if n_samples > MAX_SAMPLES:
@@ -313,7 +324,7 @@ def _config(models, reference, periods, samples_per_period, rtol, atol) -> _Conf
                   samples_per_period=samples_per_period, block=block,
                   rtol=float(rtol), atol=float(atol),
                   max_swings=2 * math.ceil(seg_periods) + 6, max_steps_per_swing=64,
-                  seg_blocks=seg_blocks)
+                  seg_blocks=seg_blocks, cubic=cubic)
     return cfg
 
 
@@ -325,7 +336,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               models: Sequence[str] = DEFAULT_MODELS, periods: float = 20.0,
               samples_per_period: int = 64, chunk_size: int = 128,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
-              progress: bool = True):
+              progress: bool = True, k3_ratio=None):
     """Errors of the analytic models against a reference over a grid of damping ratios.
 
     Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
@@ -355,10 +366,17 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             d2 = 0 and d1 < 1, NaN elsewhere).
         rtol, atol: tolerances of the diffrax reference (at A0 = 1, w0 = 1).
         progress: show a tqdm progress bar over the steps (on stderr; nothing else is printed).
+        k3_ratio: optional cubic stiffness axis k3 A0^2/k (issue 14; a number or a 1-D
+            sequence, either sign, finite). Default None: no such axis, the map (its dims, its
+            compiled program and its numbers) exactly as without k3. Given (0 included), it
+            becomes the last dim; models without k3 (all but "matched") are NaN with
+            ``valid`` False where k3 != 0, and a softening start beyond the barrier is invalid
+            for every model. E0 stays k A0^2/2.
 
     Returns:
-        An ``xarray.Dataset`` with dims (model, d0_ratio, d1_ratio, d2_ratio, phi0) (a scalar
-        axis becomes a length-1 dim) and variables max_error (in A0), rms_error (in A0),
+        An ``xarray.Dataset`` with dims (model, d0_ratio, d1_ratio, d2_ratio, phi0), plus
+        k3_ratio last when given (a scalar axis becomes a length-1 dim) and variables
+        max_error (in A0), rms_error (in A0),
         energy_error (in E0), halt_time_error (model minus reference, in periods),
         halt_position_error (model minus reference, in xc), valid (the model exists there), and
         per point reference_valid, window and reference_halt_time (in periods). Metrics are
@@ -378,6 +396,9 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             "d1_ratio": _axis("d1_ratio", d1_ratio, ratio=True),
             "d2_ratio": _axis("d2_ratio", d2_ratio, ratio=True),
             "phi0": _axis("phi0", phi0, ratio=False)}
+    cubic = k3_ratio is not None
+    if cubic:  # an extra, last axis; without it the map is exactly what it was
+        axes["k3_ratio"] = _axis("k3_ratio", k3_ratio, ratio=False)
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
@@ -393,7 +414,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
 
-    cfg = _config(models, reference, periods, samples_per_period, rtol, atol)
+    cfg = _config(models, reference, periods, samples_per_period, rtol, atol, cubic)
     n_samples = cfg.n_samples
 
     shape = tuple(a.size for a in axes.values())
@@ -455,14 +476,16 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     out_valid = out_valid[:n_points].reshape(shape + (n_mod,))
     out_info = out_info[:n_points].reshape(shape + (3,))
 
-    dims = ("model",) + _AXES
+    point_dims = tuple(axes)
+    dims = ("model",) + point_dims
     data = {}
     for j, name in enumerate(METRICS):
         data[name] = (dims, np.moveaxis(out_metrics[..., j], -1, 0), _VARIABLE_ATTRS[name])
     data["valid"] = (dims, np.moveaxis(out_valid, -1, 0), _VARIABLE_ATTRS["valid"])
-    data["reference_valid"] = (_AXES, out_info[..., 0] > 0.5, _VARIABLE_ATTRS["reference_valid"])
-    data["window"] = (_AXES, out_info[..., 1], _VARIABLE_ATTRS["window"])
-    data["reference_halt_time"] = (_AXES, out_info[..., 2],
+    data["reference_valid"] = (point_dims, out_info[..., 0] > 0.5,
+                               _VARIABLE_ATTRS["reference_valid"])
+    data["window"] = (point_dims, out_info[..., 1], _VARIABLE_ATTRS["window"])
+    data["reference_halt_time"] = (point_dims, out_info[..., 2],
                                    _VARIABLE_ATTRS["reference_halt_time"])
     coords = {"model": ("model", list(models), _COORD_ATTRS["model"])}
     for name, values in axes.items():
@@ -473,7 +496,9 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "source": f"dampax {__version__} (jax {jax.__version__})",
         "history": f"{_now()} dampax.error_map(d0_ratio=<{axes['d0_ratio'].size} values>, "
                    f"d1_ratio=<{axes['d1_ratio'].size}>, d2_ratio=<{axes['d2_ratio'].size}>, "
-                   f"phi0=<{axes['phi0'].size}>, models={list(models)}, periods={periods:g}, "
+                   f"phi0=<{axes['phi0'].size}>, "
+                   + (f"k3_ratio=<{axes['k3_ratio'].size}>, " if cubic else "")
+                   + f"models={list(models)}, periods={periods:g}, "
                    f"samples_per_period={samples_per_period}, reference={reference!r})",
         "dampax_version": __version__,
         "models": ", ".join(models),

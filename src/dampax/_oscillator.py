@@ -122,8 +122,8 @@ def _check_field(name: str, value, *, positive: bool) -> None:
 class Oscillator(eqx.Module):
     """Block of mass m on a spring k with sliding friction mu, viscous b and quadratic drag D.
 
-    Equation of motion (paper eq. 3):
-        m x'' = -k x - mu m g sgn(x') - b x' - D x' |x'|.
+    Equation of motion (paper eq. 3, with the cubic stiffness of issue 14):
+        m x'' = -k x - k3 x^3 - mu m g sgn(x') - b x' - D x' |x'|.
 
     Arguments:
         m: mass [kg], > 0.
@@ -132,6 +132,12 @@ class Oscillator(eqx.Module):
         b: viscous damping constant [kg/s], >= 0.
         D: quadratic drag constant [kg/m], >= 0.
         g: gravitational acceleration [m/s^2], > 0.
+        k3: cubic stiffness [N/m^3], finite, either sign (default 0: the linear spring of eq. 3,
+            every result exactly as without it). k3 > 0 hardens the spring (the frequency rises
+            with the amplitude), k3 < 0 softens it (a pendulum in radians: k3 = -k/6). With
+            k3 < 0 the potential k x^2/2 + k3 x^4/4 has its maxima at |x| = sqrt(k/|k3|): a
+            start beyond them, or with more energy than the barrier k^2/(4 |k3|), escapes, and
+            ``solve`` reports ``RESULTS.unconfined`` (docs/cubic_stiffness.md).
 
     Every field may be a JAX array (a batch); the module is a pytree, so it passes through
     ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Concrete values are validated at construction
@@ -144,17 +150,20 @@ class Oscillator(eqx.Module):
     b: Array = 0.0
     D: Array = 0.0
     g: Array = 9.81
+    k3: Array = 0.0
 
-    def __init__(self, m=1.0, k=1.0, mu=0.0, b=0.0, D=0.0, g=9.81):
+    def __init__(self, m=1.0, k=1.0, mu=0.0, b=0.0, D=0.0, g=9.81, k3=0.0):
         for name, value, positive in (("m", m, True), ("k", k, True), ("mu", mu, False),
                                       ("b", b, False), ("D", D, False), ("g", g, True)):
             _check_field(name, value, positive=positive)
+        check_finite("k3", k3)
         self.m = jnp.asarray(m, dtype=float)
         self.k = jnp.asarray(k, dtype=float)
         self.mu = jnp.asarray(mu, dtype=float)
         self.b = jnp.asarray(b, dtype=float)
         self.D = jnp.asarray(D, dtype=float)
         self.g = jnp.asarray(g, dtype=float)
+        self.k3 = jnp.asarray(k3, dtype=float)
 
     @property
     def omega0(self) -> Array:
@@ -172,7 +181,10 @@ class Oscillator(eqx.Module):
         return self.b / (2.0 * self.m)
 
     def energy(self, x, v) -> Array:
-        """Mechanical energy k x^2/2 + m v^2/2 (eq. 4); every solution's energy(t) uses it.
+        """Mechanical energy k x^2/2 + k3 x^4/4 + m v^2/2 (eq. 4 with the cubic stiffness).
+
+        Every solution's energy(t) uses it. The k3 term is added last, so with k3 = 0 the
+        value is exactly eq. 4's.
 
         Arguments:
             x, v: displacement [m] and velocity [m/s] (arrays broadcast with the fields).
@@ -180,7 +192,14 @@ class Oscillator(eqx.Module):
         Returns:
             E [J].
         """
-        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2
+        return 0.5 * self.k * x**2 + 0.5 * self.m * v**2 + 0.25 * self.k3 * x**4
+
+    def sticks(self, x) -> Array:
+        """True where a block at rest at x is held by static friction: |k x + k3 x^3| <= mu m g.
+
+        Written |x (1 + (k3/k) x^2)| <= xc, which is exactly |x| <= xc when k3 = 0.
+        """
+        return jnp.abs(x * (1.0 + (self.k3 / self.k) * (x * x))) <= self.xc
 
     @property
     def damping_coefficients(self) -> tuple[Array, Array, Array]:
@@ -205,7 +224,26 @@ class Oscillator(eqx.Module):
         return cls(m=m, k=k, mu=mu, b=b, D=D, g=g)
 
     def __repr__(self) -> str:
-        return _repr_fields(self, ("m", "k", "mu", "b", "D", "g"))
+        # k3 is shown only when it is not a concrete zero (the linear spring's repr unchanged)
+        plain = is_concrete(self.k3) and not np.any(np.asarray(self.k3))
+        return _repr_fields(self, ("m", "k", "mu", "b", "D", "g") + (() if plain else ("k3",)))
+
+
+def unconfined(osc: Oscillator, x0, v0) -> Array:
+    """True where a softening spring (k3 < 0) lets the block escape from (x0, v0).
+
+    The potential U(x) = k x^2/2 + k3 x^4/4 has its maxima at |x| = x_b = sqrt(k/|k3|), of
+    height U_b = k^2/(4 |k3|). Damping only removes energy, so the motion stays in |x| < x_b
+    exactly when |x0| < x_b and E0 = U(x0) + m v0^2/2 < U_b; elsewhere (including the
+    boundary, where the block creeps towards the maximum forever) it is out of the domain.
+    False wherever k3 >= 0. Elementwise; works on traced values.
+    """
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    soft = -osc.k3  # > 0 for a softening spring
+    x2 = x0 * x0
+    e0 = 0.5 * osc.k * x2 - 0.25 * soft * x2 * x2 + 0.5 * osc.m * v0 * v0
+    return (osc.k3 < 0.0) & ((soft * x2 >= osc.k) | (4.0 * soft * e0 >= osc.k * osc.k))
 
 
 def as_float(x) -> float:

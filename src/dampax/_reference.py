@@ -2,13 +2,14 @@
 
 Inside a swing sgn(v) = s is constant, so the equation of motion
 
-    x' = v,   v' = -(k/m) x - s mu g - (b/m) v - (D/m) s v^2
+    x' = v,   v' = -(k/m) x - (k3/m) x^3 - s mu g - (b/m) v - (D/m) s v^2
 
 is smooth and an adaptive Runge--Kutta method integrates it to full accuracy. A swing ends at
 the velocity zero: a `diffrax.Event` (cond = s v, `direction=False` so that a swing starting at
 v = 0 does not end at once) stops the solve in the step that crosses it, and Newton's method
 on a re-taken Runge--Kutta step finds it. There the block sticks for good when |x| <= xc =
-mu m g / k, or the next swing starts with v = 0 and s = -sgn(x). sgn(v) is never smoothed.
+mu m g / k (|k x + k3 x^3| <= mu m g with a cubic stiffness), or the next swing starts with
+v = 0 and s = -sgn(x). sgn(v) is never smoothed.
 
 The swings run in a fixed-length `jax.lax.scan` (reverse-mode differentiable; under `jax.vmap`
 the elements may use different numbers of swings). Each scan slot is one `diffeqsolve`
@@ -29,6 +30,7 @@ function theorem), and the turning point x(t*) then carries the total derivative
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
 import math
 
@@ -61,13 +63,18 @@ _NEWTON_ITERS = 1
 
 
 def _vector_field(t, y, args):
-    """Right-hand side of eq. 3 inside a swing with constant sgn(v) = s; y = (x, v)."""
+    """Right-hand side of eq. 3 inside a swing with constant sgn(v) = s; y = (x, v).
+
+    v' = -((k + k3 x^2)/m) x - s mu g - (b/m + (D/m) s v) v: the cubic stiffness enters as
+    k/m + (k3/m) x^2, which is exactly k/m when k3 = 0.
+    """
     del t
-    s, w2, fric, bm, dm = args
+    s, w2, fric, bm, dm, k3m = args
     x, v = y
     # lax, not jnp operators: the stages are unrolled, and lax keeps tracing cheap.
     mul, add = jax.lax.mul, jax.lax.add
-    drag = add(add(mul(w2, x), mul(s, fric)), mul(add(bm, mul(mul(dm, s), v)), v))
+    spring = mul(add(w2, mul(k3m, mul(x, x))), x)
+    drag = add(add(spring, mul(s, fric)), mul(add(bm, mul(mul(dm, s), v)), v))
     return v, jax.lax.neg(drag)
 
 
@@ -215,18 +222,25 @@ def _without_runtime_checks():
 
 
 def _ode_args(osc: Oscillator, s):
-    """Arguments of `_vector_field`: (s, k/m, mu g, b/m, D/m)."""
+    """Arguments of `_vector_field`: (s, k/m, mu g, b/m, D/m, k3/m)."""
     return (jnp.asarray(s, dtype=float), osc.k / osc.m, osc.mu * osc.g, osc.b / osc.m,
-            osc.D / osc.m)
+            osc.D / osc.m, osc.k3 / osc.m)
 
 
 def _derivatives(args, x, v):
-    """x and its first four time derivatives inside a swing (eq. 3 with the swing's sign s)."""
-    s, w2, fric, bm, dm = args
+    """x and its first four time derivatives inside a swing (eq. 3 with the swing's sign s).
+
+    The cubic stiffness enters through the secant k/m + (k3/m) x^2 (in the acceleration), the
+    tangent k/m + 3 (k3/m) x^2 (in the third and fourth derivatives) and the last term
+    6 (k3/m) x v^2 of the fourth: all exactly the linear spring's when k3 = 0.
+    """
+    s, w2, fric, bm, dm, k3m = args
     drag = bm + 2.0 * dm * s * v  # d(b v/m + D s v^2/m)/dv
-    a = -(w2 * x + s * fric + (bm + dm * s * v) * v)
-    jerk = -(w2 * v + drag * a)
-    snap = -(w2 * a + drag * jerk + 2.0 * dm * s * a * a)
+    w2s = w2 + k3m * (x * x)
+    w2t = w2 + 3.0 * k3m * (x * x)
+    a = -(w2s * x + s * fric + (bm + dm * s * v) * v)
+    jerk = -(w2t * v + drag * a)
+    snap = -(w2t * a + drag * jerk + 2.0 * dm * s * a * a + 6.0 * k3m * x * v * v)
     return x, v, a, jerk, snap
 
 
@@ -543,14 +557,13 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
     # state, t_end not > 0): integrate a harmless stand-in (at rest, one step) and flag it
     checks = (*input_checks(osc, x0, v0),
               (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end))
-    ok_in = ~(checks[0][0] | checks[1][0] | checks[2][0])
+    ok_in = ~functools.reduce(jnp.logical_or, [failed for failed, _ in checks])
     osc_in, x0_in, v0_in, t_end_in = osc, x0, v0, t_end
     osc = jax.tree_util.tree_map(lambda a: jnp.where(ok_in, a, 1.0), osc)
     x0, v0, t_end = (jnp.where(ok_in, x0, 0.0), jnp.where(ok_in, v0, 0.0),
                      jnp.where(ok_in, t_end, 1.0))
     solver = _UnrolledERK(solver_name)
     w0 = osc.omega0
-    xc = osc.xc
     zero = jnp.zeros((), dtype=float)
     term = dfx.ODETerm(_vector_field)
     if root_finder == "optx-newton":
@@ -560,12 +573,17 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
     else:
         rf = None
     event = dfx.Event(_event_cond, root_finder=rf, direction=False)
-    controller = dfx.PIDController(rtol=rtol, atol=atol, dtmax=_DTMAX_W0 / w0)
+    # the fastest the motion can get: with a hardening spring (k3 > 0) the tangent stiffness
+    # k + 3 k3 x^2 is at most k + 6 k3 E0/k (|x|^2 <= 2 E0/k), so w_hi = w0 sqrt(1 + 6 k3 E0/k^2)
+    # bounds the local frequency (exactly w0 when k3 <= 0)
+    k3_hard = jnp.maximum(osc.k3, 0.0)
+    w_hi = w0 * jnp.sqrt(1.0 + 6.0 * k3_hard * osc.energy(x0, v0) / (osc.k * osc.k))
+    controller = dfx.PIDController(rtol=rtol, atol=atol, dtmax=_DTMAX_W0 / w_hi)
     adj = {"recursive": dfx.RecursiveCheckpointAdjoint(), "forward": dfx.ForwardMode(),
            "direct": dfx.DirectAdjoint()}[adjoint]
     saveat = dfx.SaveAt(t0=True, steps=True)
 
-    rest0 = (v0 == 0.0) & (jnp.abs(x0) <= xc)
+    rest0 = (v0 == 0.0) & osc.sticks(x0)
     s0 = jnp.where(v0 != 0.0, jnp.sign(v0), -jnp.sign(x0))
     carry0 = dict(
         t=zero, x=x0, v=v0, s=s0, active=(~rest0) & (t_end > 0.0), halted=rest0,
@@ -578,7 +596,7 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
         args = _ode_args(osc, c["s"])
         with _without_runtime_checks():
             sol = dfx.diffeqsolve(
-                term, solver, t0, jnp.where(active, t_end, t0), _DT0_W0 / w0,
+                term, solver, t0, jnp.where(active, t_end, t0), _DT0_W0 / w_hi,
                 (c["x"], c["v"]), args, saveat=saveat, stepsize_controller=controller,
                 adjoint=adj, event=event, max_steps=max_steps_per_swing, throw=False,
             )
@@ -617,7 +635,7 @@ def _solve_single(osc, x0, v0, t_end, *, rtol, atol, max_swings, max_steps_per_s
         t_sw = t_guess + dt
         x_sw = y_new[0] + y_new[1] * dt
 
-        stick = fired & (jnp.abs(x_sw) <= xc)
+        stick = fired & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu m g
         reverse = fired & ~stick
         new = dict(
             t=jnp.where(active, jnp.where(fired, t_sw, t_p), t0),

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import _value_text
+from ._oscillator import _value_text, unconfined
 
 Array = jax.Array
 
@@ -49,7 +49,8 @@ class RESULTS(eqx.Enumeration):
     solver_failed = ("the reference's ODE solver failed (non-finite state or step size too "
                      "small); check the oscillator's parameters")
     invalid_constants = (
-        "m, k, g must be finite and > 0; mu, b, D finite and >= 0: fix the Oscillator's fields")
+        "m, k, g must be finite and > 0; mu, b, D finite and >= 0; k3 finite: fix the "
+        "Oscillator's fields")
     ansatz_overdamped = (
         "b: the ansatz oscillates at w0 and needs underdamping, d1 = b/(2m) < w0 = sqrt(k/m) "
         "(b < 2 sqrt(k m)); use method='reference'")
@@ -58,6 +59,13 @@ class RESULTS(eqx.Enumeration):
         "mu: Rizcallah's model comes to rest farther out than its undamped amplitude A0, with "
         "more energy than it started with (friction too strong for the amplitude: xc is not "
         "small against A0); use method='reference'")
+    unconfined = (
+        "k3, x0, v0: the softening spring (k3 < 0) does not hold the block: the start lies at "
+        "or beyond the potential's maximum |x| = sqrt(k/|k3|), or its energy reaches the "
+        "barrier k^2/(4 |k3|), and the block escapes; start lower or use a smaller |k3|")
+    no_cubic = (
+        "k3: this model has no cubic stiffness (k3 must be 0); use method='ansatz' (matched "
+        "phase, no tail) or method='reference'")
 
 
 def result_where(pred, a: RESULTS, b: RESULTS) -> RESULTS:
@@ -88,7 +96,8 @@ def first_failure(*checks: tuple[Array, RESULTS]) -> RESULTS:
 def constants_ok(osc) -> Array:
     """True where the oscillator's constants are in every model's domain (elementwise).
 
-    m, k and g must be finite and > 0; mu, b and D finite and >= 0. Works on traced fields
+    m, k and g must be finite and > 0; mu, b and D finite and >= 0; k3 finite. Works on traced
+    fields
     (under ``jit``/``vmap``), where the Oscillator's construction checks nothing.
     """
     ok = jnp.asarray(True)
@@ -96,7 +105,7 @@ def constants_ok(osc) -> Array:
         ok = ok & jnp.isfinite(value) & (value > 0.0)
     for value in (osc.mu, osc.b, osc.D):
         ok = ok & jnp.isfinite(value) & (value >= 0.0)
-    return ok
+    return ok & jnp.isfinite(osc.k3)
 
 
 def input_checks(osc, x0, v0) -> tuple[tuple[Array, RESULTS], ...]:
@@ -107,24 +116,32 @@ def input_checks(osc, x0, v0) -> tuple[tuple[Array, RESULTS], ...]:
 
     Returns:
         ((constants out of domain, ``RESULTS.invalid_constants``), (x0 or v0 not finite,
-        ``RESULTS.nonfinite_state``)).
+        ``RESULTS.nonfinite_state``), (a softening spring that does not hold the block,
+        ``RESULTS.unconfined``; see :func:`dampax._oscillator.unconfined`)).
     """
     x0 = jnp.asarray(x0, dtype=float)
     v0 = jnp.asarray(v0, dtype=float)
     return ((~constants_ok(osc), RESULTS.invalid_constants),
-            (~(jnp.isfinite(x0) & jnp.isfinite(v0)), RESULTS.nonfinite_state))
+            (~(jnp.isfinite(x0) & jnp.isfinite(v0)), RESULTS.nonfinite_state),
+            (unconfined(osc, x0, v0), RESULTS.unconfined))
+
+
+def cubic_checks(osc) -> tuple[tuple[Array, RESULTS], ...]:
+    """The check of the models without a cubic stiffness: ((k3 != 0, ``RESULTS.no_cubic``),)."""
+    return ((osc.k3 != 0.0, RESULTS.no_cubic),)
 
 
 def stuck_at_start(osc, x0, v0) -> Array:
     """True where the block starts at rest inside the sticking band and never moves.
 
-    v0 = 0 and |x0| <= xc = mu m g / k (static friction holds the spring's pull); only where
+    v0 = 0 and |k x0 + k3 x0^3| <= mu m g (static friction holds the spring's pull;
+    :meth:`Oscillator.sticks`, exactly |x0| <= xc = mu m g / k when k3 = 0); only where
     the constants are in the domain (:func:`constants_ok`). Every model then gives the trivial
     answer: x(t) = x0, v = 0, halt_time 0, halt_position x0.
     """
     x0 = jnp.asarray(x0, dtype=float)
     v0 = jnp.asarray(v0, dtype=float)
-    return constants_ok(osc) & (v0 == 0.0) & (jnp.abs(x0) <= osc.xc)
+    return constants_ok(osc) & (v0 == 0.0) & osc.sticks(x0)
 
 
 def is_successful(result: RESULTS) -> Array:

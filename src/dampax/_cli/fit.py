@@ -21,6 +21,7 @@ import numpy as np
 
 from .._fit import (
     FIT_MODELS,
+    FREE,
     LOSSES,
     METHOD_NAMES,
     MODELS,
@@ -82,8 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "to mu (default: %(default)s)")
     model = parser.add_argument_group("model and fit")
     model.add_argument("--free", default="mu,D",
-                       help="damping constants to fit, comma list of mu, b, D "
-                            "(default: %(default)s)")
+                       help="constants to fit, comma list of mu, b, D and k3 (the cubic "
+                            "stiffness, profiled; trace fits only) (default: %(default)s)")
     model.add_argument("--model", default="ansatz", choices=MODELS,
                        help="; ".join(f"{name}: {FIT_MODELS[name].description}"
                                       for name in MODELS) + " (default: %(default)s)")
@@ -194,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
         line); 4 the fit converged but the model does not describe the data. Invalid input
         raises ValueError (status 2 from ``dampax._cli.main``).
     """
-    free = check_free(split_names(args.free))
+    free = check_free(split_names(args.free), allowed=FREE)
     if not free:
         raise ValueError("--free: name at least one of mu, b, D")
     if args.example == bool(args.path):

@@ -26,6 +26,7 @@ from ._guess import initial_guess as initial_guess
 from ._params import CANDIDATES as CANDIDATES
 from ._params import DAMPING as DAMPING
 from ._params import ENVELOPE_PARAMS as ENVELOPE_PARAMS
+from ._params import FREE as FREE
 from ._params import LOSSES as LOSSES
 from ._params import PARAMS as PARAMS
 from ._params import EnvelopeParams as EnvelopeParams
@@ -40,7 +41,7 @@ from ._result import ModelComparison as ModelComparison
 __all__ = [
     "FitResult", "ModelComparison", "ArrayFit", "fit", "fit_arrays", "fit_envelope",
     "compare_models", "compare_envelope_models", "initial_guess", "example_trace",
-    "residual_function", "PARAMS", "ENVELOPE_PARAMS", "CANDIDATES", "DAMPING", "MODELS",
+    "residual_function", "PARAMS", "ENVELOPE_PARAMS", "CANDIDATES", "DAMPING", "FREE", "MODELS",
     "LOSSES", "OPTIMIZERS", "METHOD_NAMES", "FIT_MODELS", "FitModel", "TraceParams",
     "EnvelopeParams", "EXAMPLE", "check_free", "posterior", "Posterior",
 ]

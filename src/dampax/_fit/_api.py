@@ -34,6 +34,7 @@ from ._core import (
 from ._guess import analyse, guess_envelope, guess_trace, start_index
 from ._params import (
     CANDIDATES,
+    FREE,
     LOSSES,
     MAD,
     PARAMS,
@@ -162,7 +163,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
-        units: str | None = None, starts: int = 32, seed: int = 0) -> FitResult:
+        units: str | None = None, starts: int = 32, seed: int = 0,
+        k3: float | None = None) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
 
     From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
@@ -192,7 +194,18 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         x: the positions when ``trace_or_t`` holds the times.
         oscillator: the known constants (m, k, g; the damping constants not in ``free`` stay
             at its values, usually 0). Default None: unit mass, w0 fitted (per-mass b, D).
-        free: the damping constants to fit, among "mu", "b", "D".
+        free: the constants to fit, among "mu", "b", "D" and "k3" (the cubic stiffness of
+            issue 14, docs/cubic_stiffness.md: the amplitude-dependent frequency). k3 is
+            profiled: the fit of the other parameters is repeated at fixed k3 (from the
+            linear fit's optimum) and k3 chosen by Brent's method on the residual sum of
+            squares S(k3), searched as
+            k3 A^2/(m w0^2) in [-0.3, 0.3] (A: the window's first amplitude). Its interval
+            comes from the curvature of S at the minimum, with sigma^2 = S/(n - p) inflated by
+            (1 + rho)/(1 - rho) for the residuals' lag-1 autocorrelation rho; the other
+            parameters' intervals are those at the fitted k3 (conditional on it). Per unit
+            mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
+        k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
+            the linear spring, every number as without k3); not with "k3" in ``free``.
         model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (diffrax
             integration of eq. 3, started from the ansatz fit).
         fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
@@ -225,7 +238,21 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if isinstance(starts, bool) or int(starts) != starts or starts < 1:
         raise ValueError(f"starts must be a positive integer, got {starts!r}")
     spec = FIT_MODELS[model]
-    free = check_free(free)
+    free = check_free(free, allowed=FREE)
+    if "k3" in free:
+        if k3 is not None:
+            raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
+        return _fit_k3(trace_or_t, x, free=tuple(f for f in free if f != "k3"),
+                       options=dict(oscillator=oscillator, model=model,
+                                    fit_omega0=fit_omega0, offset=offset, start=start,
+                                    end=end, loss=loss, optimizer=optimizer, p0=p0,
+                                    max_steps=max_steps, rtol=rtol, atol=atol,
+                                    max_swings=max_swings, units=units, starts=starts,
+                                    seed=seed))
+    if k3 is not None:
+        k3 = float(k3)
+        if not math.isfinite(k3):
+            raise ValueError(f"k3 must be a finite number, got {k3!r}")
     per_mass = oscillator is None
     if fit_omega0 is None:
         fit_omega0 = per_mass
@@ -259,7 +286,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     for w in warn:
         warnings.warn(w, stacklevel=2)
     vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
-    consts = Constants(m=osc["m"], g=osc["g"])
+    consts = Constants(m=osc["m"], g=osc["g"], k3=k3)
     n = len(t)
     tp, xp, wt = _pad(t, xw, _bucket(n))
     steps = int(max_steps or MAX_STEPS[optimizer])
@@ -296,6 +323,68 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         optimizer=optimizer, f_scale=fs, init=init, source=source, full_t=t_all, full_x=x_all,
         warnings=tuple(warn), stages="; ".join(stages), per_mass=per_mass, units=unit,
         analysis=an_w, starts=found))
+
+
+def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
+    """:func:`fit` with the cubic stiffness k3 profiled (see its ``free``).
+
+    S(k3), the residual sum of squares of the fit at fixed k3, is minimised by Brent's method
+    in e = k3 A^2/(m w0^2) on [-0.3, 0.3]; the interval of k3 comes from the curvature of S at
+    the minimum (central differences), sigma^2 = S/(n - p) and the factor (1 + rho)/(1 - rho)
+    of the residuals' lag-1 autocorrelation rho. Returns the fit at the best k3 with "k3" in
+    ``params``, ``stderr``, ``free`` and ``conf_interval``.
+    """
+    import dataclasses
+
+    from scipy.optimize import minimize_scalar
+    from scipy.stats import norm
+
+    base = fit(trace_or_t, x, free=free, **options)
+    m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
+    w0 = float(base.params["w0"])
+    amp = float(math.hypot(base.params["x0"], base.params["v0"] / w0))
+    scale = m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
+    cache = {}
+
+    # every fit at fixed k3 starts from the linear-spring optimum (one start: the global
+    # starts were spent on the linear fit)
+    inner = {**options, "starts": 1,
+             "p0": {name: float(base.params[name]) for name in PARAMS}}
+
+    def run(e):
+        e = float(e)
+        if e not in cache:
+            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, **inner)
+        return cache[e]
+
+    def cost(e):
+        res = run(e)
+        return float(res.chisqr) if np.isfinite(res.chisqr) else 1e300
+
+    opt = minimize_scalar(cost, bracket=(-0.01, 0.01), bounds=None, method="brent",
+                          options={"xtol": 1e-4, "maxiter": 40})
+    e_best = float(np.clip(opt.x, -0.3, 0.3))
+    best = run(e_best)
+    # curvature of S(e) at the minimum
+    h = max(0.02 * abs(e_best), 2e-3)
+    s0, sp, sm = cost(e_best), cost(e_best + h), cost(e_best - h)
+    curv = (sp + sm - 2.0 * s0) / (h * h)
+    r = np.asarray(best.residuals, dtype=float)
+    n, p = r.size, best.nvarys + 1
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    sigma2 = s0 / max(n - p, 1) * (1.0 + rho) / (1.0 - rho)
+    sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
+    k3 = e_best * scale
+    sd = sd_e * scale
+    profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
+                      "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
+                      "at_bound": abs(e_best) >= 0.3}}
+    return dataclasses.replace(
+        best, params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
+        free=tuple(best.free) + ("k3",), profiled=profile,
+        derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
+                 "k3_z": float(norm.ppf(0.975))})
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

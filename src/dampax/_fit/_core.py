@@ -89,12 +89,26 @@ class FIT_RESULTS(eqx.Enumeration):
 
 def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     """x(tau) = offset + A f(tau) cos(w0 tau + phi), eqs. 11, 20-21; x0 = A cos(phi),
-    y = A sin(phi)."""
+    y = A sin(phi).
+
+    With a cubic stiffness (``consts.k3`` not None; docs/cubic_stiffness.md):
+    x = offset + A f [cos th + beta f^2 (cos 3th - cos th)], th = w0 tau + phi + P(tau),
+    kappa = (3/4) k3 A^2 / (m w0^2), beta = k3 A^2 / (32 m w0^2).
+    """
     d0, d1, d2 = damping_d(q.mu, q.b, q.D, q.w0, consts.m, consts.g)
     A = jnp.sqrt(q.x0 * q.x0 + q.y * q.y)
     phi = jnp.arctan2(q.y, q.x0)
-    f = decay(tau, d2 * A, d1, d0 / A)
-    return q.offset + A * f * jnp.cos(q.w0 * tau + phi)
+    if consts.k3 is None:
+        f = decay(tau, d2 * A, d1, d0 / A)
+        return q.offset + A * f * jnp.cos(q.w0 * tau + phi)
+    from .._ansatz import _decay_constants, _decay_from, phase_excess
+
+    k = _decay_constants(d2 * A, d1, d0 / A)
+    f = _decay_from(k, tau)
+    ratio = consts.k3 * A * A / (consts.m * q.w0 * q.w0)
+    th = q.w0 * tau + phi + phase_excess(k, q.w0, 0.75 * ratio, tau, f)
+    cth, sth = jnp.cos(th), jnp.sin(th)
+    return q.offset + A * f * (cth - (ratio / 32.0) * f * f * 4.0 * cth * sth * sth)
 
 
 def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions):
@@ -102,7 +116,8 @@ def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: Referen
     from .._solve import solve
 
     m = consts.m
-    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g)
+    k3 = 0.0 if consts.k3 is None else consts.k3
+    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3)
     sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
                 rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint="forward")
     return q.offset + sol.x(tau)

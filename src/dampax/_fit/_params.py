@@ -39,7 +39,9 @@ POWER = {"mu": 0, "b": 1, "D": 2}
 CANDIDATES = (("mu",), ("D",), ("b",), ("mu", "D"), ("b", "D"), ("mu", "b"), ("mu", "b", "D"))
 LOSSES = ("linear", "soft_l1")
 UNITS = {"mu": "", "b": "kg/s", "D": "kg/m", "w0": "rad/s", "offset": "", "x0": "",
-         "v0": "/s", "A": "", "k": "N/m"}
+         "v0": "/s", "A": "", "k": "N/m", "k3": "N/m^3"}
+#: what ``free`` may name: the damping constants and the cubic stiffness (issue 14)
+FREE = DAMPING + ("k3",)
 #: position units that are lengths, in metres (b, D in kg/s, kg/m need lengths and a mass)
 LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "km": 1e3}
 MAD = 1.482602218505602  # 1 / Phi^-1(3/4): MAD -> sigma for Gaussian noise
@@ -62,6 +64,9 @@ def unit_of(name: str, units: str = "m", per_mass: bool = False) -> str:
         return f"1/{u} (D/m, per unit mass)" if per_mass or not length else f"kg/{u}"
     if name == "k":
         return "1/s^2 (k/m = w0^2, per unit mass)" if per_mass or not length else f"N/{u}"
+    if name == "k3":
+        return (f"1/(s^2 {u}^2) (k3/m, per unit mass)" if per_mass or not length
+                else f"N/{u}^3")
     return {"w0": "rad/s", "offset": u, "x0": u, "v0": f"{u}/s", "A": u, "xc": u,
             "mu_g": f"{u}/s^2", "b/m": "1/s", "D/m": f"1/{u}", "d0": f"{u}/s", "d1": "1/s",
             "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad"}.get(name, "")
@@ -124,12 +129,15 @@ class Damping(NamedTuple):
 
 
 class Constants(NamedTuple):
-    """Fixed constants of a fit: mass m [kg], gravitational acceleration g [m/s^2], and w0
-    [rad/s] of envelope fits (trace fits fit w0 as a parameter: NaN here)."""
+    """Fixed constants of a fit: mass m [kg], gravitational acceleration g [m/s^2], w0
+    [rad/s] of envelope fits (trace fits fit w0 as a parameter: NaN here), and the cubic
+    stiffness k3 of trace fits (None: the linear spring, the curves exactly as without k3;
+    a number: held at that value; ``fit(free=(..., "k3"))`` profiles it, see ``_api``)."""
 
     m: Any
     g: Any
     w0: Any = math.nan
+    k3: Any = None
 
 
 class Setup(NamedTuple):
@@ -168,8 +176,12 @@ def check_choice(name, value, choices):
         raise ValueError(f"{name} must be one of {choices}, got {value!r}")
 
 
-def check_free(free) -> tuple[str, ...]:
-    """The damping constants to fit, as a tuple, from a tuple or a comma list.
+def check_free(free, *, allowed=DAMPING) -> tuple[str, ...]:
+    """The constants to fit, as a tuple, from a tuple or a comma list.
+
+    Arguments:
+        free: names among ``allowed`` (default the damping constants; trace fits also take
+            "k3", see :data:`FREE`).
 
     Raises:
         ValueError: an unknown or repeated name.
@@ -177,9 +189,9 @@ def check_free(free) -> tuple[str, ...]:
     if isinstance(free, str):
         free = tuple(s.strip() for s in free.split(",") if s.strip())
     free = tuple(free)
-    bad = [f for f in free if f not in DAMPING]
+    bad = [f for f in free if f not in allowed]
     if bad or len(set(free)) != len(free):
-        raise ValueError(f"free must name distinct damping constants among {DAMPING}, "
+        raise ValueError(f"free must name distinct constants among {allowed}, "
                          f"got {free!r}")
     return free
 

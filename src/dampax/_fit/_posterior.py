@@ -266,6 +266,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                              ("num_warmup", num_warmup, 10)):
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    if "k3" in (free.split(",") if isinstance(free, str) else free):
+        raise ValueError("free: the posterior does not sample the cubic stiffness k3 (issue "
+                         "14); fit it with dp.fit(trace, free=(..., 'k3')), which profiles it")
     free = check_free(free)
     if not free:
         raise ValueError("free: name at least one damping constant")

@@ -92,6 +92,7 @@ class FitResult:
     per_mass: bool = False
     units: str = "m"
     jac: np.ndarray | None = None
+    profiled: dict = field(default_factory=dict)
     resid_rows: np.ndarray | None = None
 
     def _hac(self):
@@ -128,8 +129,15 @@ class FitResult:
             level: two-sided coverage, in (0, 1).
         """
         sd = self.hac_stderr
-        return _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
-                                           level, nonneg=DAMPING)
+        out = _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
+                                          level, nonneg=DAMPING)
+        if self.profiled:  # k3 of fit(free=(..., "k3")): from the profile's curvature
+            from scipy.stats import norm
+
+            z = float(norm.ppf(0.5 + 0.5 * level))
+            for name, pr in self.profiled.items():
+                out[name] = (pr["value"] - z * pr["stderr"], pr["value"] + z * pr["stderr"])
+        return out
 
     @property
     def rms(self) -> float:
@@ -192,6 +200,10 @@ class FitResult:
                 init_text = f" (init = {init:.6g})" if init is not None else ""
                 lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {err:.4g}{rel_text}"
                              f"{init_text} {unit}".rstrip())
+            elif name in self.profiled:  # k3 of fit(free=(..., "k3")): profiled
+                sd = self.profiled[name]["stderr"]
+                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {sd:.4g} (profiled: "
+                             f"sd from the curvature of S, AR(1)-inflated) {unit}".rstrip())
             else:
                 lines.append(f"    {name + ':':<{width}} {value:.6g} (fixed) {unit}".rstrip())
         if self.derived:
@@ -214,6 +226,10 @@ class FitResult:
                     lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  "
                                  f"(stderr {self.stderr[name]:.4g}, HAC sd "
                                  f"{self.hac_stderr[name]:.4g})")
+                for name in self.profiled:
+                    lo, hi = ci[name]
+                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
+                                 "the others are conditional on it)")
         pairs = []
         n = len(self.varied)
         for i in range(n):
