@@ -324,3 +324,18 @@ def test_no_atlas_estimate_with_k3():
     osc = dp.Oscillator(m=M, k=K, D=0.5, k3=k3_of(0.05))
     assert np.isnan(float(dp.solve(osc, A, 0.0).error_estimate))
     assert dp.solve(osc, A, 0.0, method="auto", t_end=2.0).model == "reference"
+
+
+def test_sensitivity_keeps_k3_and_differentiates_it():
+    """dp.sensitivity rebuilds the oscillator from its fields: k3 must survive (it was dropped,
+    a silent linear spring), and d tau/d k3 agrees with a central finite difference."""
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=1.0, k3=300.0)
+    s = dp.sensitivity(osc, 0.2, 0.0, jnp.linspace(0.0, 1.0, 5), wrt=("mu", "k3"), trend=False)
+    assert float(s.halt_time) == float(dp.solve(osc, 0.2, 0.0).halt_time)
+
+    def tau(k3):
+        return float(dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=1.0, k3=k3), 0.2,
+                              0.0).halt_time)
+
+    fd = (tau(300.0 + 1e-2) - tau(300.0 - 1e-2)) / 2e-2
+    np.testing.assert_allclose(float(s.dhalt_time[1]), fd, rtol=1e-5)

@@ -271,8 +271,7 @@ class _Model(eqx.Module):
     samples: int = eqx.field(static=True)
 
     def __call__(self, p):
-        values = dict(m=self.osc.m, k=self.osc.k, mu=self.osc.mu, b=self.osc.b, D=self.osc.D,
-                      g=self.osc.g, x0=self.x0, v0=self.v0)
+        values = {f: getattr(self.osc, f) for f in FIELDS} | dict(x0=self.x0, v0=self.v0)
         values.update({name: p[i] for i, name in enumerate(self.names)})
         osc = Oscillator(**{f: values[f] for f in FIELDS})
         x0, v0 = values["x0"], values["v0"]

@@ -39,14 +39,14 @@ from ._solve import turning_points as _turning_points
 Array = jax.Array
 
 #: Oscillator fields, in the order of its constructor.
-FIELDS = ("m", "k", "mu", "b", "D", "g")
+FIELDS = ("m", "k", "mu", "b", "D", "g", "k3")
 #: Every name :func:`sensitivity` can differentiate with respect to.
 PARAMETERS = FIELDS + ("x0", "v0")
 #: Units of the parameters (d x/d theta is in m per this unit).
-UNITS = {"m": "kg", "k": "N/m", "mu": "", "b": "kg/s", "D": "kg/m", "g": "m/s²", "x0": "m",
-         "v0": "m/s"}
-_SYMBOLS = {"m": "m", "k": "k", "mu": r"\mu", "b": "b", "D": "D", "g": "g", "x0": "x_0",
-            "v0": "v_0"}
+UNITS = {"m": "kg", "k": "N/m", "mu": "", "b": "kg/s", "D": "kg/m", "g": "m/s²", "k3": "N/m³",
+         "x0": "m", "v0": "m/s"}
+_SYMBOLS = {"m": "m", "k": "k", "mu": r"\mu", "b": "b", "D": "D", "g": "g", "k3": "k_3",
+            "x0": "x_0", "v0": "v_0"}
 _MODES = ("forward", "reverse")
 # the adjoints of the reference integrator that each mode of differentiation can go through
 _ADJOINTS = {"forward": ("forward", "direct"), "reverse": ("recursive", "direct")}
@@ -426,7 +426,7 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points
               swings, n_turning):
     """Values and Jacobians of (x(ts), E(ts), tau, x_halt, turning points) w.r.t. ``wrt``, and
     the trend sweeps, compiled."""
-    base = dict(m=osc.m, k=osc.k, mu=osc.mu, b=osc.b, D=osc.D, g=osc.g, x0=x0, v0=v0)
+    base = {f: getattr(osc, f) for f in FIELDS} | dict(x0=x0, v0=v0)
     theta = jnp.stack([base[name] for name in wrt])
     if method == "reference":
         if t_end is None:  # the reference's own default, stretched to cover ts
