@@ -279,7 +279,7 @@ def test_fit_free_names_k3():
 
     assert check_free(("b", "k3"), allowed=FREE) == ("b", "k3")
     with pytest.raises(ValueError, match="free"):
-        check_free(("b", "k3"))  # the envelope fits and the posterior have no k3
+        check_free(("b", "k3"))  # the envelope fits have no k3
     with pytest.raises(ValueError, match="k3"):
         dp.fit(np.linspace(0, 1, 50), np.zeros(50), free=("b", "k3"), k3=1.0)
 
@@ -288,7 +288,8 @@ def test_fit_free_names_k3():
 def test_fit_recovers_k3_of_a_synthetic_trace():
     """A reference trace with k3 A^2/k = 0.05, b and D, plus white noise 0.2 % of A: the
     profiled fit finds k3 within its 95 % interval and the residual rms at the noise level,
-    while the linear-spring fit is left with the phase drift."""
+    while the linear-spring fit is left with the phase drift; the posterior's k3 interval
+    holds it too."""
     k3 = 0.05 * K / A**2
     osc = dp.Oscillator(m=M, k=K, b=0.05, D=0.3, k3=k3)
     t = np.arange(0.0, 12.0, 0.01)
@@ -299,6 +300,13 @@ def test_fit_recovers_k3_of_a_synthetic_trace():
     lo, hi = res.conf_interval(0.95)["k3"]
     assert lo < k3 < hi and (hi - lo) < 0.2 * k3
     assert res.rms < 1.1 * 0.002 * A < lin.rms
+    # the posterior samples k3 too (from the profiled fit): its 95 % interval holds the truth
+    post = dp.posterior(t, x, free=("b", "D", "k3"), start_fit=res, num_samples=200,
+                        num_chains=2, num_warmup=150, seed=3)
+    s = post.summary(0.95)["k3"]
+    assert post.draws["k3"].shape == (2, 200) and post.free == ("b", "D", "k3")
+    assert s["lo"] < k3 < s["hi"] and (s["hi"] - s["lo"]) < 0.2 * k3, s
+    assert s["r_hat"] < 1.05, s
 
 
 # --- error maps --------------------------------------------------------------------------------

@@ -6,18 +6,20 @@ residuals r = x - model: r_1 ~ N(0, sigma^2 / (1 - phi_n^2)), r_t - phi_n r_(t-1
 sigma^2) (the exact likelihood of a stationary AR(1)); sigma and phi_n are sampled too.
 
 Parameters sampled (unconstrained): log of every free damping constant, w0 (when fitted), the
-offset (when fitted), x0, y, log sigma and atanh phi_n. Weakly informative priors, documented
-in :data:`PRIORS`: log c ~ N(log c_guess, 3) around the turning-point guess of the constant (a
-factor 20 per sigma), w0 ~ N(w_cross, 0.05 w_cross) around the zero-crossing frequency, offset
-~ N(offset_fit, A), x0 and y ~ N(their least-squares values, 2 A), log sigma ~ N(log rms, 2),
-atanh phi_n ~ N(0, 2). The sampler runs on u with theta = theta_map + L u, L the Cholesky factor
-of the Laplace covariance at the posterior mode (found by L-BFGS from the least-squares fit),
-so the chains see a nearly isotropic target. One compiled program (blackjax's NUTS kernel,
+offset (when fitted), the cubic stiffness k3 itself (when free: it has either sign), x0, y, log
+sigma and atanh phi_n; with k3 the model is the ansatz with the amplitude-dependent phase of
+docs/cubic_stiffness.md. Weakly informative priors, documented in :data:`PRIORS`: log c ~ N(log
+c_guess, 3) around the turning-point guess of the constant (a factor 20 per sigma), w0 ~
+N(w_cross, 0.05 w_cross) around the zero-crossing frequency, offset ~ N(offset_fit, A), x0 and y
+~ N(their least-squares values, 2 A), log sigma ~ N(log rms, 2), atanh phi_n ~ N(0, 2), k3
+A^2/(m w0^2) ~ N(0, 0.5). The sampler runs on u with theta = theta_map + L u, L the Cholesky
+factor of the Laplace covariance at the posterior mode (found by L-BFGS from the least-squares
+fit), so the chains see a nearly isotropic target. One compiled program (blackjax's NUTS kernel,
 vmapped over the chains inside a scan) serves the warm-up, in chunks of 25 steps that move the
-step size towards an acceptance rate of 0.8 and then set a diagonal mass matrix from the
-warm-up draws, and the sampling. The likelihood uses every s-th sample of the window (at most
-:data:`MAX_SAMPLES`): with AR(1) noise the information of neighbouring samples overlaps, and
-the thinned residuals follow an AR(1) with coefficient phi^s.
+step size towards an acceptance rate of 0.8 and then set a diagonal mass matrix from the warm-up
+draws, and the sampling. The likelihood uses every s-th sample of the window (at most
+:data:`MAX_SAMPLES`): with AR(1) noise the information of neighbouring samples overlaps, and the
+thinned residuals follow an AR(1) with coefficient phi^s.
 """
 
 from __future__ import annotations
@@ -48,6 +50,8 @@ PRIORS = {
     "x0, y = A sin(phi)": "Normal(least-squares value, 2 A)",
     "sigma (AR(1) innovation sd)": "log sigma ~ Normal(log rms of the fit, 2)",
     "phi_n (AR(1) coefficient)": "atanh phi_n ~ Normal(0, 2)",
+    "k3 (free)": "k3 A^2/(m w0^2) ~ Normal(0, 0.5) (|k3| A^2/(m w0^2) ~ 1 is far beyond the "
+                 "harmonic balance of docs/cubic_stiffness.md)",
 }
 
 
@@ -56,9 +60,10 @@ class Posterior:
     """Posterior draws of a trace fit (:func:`posterior`).
 
     Attributes:
-        draws: xarray Dataset, one variable per parameter (the free damping constants, w0,
-            offset, x0, v0, sigma, phi_noise), dims (chain, draw): the ArviZ layout.
-        free: the sampled damping constants.
+        draws: xarray Dataset, one variable per parameter (the free damping constants, k3
+            when free, w0, offset, x0, v0, sigma, phi_noise), dims (chain, draw): the ArviZ
+            layout.
+        free: the sampled constants (the damping constants, then k3 when free).
         fit: the least-squares :class:`FitResult` it started from.
         units, per_mass: as the fit's.
         accept_rate, divergences, step_size, seconds: sampler diagnostics.
@@ -136,9 +141,10 @@ class Posterior:
 class _Cfg(NamedTuple):
     """Static layout of theta: the free constants and which of w0, offset are sampled."""
 
-    free: tuple
+    free: tuple  # the sampled damping constants (k3 is vary_k3)
     vary_w0: bool
     vary_off: bool
+    vary_k3: bool = False
 
 
 class _Data(NamedTuple):
@@ -168,15 +174,18 @@ def _unpack(theta, data: _Data, cfg: _Cfg):
     j += int(cfg.vary_w0)
     off = theta[j] if cfg.vary_off else data.fixed[4]
     j += int(cfg.vary_off)
+    k3 = theta[j] if cfg.vary_k3 else None  # None: the linear spring's curve, as without k3
+    j += int(cfg.vary_k3)
     q = TraceCoords(mu=vals["mu"], b=vals["b"], D=vals["D"], w0=w0, offset=off,
                     x0=theta[j], y=theta[j + 1])
-    return q, jnp.exp(theta[j + 2]), jnp.tanh(theta[j + 3])
+    return q, jnp.exp(theta[j + 2]), jnp.tanh(theta[j + 3]), k3
 
 
 def _logpost(theta, data: _Data, cfg: _Cfg):
     """log prior + exact stationary AR(1) log likelihood of the residuals."""
-    q, sigma, phi = _unpack(theta, data, cfg)
-    rr = data.x - _ansatz_curve(data.t - data.t[0], q, data.consts, data.span, None)
+    q, sigma, phi, k3 = _unpack(theta, data, cfg)
+    consts = data.consts._replace(k3=k3) if cfg.vary_k3 else data.consts
+    rr = data.x - _ansatz_curve(data.t - data.t[0], q, consts, data.span, None)
     e = rr[1:] - phi * rr[:-1]
     n = rr.shape[0]
     ll = (-0.5 * jnp.sum(e * e) / sigma ** 2 - 0.5 * rr[0] ** 2 * (1 - phi ** 2) / sigma ** 2
@@ -227,6 +236,8 @@ def _layout(free, cfg: _Cfg):
         names.append("w0")
     if cfg.vary_off:
         names.append("offset")
+    if cfg.vary_k3:
+        names.append("k3")
     return names + ["x0", "y", "log_sigma", "atanh_phi"]
 
 
@@ -241,7 +252,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
 
     Arguments:
         trace_or_t, x, oscillator, free, fit_omega0, offset, start, end, units: as in
-            :func:`~dampax.fit` (no oscillator: per unit mass, w0 sampled).
+            :func:`~dampax.fit` (no oscillator: per unit mass, w0 sampled). ``free`` may
+            include "k3" (the cubic stiffness, sampled on its own scale; the start fit then
+            profiles it, as ``dp.fit(free=(..., "k3"))`` does).
         model: "ansatz" (the only model sampled).
         num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
         seed: random seed.
@@ -258,7 +271,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     from tqdm import tqdm
 
     from ._api import fit
-    from ._params import check_free
+    from ._params import FREE, check_free
 
     if model != "ansatz":
         raise ValueError(f"model must be 'ansatz' for the posterior, got {model!r}")
@@ -266,17 +279,17 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                              ("num_warmup", num_warmup, 10)):
         if isinstance(value, bool) or int(value) != value or value < low:
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-    if "k3" in (free.split(",") if isinstance(free, str) else free):
-        raise ValueError("free: the posterior does not sample the cubic stiffness k3 (issue "
-                         "14); fit it with dp.fit(trace, free=(..., 'k3')), which profiles it")
-    free = check_free(free)
+    names_in = check_free(free, allowed=FREE)
+    vary_k3 = "k3" in names_in
+    free = tuple(c for c in names_in if c != "k3")  # the damping constants
     if not free:
         raise ValueError("free: name at least one damping constant")
     began = time.perf_counter()
     res = start_fit if start_fit is not None else fit(
-        trace_or_t, x, oscillator=oscillator, free=free, fit_omega0=fit_omega0, offset=offset,
+        trace_or_t, x, oscillator=oscillator, free=free + ("k3",) * vary_k3,
+        fit_omega0=fit_omega0, offset=offset,
         start=start, end=end, units=units, seed=seed)
-    if tuple(res.free) != tuple(free) or res.model != "ansatz":
+    if tuple(res.free) != free + ("k3",) * vary_k3 or res.model != "ansatz":
         raise ValueError("start_fit must be an ansatz fit with the same free constants")
     stride = max(1, math.ceil(len(res.t) / MAX_SAMPLES))
     t = jnp.asarray(res.t[::stride])
@@ -287,7 +300,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     vary_w0 = "w0" in res.varied
     vary_off = "offset" in res.varied
 
-    cfg = _Cfg(free=tuple(free), vary_w0=vary_w0, vary_off=vary_off)
+    cfg = _Cfg(free=tuple(free), vary_w0=vary_w0, vary_off=vary_off, vary_k3=vary_k3)
     names = _layout(free, cfg)
     p = res.params
     A = res.derived["A"]
@@ -312,6 +325,10 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
         centre.append(p["offset"])
         width.append(A)
         theta0.append(p["offset"])
+    if vary_k3:  # k3 A^2/(m w0^2) ~ N(0, 0.5), started at the profiled fit's k3
+        centre.append(0.0)
+        width.append(0.5 * float(m) * p["w0"] ** 2 / A ** 2)
+        theta0.append(p["k3"])
     centre += [x0_hat, y_hat, math.log(float(np.sqrt(np.mean(r * r))) or 1e-12), 0.0]
     width += [2 * A, 2 * A, 2.0, 2.0]
     theta0 += [x0_hat, y_hat, math.log(sig_hat), math.atanh(phi_hat)]
@@ -380,10 +397,12 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     theta = np.transpose(theta, (1, 0, 2))  # (chain, draw, dim)
     draws = {}
     flat = theta.reshape(-1, dim)
-    q, sigma, phi_n = jax.vmap(lambda th: _unpack(th, data, cfg))(jnp.asarray(flat))
+    q, sigma, phi_n, k3s = jax.vmap(lambda th: _unpack(th, data, cfg))(jnp.asarray(flat))
     shape = theta.shape[:2]
     for c in free:
         draws[c] = np.asarray(getattr(q, c)).reshape(shape)
+    if vary_k3:
+        draws["k3"] = np.asarray(k3s).reshape(shape)
     draws["w0"] = np.broadcast_to(np.asarray(q.w0), (flat.shape[0],)).reshape(shape)
     draws["offset"] = np.broadcast_to(np.asarray(q.offset), (flat.shape[0],)).reshape(shape)
     draws["x0"] = np.asarray(q.x0).reshape(shape)
@@ -395,9 +414,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                     coords={"chain": np.arange(shape[0]), "draw": np.arange(shape[1])},
                     attrs={"model": "ansatz + AR(1) noise", "sampler": "blackjax NUTS",
                            "units": res.units, "per_mass": int(res.per_mass),
-                           "free": ",".join(free), "t_start": t0,
+                           "free": ",".join(names_in), "t_start": t0,
                            "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items())})
-    return Posterior(draws=ds, free=tuple(free), fit=res, units=res.units,
+    return Posterior(draws=ds, free=names_in, fit=res, units=res.units,
                      per_mass=res.per_mass, accept_rate=float(np.mean(np.concatenate(acc))),
                      divergences=int(np.sum(np.concatenate(div))),
                      step_size=step,
