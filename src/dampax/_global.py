@@ -42,7 +42,7 @@ import numpy as np
 
 from ._models import METHODS
 from ._oscillator import Oscillator, check_finite, is_concrete
-from ._sensitivity import FIELDS, PARAMETERS, UNITS
+from ._sensitivity import PARAMETERS, UNITS, with_values
 from ._solve import solve
 
 Array = jax.Array
@@ -271,10 +271,7 @@ class _Model(eqx.Module):
     samples: int = eqx.field(static=True)
 
     def __call__(self, p):
-        values = {f: getattr(self.osc, f) for f in FIELDS} | dict(x0=self.x0, v0=self.v0)
-        values.update({name: p[i] for i, name in enumerate(self.names)})
-        osc = Oscillator(**{f: values[f] for f in FIELDS})
-        x0, v0 = values["x0"], values["v0"]
+        osc, x0, v0 = with_values(self.osc, self.x0, self.v0, self.names, p)
         options = dict(self.options)
         q = self.quantity
         if q == "max_error":

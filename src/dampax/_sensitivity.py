@@ -422,6 +422,14 @@ def least_squares_slope_where_finite(u: Array, y: Array,
 
 
 @eqx.filter_jit
+def with_values(osc: Oscillator, x0, v0, names, p):
+    """(oscillator, x0, v0) with the parameters ``names`` (Oscillator fields, "x0", "v0") set
+    to the entries of ``p``, every other field kept (k3 included)."""
+    values = {f: getattr(osc, f) for f in FIELDS} | dict(x0=x0, v0=v0)
+    values.update({name: p[i] for i, name in enumerate(names)})
+    return Oscillator(**{f: values[f] for f in FIELDS}), values["x0"], values["v0"]
+
+
 def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points, trend,
               swings, n_turning):
     """Values and Jacobians of (x(ts), E(ts), tau, x_halt, turning points) w.r.t. ``wrt``, and
@@ -434,10 +442,7 @@ def _evaluate(osc, x0, v0, ts, t_end, wrt, method, mode, options, window, points
         options = dict(options, t_end=t_end)
 
     def solution(p):
-        values = dict(base)
-        values.update({name: p[i] for i, name in enumerate(wrt)})
-        o = Oscillator(**{f: values[f] for f in FIELDS})
-        return solve(o, values["x0"], values["v0"], method=method, **options)
+        return solve(*with_values(osc, x0, v0, wrt, p), method=method, **options)
 
     def turning(sol, n):
         if n == 0:  # nothing asked: leave the program as it was
