@@ -347,3 +347,49 @@ def test_sensitivity_keeps_k3_and_differentiates_it():
 
     fd = (tau(300.0 + 1e-2) - tau(300.0 - 1e-2)) / 2e-2
     np.testing.assert_allclose(float(s.dhalt_time[1]), fd, rtol=1e-5)
+
+
+# --- a linear spring does not pay for the cubic terms (issue 12) ------------------------------
+
+
+@pytest.mark.parametrize("name", ["matched", "undamped", "matched_tail"])
+def test_linear_spring_routes_agree(name):
+    """k3 = 0 three ways: known at trace time (terms left out), traced (a run-time branch
+    skips them), differentiated (the full cubic expression): the same x and v, and a vmapped
+    batch mixing k3 = 0 and k3 != 0 gives each point what it gives alone."""
+    opts = dp.MODELS[name].solve_options
+    t = jnp.linspace(0.0, T20 / 4, 101)
+    x0, v0 = A * math.cos(2.0), -W0 * A * math.sin(2.0)
+
+    def state(k3):
+        osc = dp.Oscillator(m=M, k=K, mu=0.01, b=0.03, D=0.2, k3=k3)
+        sol = dp.solve(osc, x0, v0, **opts)
+        return jnp.stack(sol.state(t)) if hasattr(sol, "state") else jnp.stack(
+            (sol.x(t), sol.v(t)))
+
+    known = state(0.0)
+    traced = jax.jit(state)(0.0)
+    _, tangent = jax.jvp(state, (0.0,), (1.0,))
+    np.testing.assert_allclose(traced, known, rtol=0, atol=1e-15 * A * W0)
+    if name == "matched":  # the others have no cubic stiffness (no_cubic)
+        both = jax.vmap(state)(jnp.array([0.0, k3_of(0.05)]))
+        np.testing.assert_allclose(both[0], known, rtol=0, atol=1e-15 * A * W0)
+        np.testing.assert_allclose(both[1], state(k3_of(0.05)), rtol=0, atol=1e-14 * A * W0)
+        h = k3_of(1e-5)  # d/dk3 at k3 = 0 from the full expression, not the linear one
+        fd = (state(h) - state(-h)) / (2 * h)
+        assert np.max(np.abs(fd)) > 0.0
+        np.testing.assert_allclose(tangent, fd, rtol=0, atol=1e-6 * np.max(np.abs(fd)))
+
+
+def test_linear_spring_program_has_no_cubic_terms():
+    """With k3 a value 0 the compiled x(t) holds no branch and no phase quadrature; with k3
+    traced it holds the run-time branch."""
+    t = jnp.linspace(0.0, 1.0, 8)
+
+    def x_of(k3):
+        return dp.solve(dp.Oscillator(m=M, k=K, mu=0.01, D=0.2, k3=k3), A, 0.0).x(t)
+
+    linear = str(jax.make_jaxpr(lambda: x_of(0.0))())
+    traced = str(jax.make_jaxpr(x_of)(0.0))
+    assert " cond[" not in linear
+    assert " cond[" in traced

@@ -19,12 +19,15 @@ share f, f', cos and sin (:meth:`AnsatzSolution.state`).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
+from ._oscillator import Oscillator, initial_amplitude_phase, jit_method, known_linear
 from ._solution import (
     RESULTS,
     AbstractSolution,
@@ -291,6 +294,40 @@ def excess_frequency(f, w0, kappa):
     return w0 * kf2 / (jnp.sqrt(jnp.maximum(1.0 + kf2, 1e-300)) + 1.0)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 4))
+def if_cubic(fn, kappa, beta, operands, linear=None):
+    """``fn(kappa, beta, operands)``, a computation with cubic-stiffness terms, evaluated as
+    ``linear(kappa, beta, operands)`` (zeros by default) when those terms all vanish.
+
+    When every kappa and beta of the call (across a vmapped batch too: ``unvmap_any``) is 0,
+    the linear form runs instead of ``fn`` (a branch, not both: the Gauss--Legendre phase
+    integral costs some 26 f(t) evaluations per sample, and a linear spring must not pay for
+    it). Derivatives (jvp, grad) always come from ``fn``, so d/dk3 at k3 = 0 stays exact.
+
+    Arguments:
+        fn: a function of (kappa, beta, operands) returning a pytree of arrays.
+        kappa, beta: (3/4) k3 A^2 / k and k3 A^2 / (32 k) (arrays of any shape).
+        operands: a pytree of arrays passed on to ``fn``.
+        linear: what ``fn`` is when kappa = beta = 0 (same signature, same output
+            structure), without its cubic terms; None: zeros.
+
+    Returns:
+        ``fn(kappa, beta, operands)``.
+    """
+    live = eqxi.unvmap_any(jnp.any(kappa != 0.0) | jnp.any(beta != 0.0))
+    if linear is None:
+        def linear(*args):
+            return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
+                                          jax.eval_shape(fn, *args))
+
+    return jax.lax.cond(live, fn, linear, kappa, beta, operands)
+
+
+@if_cubic.defjvp
+def _if_cubic_jvp(fn, linear, primals, tangents):
+    return jax.jvp(fn, primals, tangents)
+
+
 def _nodes(rule, ndim):
     """Gauss--Legendre nodes on [0, 1] and weights (summing to 1), shaped (n,) + (1,) * ndim."""
     x, w = rule
@@ -410,6 +447,67 @@ def cubic_match(y, phi, e0, e1, e2, e3, *, newton=4):
     return d[0], d[1], ok
 
 
+def _cubic_terms(kappa, beta, operands):
+    """What the cubic stiffness adds to x and v at the samples of `AnsatzSolution._state`.
+
+    The phase P(t) enters by rotating (cos th, sin th) by P, as differences dc = cos(th + P)
+    - cos th, ds = sin(th + P) - sin th added to the linear model (whose expression stays as
+    it was); then the third harmonic and th' - w0 (class docstring).
+
+    Returns:
+        (dx, dv, dv_rate): x + dx, then v - dv (+ dv_rate for the matched velocity, the f'
+        term); all exactly 0 when kappa = beta = 0.
+    """
+    A, w0, k, t, f, cth, sth, rate = operands
+    p = phase_excess(k, w0, kappa, t, f)
+    sp, vers = jnp.sin(p), 2.0 * jnp.sin(0.5 * p) ** 2  # sin P, 1 - cos P
+    dc = -(cth * vers + sth * sp)
+    ds = cth * sp - sth * vers
+    cth, sth = cth + dc, sth + ds
+    eps = beta * f * f
+    c3 = -4.0 * cth * sth * sth  # cos 3th - cos th
+    s3 = 4.0 * sth * (2.0 - 3.0 * sth * sth)  # 3 sin 3th - sin th
+    dw = excess_frequency(f, w0, kappa)
+    dx = A * f * (dc + eps * c3)
+    dv = A * f * (w0 * ds + dw * sth + (w0 + dw) * eps * s3)
+    return dx, dv, A * rate * (dc + 3.0 * eps * c3)
+
+
+def _undamped_x(kappa, beta, operands, *, cubic: bool):
+    """A f(t) cos(w0 t + phi + P(t)), the undamped-phase x of `AnsatzSolution._x_energy`
+    (operands: A, w0, phi, decay constants, t, f(t)); cubic=False leaves P out."""
+    A, w0, phi, k, t, f = operands
+    th = w0 * t + phi
+    if cubic:
+        th = th + phase_excess(k, w0, kappa, t, f)
+    return A * f * jnp.cos(th)
+
+
+def _state_terms(kappa, beta, operands, *, matched: bool, cubic: bool):
+    """(x, v) of `AnsatzSolution._state` before masking (eqs. 11-12, or 8-9 unmatched).
+
+    Arguments:
+        kappa, beta: the cubic stiffness's constants; operands: (A, w0, phi, decay constants,
+            t); cubic: False leaves the cubic terms out (exact when kappa = beta = 0).
+    """
+    A, w0, phi, k, t = operands
+    f = _decay_from(k, t)
+    th = w0 * t + phi
+    cth, sth = jnp.cos(th), jnp.sin(th)
+    x = A * f * cth
+    v = -w0 * A * f * sth
+    rate = decay_rate(f, k.a, k.bp, k.c)
+    if matched:
+        v = v + A * rate * cth
+    if cubic:  # all exactly 0 when k3 = 0
+        dx, dv, dv_rate = _cubic_terms(kappa, beta, (A, w0, k, t, f, cth, sth, rate))
+        x = x + dx
+        v = v - dv
+        if matched:
+            v = v + dv_rate
+    return x, v
+
+
 # ----------------------------------------------------------------------------------------------
 # the solution object
 
@@ -446,6 +544,9 @@ class AnsatzSolution(AbstractSolution):
     kappa: Array  # (3/4) k3 A^2 / k: w(A f)^2 = w0^2 (1 + kappa f^2)
     beta: Array  # k3 A^2 / (32 k): the third harmonic's relative amplitude at f = 1
     matched: bool = eqx.field(static=True)
+    # k3 was a value 0 at construction (`known_linear`): the cubic terms are left out at trace
+    # time; else they are skipped at run time where kappa = beta = 0 (`if_cubic`)
+    linear: bool = eqx.field(static=True, default=False)
 
     @property
     def amplitude(self) -> Array:
@@ -480,39 +581,18 @@ class AnsatzSolution(AbstractSolution):
         """Amplitude factor f(t) (eq. 20 in closed form), 0 after the halt."""
         return _decay_from(self._decay(), t)
 
-    def _phase(self, t, k, f):
-        """th(t) = (w0 t + phi) + P(t) (P = 0 exactly without cubic stiffness)."""
-        t = jnp.asarray(t, dtype=float)
-        return self.omega0 * t + self.phi + phase_excess(k, self.omega0, self.kappa, t, f)
+    def _with_cubic(self, fn, operands):
+        """``fn(kappa, beta, operands, cubic=...)``: with its cubic terms unless the spring is
+        linear (known at trace time, or kappa = beta = 0 at run time: `if_cubic`)."""
+        if self.linear:
+            return fn(self.kappa, self.beta, operands, cubic=False)
+        return if_cubic(functools.partial(fn, cubic=True), self.kappa, self.beta, operands,
+                        functools.partial(fn, cubic=False))
 
     def _state(self, t):
         t = jnp.asarray(t, dtype=float)
-        k = self._decay()
-        f = _decay_from(k, t)
-        th = self.omega0 * t + self.phi
-        cth, sth = jnp.cos(th), jnp.sin(th)
-        x = self.A * f * cth
-        v = -self.omega0 * self.A * f * sth
-        rate = decay_rate(f, k.a, k.bp, k.c)
-        if self.matched:
-            v = v + self.A * rate * cth
-        # cubic stiffness (all exactly 0 when k3 = 0): the phase P(t) enters by rotating
-        # (cos th, sin th) by P, as differences dc = cos(th + P) - cos th, ds = sin(th + P) -
-        # sin th added to the linear model above (whose expression stays as it was); then the
-        # third harmonic and th' - w0
-        p = phase_excess(k, self.omega0, self.kappa, t, f)
-        sp, vers = jnp.sin(p), 2.0 * jnp.sin(0.5 * p) ** 2  # sin P, 1 - cos P
-        dc = -(cth * vers + sth * sp)
-        ds = cth * sp - sth * vers
-        cth, sth = cth + dc, sth + ds
-        eps = self.beta * f * f
-        c3 = -4.0 * cth * sth * sth  # cos 3th - cos th
-        s3 = 4.0 * sth * (2.0 - 3.0 * sth * sth)  # 3 sin 3th - sin th
-        dw = excess_frequency(f, self.omega0, self.kappa)
-        x = x + self.A * f * (dc + eps * c3)
-        v = v - self.A * f * (self.omega0 * ds + dw * sth + (self.omega0 + dw) * eps * s3)
-        if self.matched:
-            v = v + self.A * rate * (dc + 3.0 * eps * c3)
+        x, v = self._with_cubic(functools.partial(_state_terms, matched=self.matched),
+                                (self.A, self.omega0, self.phi, self._decay(), t))
         return self._mask(self._rest(x)), self._mask(v)
 
     @jit_method
@@ -556,10 +636,11 @@ class AnsatzSolution(AbstractSolution):
         if self.matched:
             x, v = self._state(t)
             return x, self.osc.energy(x, v)
+        t = jnp.asarray(t, dtype=float)
         k = self._decay()
         f = _decay_from(k, t)
-        return (self._mask(self._rest(self.A * f * jnp.cos(self._phase(t, k, f)))),
-                self._undamped_energy(f))
+        x = self._with_cubic(_undamped_x, (self.A, self.omega0, self.phi, k, t, f))
+        return self._mask(self._rest(x)), self._undamped_energy(f)
 
     # -- turning points: v = 0 <=> w0 t + phi = n pi + atan(f'/(w0 f)), one per half period --
 
@@ -581,7 +662,9 @@ class AnsatzSolution(AbstractSolution):
         w_dot = w0 * kappa * f_safe * fp / (w / w0)  # dw/dt
         r = fp / (w * f_safe)
         dr = (fpp * f_safe - fp * fp) / (w * f_safe * f_safe) - fp * w_dot / (w * w * f_safe)
-        th = w0 * t + ph + phase_excess(k, w0, kappa, t, f)
+        th = w0 * t + ph
+        if not self.linear:  # P(t) = 0 exactly for a linear spring
+            th = th + phase_excess(k, w0, kappa, t, f)
         e = beta * f_safe * f_safe
         s2 = jnp.sin(th) ** 2
         q = (1.0 - 12.0 * e * s2) / (1.0 + 8.0 * e - 12.0 * e * s2)
@@ -642,13 +725,16 @@ class AnsatzSolution(AbstractSolution):
         return jnp.where(ok, ts, jnp.nan), jnp.where(ok, xs, jnp.nan)
 
 
-def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSolution:
+def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched",
+                 linear: bool | None = None) -> AnsatzSolution:
     """Ansatz solution x(t) = A f(t) cos(w0 t + phi) (Lelas & Pezer eqs. 11-24 or 8-10).
 
     Arguments:
         osc: the Oscillator.
         x0, v0: initial displacement and velocity.
         phase: "matched" (A, phi from eqs. 22-23) or "undamped" (A0, phi0; eqs. 8-10).
+        linear: True states that k3 is a constant 0 (the cubic terms are left out at trace
+            time); None: `known_linear` (k3 a value 0, not traced).
 
     Returns:
         An :class:`AnsatzSolution`: ``result`` is ``RESULTS.invalid_constants`` or
@@ -659,6 +745,7 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
     if phase not in ("matched", "undamped"):
         raise ValueError(f"phase must be 'matched' or 'undamped', got {phase!r}")
     x_start, v_start = jnp.asarray(x0, dtype=float), jnp.asarray(v0, dtype=float)
+    linear = known_linear(osc) if linear is None else bool(linear)
     stuck = stuck_at_start(osc, x_start, v_start)
     # stuck: the model is solved from the origin (its trivial, gradient-safe branch, A = 0)
     # and x0 added back (AnsatzSolution._rest)
@@ -678,7 +765,11 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
         phi_lin = jnp.arctan2(jnp.where(usable, h, 0.0), jnp.where(usable, cphi, 1.0))
         # cubic stiffness: Newton corrections from the linear match (exactly 0 when k3 = 0)
         e3 = jnp.where(usable, osc.k3 * A0_safe * A0_safe / osc.k, 0.0)
-        dy, dphi, ok3 = cubic_match(jnp.where(usable, y, 1.0), phi_lin, e0, e1, e2, e3)
+        if linear:  # every correction is exactly 0
+            dy = dphi = jnp.zeros_like(y)
+            ok3 = jnp.ones_like(valid)
+        else:
+            dy, dphi, ok3 = cubic_match(jnp.where(usable, y, 1.0), phi_lin, e0, e1, e2, e3)
         dy = jnp.where(usable, dy, 0.0)
         dphi = jnp.where(usable, dphi, 0.0)
         valid = valid & ok3
@@ -708,6 +799,7 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched") -> AnsatzSo
                            (~stuck & ~valid, RESULTS.no_amplitude))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
                           halt_time=tau, osc=osc, result=result, stuck=stuck,
-                          x0=x_start, kappa=kappa, beta=beta, matched=phase == "matched")
+                          x0=x_start, kappa=kappa, beta=beta, matched=phase == "matched",
+                          linear=linear)
 
 

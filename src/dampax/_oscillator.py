@@ -34,6 +34,13 @@ def is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in leaves)
 
 
+def known_linear(osc) -> bool:
+    """True when the oscillator's k3 is a value (not traced) and zero everywhere: a linear
+    spring known at trace time, so the analytic models may leave their cubic terms out (and
+    their derivatives: with k3 a constant 0 every cubic term vanishes identically)."""
+    return is_concrete(osc.k3) and not np.any(np.asarray(osc.k3))
+
+
 def check_finite(name: str, value) -> None:
     """Raise ValueError naming ``name`` when a concrete ``value`` holds NaN or inf."""
     if is_concrete(value):
@@ -163,7 +170,10 @@ class Oscillator(eqx.Module):
         self.b = jnp.asarray(b, dtype=float)
         self.D = jnp.asarray(D, dtype=float)
         self.g = jnp.asarray(g, dtype=float)
-        self.k3 = jnp.asarray(k3, dtype=float)
+        # a k3 given as a value stays a value inside jit (not a traced constant), so that the
+        # analytic models see a linear spring at trace time and leave the cubic terms out
+        with jax.ensure_compile_time_eval():
+            self.k3 = jnp.asarray(k3, dtype=float)
 
     @property
     def omega0(self) -> Array:

@@ -12,7 +12,14 @@ import numpy as np
 from ._ansatz import AnsatzSolution, solve_ansatz
 from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
 from ._models import METHODS
-from ._oscillator import Oscillator, check_count, check_finite, check_real, is_concrete
+from ._oscillator import (
+    Oscillator,
+    check_count,
+    check_finite,
+    check_real,
+    is_concrete,
+    known_linear,
+)
 
 #: Rizcallah's default amplitude factor (least squares)
 KAPPA = 4.0 / math.pi
@@ -116,7 +123,7 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         x0 = jnp.asarray(x0, dtype=float)
         v0 = jnp.asarray(v0, dtype=float)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
-                              back=back, kappa=kappa)
+                              back=back, kappa=kappa, linear=known_linear(osc))
     if eager and is_concrete(sol.result._value) and sol.message:
         raise ValueError(sol.message)
     if throw:
@@ -157,10 +164,11 @@ def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
 
 
 @eqx.filter_jit
-def _solve_analytic(osc, x0, v0, *, method, phase, tail, back, kappa):
-    """The analytic models, compiled once per (method, options) and re-used for new values."""
+def _solve_analytic(osc, x0, v0, *, method, phase, tail, back, kappa, linear):
+    """The analytic models, compiled once per (method, options) and re-used for new values;
+    ``linear``: k3 is a constant 0 outside (`known_linear`, lost inside this jit)."""
     if method == "ansatz":
-        sol = solve_ansatz(osc, x0, v0, phase=phase)
+        sol = solve_ansatz(osc, x0, v0, phase=phase, linear=linear)
         if tail == "coulomb":
             sol = with_coulomb_tail(sol, osc, x0, v0, back=back)
         return sol
