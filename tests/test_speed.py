@@ -185,7 +185,7 @@ def test_eager_sensitivity_is_kept_compiled_and_equals_the_traced_path():
     kept = len(_cache._EXECUTABLES)
     again = dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=0.04, D=2.0), 0.2, 0.0, ts, **kw)
     assert len(_cache._EXECUTABLES) == kept  # new values, same program
-    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxexport"))
+    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxcall"))
     traced = jax.jit(lambda mu: dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=mu, D=2.0),
                                                0.2, 0.0, ts, **kw))(0.03)
     for name in ("x", "dx", "energy", "dhalt_time", "dhalt_position"):
