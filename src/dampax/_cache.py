@@ -11,9 +11,15 @@ on macOS, ``%LOCALAPPDATA%\\dampax`` on Windows), unless
 - a cache directory is already configured (``JAX_COMPILATION_CACHE_DIR`` or
   ``jax.config.update("jax_compilation_cache_dir", ...)`` before the import): it is kept.
 
-Programs that compile in under ``_MIN_COMPILE_S`` seconds are not written. The largest programs
-(an error-map step) are also kept traced, as ``jax.export`` files in ``exported/`` of the same
-folder (:func:`compile_cached`), so a repeated call skips tracing too: a few seconds of Python.
+Programs that compile in under ``_MIN_COMPILE_S`` seconds are not written, except within a
+command of the command line (:func:`keep_every_program`). The largest programs (an error-map
+step) are also kept traced, as ``jax.export`` files in ``exported/`` of the same folder
+(:func:`compile_cached`), so a repeated call skips tracing too: a few seconds of Python. Eager
+calls of the commands' numeric work (a solve, a fit's core and batch of starts, a sensitivity)
+run through :func:`call_cached` / :func:`call_cached_tree`: the program is kept as a
+``.jaxcall`` file, a ``jax.export`` program with its output's treedef beside it, so any pytree
+(equinox modules included) comes back whole and a repeated command neither traces nor
+compiles.
 """
 
 from __future__ import annotations
