@@ -185,7 +185,7 @@ def test_eager_sensitivity_is_kept_compiled_and_equals_the_traced_path():
     kept = len(_cache._EXECUTABLES)
     again = dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=0.04, D=2.0), 0.2, 0.0, ts, **kw)
     assert len(_cache._EXECUTABLES) == kept  # new values, same program
-    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxexport"))
+    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxcall"))
     traced = jax.jit(lambda mu: dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=mu, D=2.0),
                                                0.2, 0.0, ts, **kw))(0.03)
     for name in ("x", "dx", "energy", "dhalt_time", "dhalt_position"):
@@ -194,3 +194,112 @@ def test_eager_sensitivity_is_kept_compiled_and_equals_the_traced_path():
                                    err_msg=name)  # two programs: rounding may differ
     assert eager.wrt == traced.wrt and bool(eager.valid) and bool(again.valid)
     assert float(again.halt_time) < float(eager.halt_time)  # more friction: halts sooner
+
+
+def _leaves_equal(a, b) -> bool:
+    """Same tree structure, and every leaf equal to the bit (NaN where NaN), same dtype and
+    weak type."""
+    la, ta = jax.tree_util.tree_flatten(a)
+    lb, tb = jax.tree_util.tree_flatten(b)
+    return ta == tb and all(
+        np.asarray(x).dtype == np.asarray(y).dtype
+        and getattr(x, "weak_type", False) == getattr(y, "weak_type", False)
+        and np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+        for x, y in zip(la, lb, strict=True))
+
+
+def test_kept_program_returns_equinox_modules_whole():
+    """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
+    comes back with the traced path's treedef and bits; the file holds program and treedef,
+    and a process that reads it (here: the memo cleared) rebuilds the same result."""
+    import equinox as eqx
+
+    from dampax import _cache
+
+    def fn(osc, x0, v0):
+        return dp.solve(osc, x0, v0, phase="undamped"), jnp.asarray(3)
+
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.02, D=1.5)
+    args = (osc, jnp.asarray(0.2), jnp.asarray(0.0))
+    kept = _cache.call_cached_tree("test-tree", "undamped", fn, *args)
+    traced = eqx.filter_jit(fn)(*args)
+    assert _leaves_equal(kept, traced)
+    assert kept[1].weak_type  # jnp.asarray(3) is weakly typed; serialization drops it
+    files = list(_cache.dampax_cache_dir().glob("exported/test-tree-*.jaxcall"))
+    assert len(files) == 1
+    entries = len(_cache._EXECUTABLES)
+    other = _cache.call_cached_tree("test-tree", "undamped", fn,
+                                    dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=1.5), *args[1:])
+    assert len(_cache._EXECUTABLES) == entries  # new values, the same program
+    assert float(other[0].halt_time) < float(kept[0].halt_time)
+    for memo in [m for m in _cache._EXECUTABLES if m[0] == "test-tree"]:
+        del _cache._EXECUTABLES[memo]  # as a new process: the file is read, not traced
+    stamp = files[0].stat().st_mtime_ns
+    again = _cache.call_cached_tree("test-tree", "undamped", fn, *args)
+    assert files[0].stat().st_mtime_ns == stamp and _leaves_equal(again, traced)
+    assert again[0].valid and again[0].message == ""
+
+
+def test_run_models_is_kept_compiled_and_equals_the_traced_path():
+    """`dampax solve`'s models run kept programs: the same solutions and summaries to the bit
+    as the traced route, a second oscillator compiles nothing, the programs are on disk."""
+    import equinox as eqx
+
+    from dampax import _cache, _summary
+
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.0288, D=2.95)
+    run = _summary.run_models(osc, 0.2, 0.0, models=["matched", "matched_tail"])
+    for name in ("matched", "matched_tail"):
+        traced = eqx.filter_jit(_summary._solve_and_summarize)(
+            osc, jnp.asarray(0.2), jnp.asarray(0.0), name=name, n_turning=6)
+        r = run.results[name]
+        assert _leaves_equal(r.solution, traced[0]), name
+        assert (r.halt_time, r.halt_position) == (float(traced[1][0]), float(traced[1][1]))
+        np.testing.assert_array_equal(r.turning_t, np.asarray(traced[1][2][0]))
+    entries = len(_cache._EXECUTABLES)
+    _summary.run_models(dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=2.0), 0.2, 0.0,
+                        models=["matched", "matched_tail"])
+    assert len(_cache._EXECUTABLES) == entries
+    assert len(list(_cache.dampax_cache_dir().glob("exported/solve-model-*.jaxcall"))) >= 2
+
+
+def test_eager_fit_core_is_kept_compiled_and_equals_the_traced_path():
+    """An eager fit runs the kept core program (the traced route runs under jit): the same
+    CoreResult to the bit, a second fit of the same shapes compiles nothing."""
+    from dampax import _cache
+    from dampax._fit import _core
+    from dampax._fit._params import Constants, TraceParams
+
+    t = np.linspace(0.0, 4.0, 400)
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.01, D=0.5)
+    x = np.asarray(dp.solve(osc, 0.1, 0.0).x(jnp.asarray(t)))
+    p0 = TraceParams(mu=0.012, b=0.0, D=0.4, w0=np.sqrt(30.0), offset=0.0, x0=0.1, v0=0.0)
+    vary = TraceParams(True, False, True, False, True, True, True)
+    consts = Constants(m=1.0, g=9.81)
+    static = dict(model="ansatz", optimizer="lm", max_steps=64, rtol=1e-8, atol=1e-10,
+                  opts=None)
+    args = (t, x, np.ones_like(t), p0, vary, consts, np.inf)
+    kept = _core.run_core(*args, **static)
+    traced = jax.jit(lambda *a: _core.run_core(*a, **static))(*args)
+    assert _leaves_equal(kept, traced)
+    assert kept.code == _core.FIT_RESULTS.successful
+    entries = len(_cache._EXECUTABLES)
+    _core.run_core(t, 1.01 * x, *args[2:], **static)
+    assert len(_cache._EXECUTABLES) == entries
+    assert list(_cache.dampax_cache_dir().glob("exported/fit-core-*.jaxcall"))
+
+
+def test_ar1_filter_equals_lfilter_to_the_bit():
+    """The HAC's backward AR(1) filter gives scipy.signal.lfilter's array, bits and layout."""
+    from scipy.signal import lfilter
+
+    from dampax._fit._intervals import _backward_ar1
+
+    rng = np.random.default_rng(3)
+    for order in ("C", "F"):
+        J = np.asarray(rng.standard_normal((500, 4)) * [1e-6, 1.0, 1e3, 0.1], order=order)
+        for phi in (-0.9, 0.0, 0.37, 0.999):
+            want = lfilter([1.0], [1.0, -phi], J[::-1], axis=0)[::-1]
+            got = _backward_ar1(J, phi)
+            np.testing.assert_array_equal(got, want)
+            assert got.strides == want.strides

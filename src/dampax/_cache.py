@@ -11,16 +11,25 @@ on macOS, ``%LOCALAPPDATA%\\dampax`` on Windows), unless
 - a cache directory is already configured (``JAX_COMPILATION_CACHE_DIR`` or
   ``jax.config.update("jax_compilation_cache_dir", ...)`` before the import): it is kept.
 
-Programs that compile in under ``_MIN_COMPILE_S`` seconds are not written. The largest programs
-(an error-map step) are also kept traced, as ``jax.export`` files in ``exported/`` of the same
-folder (:func:`compile_cached`), so a repeated call skips tracing too: a few seconds of Python.
+Programs that compile in under ``_MIN_COMPILE_S`` seconds are not written, except within a
+command of the command line (:func:`keep_every_program`). The largest programs (an error-map
+step) are also kept traced, as ``jax.export`` files in ``exported/`` of the same folder
+(:func:`compile_cached`), so a repeated call skips tracing too: a few seconds of Python. Eager
+calls of the commands' numeric work (a solve, a fit's core and batch of starts, a sensitivity)
+run through :func:`call_cached` / :func:`call_cached_tree`: the program is kept as a
+``.jaxcall`` file, a ``jax.export`` program with its output's treedef beside it, so any pytree
+(equinox modules included) comes back whole and a repeated command neither traces nor
+compiles.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
+import io
 import os
+import pickle
 import sys
 from pathlib import Path
 
@@ -69,6 +78,33 @@ def enable_compilation_cache() -> Path | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", _MIN_COMPILE_S)
     return path
+
+
+@contextlib.contextmanager
+def keep_every_program():
+    """Within the block, write every compiled program to dampax's persistent cache, however
+    quick to compile.
+
+    For the command line: a command compiles dozens of small programs (one per eager array
+    operation, each 20-60 ms) below the ``_MIN_COMPILE_S`` threshold, seconds in all that a
+    repeated command would pay again. They are small (a few kB each) and, for a given command
+    and input size, the same every time. Library use keeps the threshold (it would fill the
+    cache with every eager operation of every shape); so does a cache folder configured by
+    the user. The threshold is restored when the block ends.
+
+    Yields:
+        True when dampax's own cache folder is in use (the threshold is 0 in the block).
+    """
+    configured = jax.config.jax_compilation_cache_dir
+    if not configured or Path(configured) != default_cache_dir():
+        yield False
+        return
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    try:
+        yield True
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -143,32 +179,189 @@ def compile_cached(name: str, key, fn, *specs):
     return jax.jit(exported.call).lower(*specs).compile()
 
 
-_EXECUTABLES: dict = {}  # (name, repr(key), specs) -> compiled, for the life of the process
+_EXECUTABLES: dict = {}  # (name, repr(key), specs) -> (compiled, treedef, static leaves)
+
+
+def _missing():
+    """equinox's MISSING sentinel (a treedef's auxiliary data holds it; pickled by name)."""
+    from equinox._module._flatten import MISSING
+
+    return MISSING
+
+
+class _TreePickler(pickle.Pickler):
+    """Pickles a treedef with equinox's MISSING by name (its unpickled copy would be a new,
+    different object, and equinox's unflatten tests for the one sentinel with ``is``)."""
+
+    def reducer_override(self, obj):
+        if type(obj).__name__ == "_Missing" and type(obj).__module__.startswith("equinox."):
+            return _missing, ()
+        return NotImplemented
+
+
+#: globals a kept treedef may name: jax's treedef and registry, MISSING, and classes of these
+_TREE_GLOBALS = {("jaxlib._jax.pytree", "PyTreeDef"), ("jax._src.tree_util", "default_registry"),
+                 ("dampax._cache", "_missing")}
+_TREE_PACKAGES = ("dampax", "equinox", "collections", "builtins")
+
+
+class _TreeUnpickler(pickle.Unpickler):
+    """Unpickles a treedef: only the names of :data:`_TREE_GLOBALS` and classes of dampax,
+    equinox and the standard containers (nothing else is imported or called)."""
+
+    def find_class(self, module, name):
+        if (module, name) in _TREE_GLOBALS:
+            return super().find_class(module, name)
+        if module.split(".")[0] in _TREE_PACKAGES:
+            obj = super().find_class(module, name)
+            if isinstance(obj, type):
+                return obj
+        raise pickle.UnpicklingError(f"not a treedef: {module}.{name}")
+
+
+def _dump_tree(value) -> bytes:
+    """``value`` (a treedef and its static leaves) pickled with :class:`_TreePickler`."""
+    buffer = io.BytesIO()
+    _TreePickler(buffer, protocol=pickle.HIGHEST_PROTOCOL).dump(value)
+    return buffer.getvalue()
+
+
+def _load_tree(data: bytes):
+    """Inverse of :func:`_dump_tree` (:class:`_TreeUnpickler`)."""
+    return _TreeUnpickler(io.BytesIO(data)).load()
+
+
+def _spec_text(specs) -> list:
+    """What of the argument specs determines a program: shapes, dtypes, weak types."""
+    return [(s.shape, str(s.dtype), bool(getattr(s, "weak_type", False))) for s in specs]
+
+
+def _compile_tree(name: str, key, fn, specs):
+    """(executable, treedef, static): ``fn`` compiled for ``specs``, kept as a file.
+
+    The kept program returns the array leaves of ``fn``'s output; its treedef and its other
+    leaves (Python values fixed at tracing) are pickled beside it, so any pytree (equinox
+    modules, named tuples) comes back whole. Without a cache folder, or when the program or
+    its treedef cannot be kept, the executable is compiled in-process (treedef None: it
+    returns the pytree itself).
+    """
+    folder = exported_dir()
+    plain = jax.jit(fn)
+    if folder is None:
+        return plain.lower(*specs).compile(), None, None
+    devices = jax.devices()
+    text = repr((key, _spec_text(specs), len(devices), devices[0].platform,
+                 devices[0].device_kind, jax.config.jax_enable_x64, _source_digest()))
+    path = folder / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}.jaxcall"
+    exported = None
+    if path.exists():
+        try:
+            data = path.read_bytes()
+            size = int.from_bytes(data[:8], "little")
+            treedef, static, weak = _load_tree(data[8:8 + size])
+            exported = jax.export.deserialize(bytearray(data[8 + size:]))
+        except Exception:  # noqa: BLE001 - a damaged or foreign file: trace again
+            exported = None
+    if exported is None:
+        traced = {}
+
+        def flat_fn(*args):
+            leaves, treedef = jax.tree_util.tree_flatten(fn(*args))
+            arrays = [leaf for leaf in leaves if isinstance(leaf, jax.Array)]
+            traced["treedef"] = treedef
+            traced["static"] = {i: leaf for i, leaf in enumerate(leaves)
+                                if not isinstance(leaf, jax.Array)}
+            traced["weak"] = tuple(bool(jax.typeof(a).weak_type) for a in arrays)
+            return arrays
+
+        try:
+            exported = jax.export.export(jax.jit(flat_fn))(*specs)
+            kept = (traced["treedef"], traced["static"], traced["weak"])
+            blob = _dump_tree(kept)
+            if _load_tree(blob) != kept:
+                raise ValueError("the treedef does not survive pickling")
+            treedef, static, weak = kept
+            payload = exported.serialize()
+            exported = jax.export.deserialize(payload)  # the program a later process reads
+        except Exception:  # noqa: BLE001 - not exportable: the plain route
+            return plain.lower(*specs).compile(), None, None
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_bytes(len(blob).to_bytes(8, "little") + blob + payload)
+            os.replace(tmp, path)  # atomic: a concurrent process never reads half a file
+        except OSError:  # a read-only cache: not kept
+            pass
+
+    def call(*args):  # the outputs' weak types, lost in serialization, restored (no-op)
+        return [_weak(a) if w else a for a, w in zip(exported.call(*args), weak, strict=True)]
+
+    return jax.jit(call).lower(*specs).compile(), treedef, static
+
+
+def _weak(x):
+    """``x`` as a weakly typed array of the same dtype and values (inside a trace)."""
+    from jax._src.lax.lax import _convert_element_type
+
+    return _convert_element_type(x, None, weak_type=True)
 
 
 def call_cached(name: str, key, fn, *args):
-    """``fn(*args)`` for concrete arrays, through :func:`compile_cached` (eager calls only).
+    """``fn(*args)`` for concrete arrays, through a kept compiled program (eager calls only).
 
     The executable is kept for the life of the process (so a second call neither traces nor
-    compiles) and, through the exported-program and compilation caches, across processes: a
-    repeated command-line call deserializes the program instead of tracing it.
+    compiles) and, as a ``jax.export`` file with the output's treedef beside it (in
+    ``exported/``, keyed by ``key``, the argument specs, the devices, dampax's source and the
+    jax version) plus JAX's persistent compilation cache, across processes: a repeated
+    command-line call deserializes the program instead of tracing it. Without a cache
+    directory (``DAMPAX_CACHE=0``) only the in-process memo is kept.
 
     Arguments:
         name: a readable prefix of the cached file's name.
         key: a hashable description of everything static that ``fn`` closes over (its repr
             must determine the program).
-        fn: a function of the flat arrays ``args`` returning a pytree of arrays (standard
-            containers only: dicts, tuples, lists).
-        args: concrete arrays (or scalars), positional.
+        fn: a function of the flat arrays ``args`` returning a pytree: arrays in standard
+            containers, named tuples or equinox modules (static fields and non-array leaves
+            must be picklable: strings, numbers, classes).
+        args: concrete arrays (or scalars), positional; weak types are kept.
 
     Returns:
         ``fn(*args)``, computed by the compiled program.
     """
     arrays = [jnp.asarray(a) for a in args]
-    specs = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in arrays)
-    memo = (name, repr(key), tuple((s.shape, str(s.dtype)) for s in specs))
-    executable = _EXECUTABLES.get(memo)
-    if executable is None:
-        executable = compile_cached(name, key, jax.jit(fn), *specs)
-        _EXECUTABLES[memo] = executable
-    return executable(*arrays)
+    specs = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                  for a in arrays)
+    memo = (name, repr(key), tuple(map(tuple, _spec_text(specs))))
+    entry = _EXECUTABLES.get(memo)
+    if entry is None:
+        entry = _compile_tree(name, key, fn, specs)
+        _EXECUTABLES[memo] = entry
+    executable, treedef, static = entry
+    out = executable(*arrays)
+    if treedef is None:
+        return out
+    flat = iter(out)
+    leaves = [static[i] if i in static else next(flat) for i in range(treedef.num_leaves)]
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def call_cached_tree(name: str, key, fn, *args):
+    """:func:`call_cached` for pytree arguments: ``fn(*args)`` with ``args`` pytrees of
+    concrete arrays (an Oscillator, a solution, named tuples), flattened for the program.
+
+    Arguments:
+        name: a readable prefix of the cached file's name.
+        key: a hashable description of everything static that ``fn`` closes over (the
+            arguments' tree structure is added to it).
+        fn: a function of the pytrees ``args`` returning a pytree (as for :func:`call_cached`).
+        args: pytrees whose leaves are concrete arrays or numbers.
+
+    Returns:
+        ``fn(*args)``, computed by the compiled program.
+    """
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+
+    def flat(*values):
+        return fn(*jax.tree_util.tree_unflatten(treedef, values))
+
+    return call_cached(name, (key, str(treedef)), flat, *leaves)

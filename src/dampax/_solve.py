@@ -118,7 +118,9 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     if method == "reference":
         from ._reference import solve_reference
 
-        sol = solve_reference(osc, x0, v0, **options)
+        sol = _reference_kept(osc, x0, v0, options) if eager else None
+        if sol is None:
+            sol = solve_reference(osc, x0, v0, **options)
     else:
         x0 = jnp.asarray(x0, dtype=float)
         v0 = jnp.asarray(v0, dtype=float)
@@ -129,6 +131,33 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     if throw:
         sol = sol.result.error_if(sol, ~sol.valid)
     return sol
+
+
+def _reference_kept(osc, x0, v0, options):
+    """An eager ``solve_reference`` through a kept compiled program (``_cache.call_cached_tree``:
+    a repeated call, also in a new process, neither traces nor compiles the integrator).
+
+    Returns:
+        The solution, or None where the plain route must run: options that are not plain
+        values, or a failed solution (the plain route raises its ValueError, budget named).
+    """
+    from ._cache import call_cached_tree
+    from ._reference import solve_reference
+
+    static = {k: v for k, v in options.items() if k != "t_end"}
+    t_end = options.get("t_end")
+    if not (all(isinstance(v, str | int | float | bool) for v in static.values())
+            and is_concrete(t_end)):
+        return None
+    extra = () if t_end is None else (jnp.asarray(t_end, dtype=float),)
+
+    def program(osc, x0, v0, *t_end):
+        return solve_reference(osc, x0, v0, t_end=t_end[0] if t_end else None, **static)
+
+    sol = call_cached_tree("reference", (sorted(static.items()), t_end is None), program,
+                           osc, jnp.asarray(x0, dtype=float), jnp.asarray(v0, dtype=float),
+                           *extra)
+    return None if sol.message else sol
 
 
 _AUTO_MARGIN = 2.0

@@ -7,13 +7,14 @@ draws it: one evaluation, compiled once per model and re-used for other numbers.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._cache import call_cached_tree
 from ._models import MODELS, applicable_models, check_models
 from ._oscillator import Oscillator, as_float, check_finite
 from ._solve import solve, turning_points
@@ -65,23 +66,38 @@ class ModelRun:
 
 
 # One compiled program per model (name and n_turning are static), reused for every oscillator
-# and initial state: a second call with other numbers costs no compilation.
+# and initial state: a second call with other numbers costs no compilation. The programs are
+# kept (``_cache.call_cached_tree``): a repeated ``dampax solve`` neither traces nor compiles.
 
 
-@eqx.filter_jit
-def _solve_one(osc, x0, v0, name: str, n_turning: int):
+def _solve_and_summarize(osc, x0, v0, *, name: str, n_turning: int):
     sol = solve(osc, x0, v0, **MODELS[name].solve_options)
-    return sol, _summarize(sol, n_turning)
+    return sol, _summary_of(sol, n_turning=n_turning)
 
 
-@eqx.filter_jit
-def _summarize(sol, n_turning: int):
+def _summary_of(sol, *, n_turning: int):
     return sol.halt_time, sol.halt_position, turning_points(sol, n_turning)
 
 
-@eqx.filter_jit
-def _curves(sol, t):
+def _x_and_energy(sol, t):
     return sol.x(t), sol.energy(t)
+
+
+def _solve_one(osc, x0, v0, name: str, n_turning: int):
+    """(solution, summary) of one model, by the kept program of (name, n_turning)."""
+    return call_cached_tree("solve-model", (name, n_turning), functools.partial(
+        _solve_and_summarize, name=name, n_turning=n_turning), osc, x0, v0)
+
+
+def _summarize(sol, n_turning: int):
+    """(halt time, halt position, (turning times, positions)) of a solution, kept program."""
+    return call_cached_tree("solve-summary", n_turning,
+                            functools.partial(_summary_of, n_turning=n_turning), sol)
+
+
+def _curves(sol, t):
+    """(x(t), E(t)) of a solution, kept program."""
+    return call_cached_tree("solve-curves", (), _x_and_energy, sol, t)
 
 
 def default_t_end(osc: Oscillator, halt_times: Sequence[float]) -> float:

@@ -16,6 +16,7 @@ import sys
 import threading
 from collections.abc import Callable
 
+from .._cache import keep_every_program
 from .._version import __version__
 from . import errormap, fit, reproduce, sensitivity, solve
 from ._common import PROG
@@ -112,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        with _exit_on_interrupt():
+        # keep_every_program: a repeated command compiles nothing, not even small programs
+        with _exit_on_interrupt(), keep_every_program():
             return args.run(args)
     except (ValueError, OSError) as err:
         message = " ".join(str(err).split())

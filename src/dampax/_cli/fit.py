@@ -241,8 +241,10 @@ def run(args: argparse.Namespace) -> int:
                       max_steps=args.max_steps, units=units, starts=args.starts,
                       seed=args.seed)
             result = fit(trace, free=free, model=args.model, **kw)
-            comparison = None if args.no_compare else compare_models(trace, model="ansatz",
-                                                                     **kw)
+            # the ranking fits the candidates with the ansatz: this fit is one of them
+            done = {free: result} if args.model == "ansatz" else None
+            comparison = None if args.no_compare else compare_models(
+                trace, model="ansatz", fitted=done, **kw)
             if args.posterior:
                 from .._fit import posterior
 

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache import call_cached_tree
 from .._oscillator import Oscillator
 from .._trace import Trace, load_trace
 from ._checks import check_sampling, check_trace
@@ -562,7 +563,7 @@ def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bo
 
 
 def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str = "bic",
-                   envelope=None, **fit_kwargs) -> ModelComparison:
+                   envelope=None, fitted=None, **fit_kwargs) -> ModelComparison:
     """Fit every candidate set of damping terms and rank them by BIC (or AIC).
 
     Arguments:
@@ -572,6 +573,9 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         criterion: "bic" (default) or "aic".
         envelope: (t_peaks, amplitudes) to compare envelope models instead
             (:func:`compare_envelope_models`).
+        fitted: optional {candidate tuple: FitResult} of fits already made of this trace with
+            these ``fit_kwargs`` (e.g. ``dampax fit``'s own fit): used as they are instead of
+            fitting those candidates again (traces only).
         **fit_kwargs: passed to :func:`fit` (or :func:`fit_envelope`).
 
     Returns:
@@ -586,11 +590,14 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         raise ValueError("compare_models needs a trace (or envelope=(t_peaks, amplitudes))")
     if "free" in fit_kwargs:
         raise ValueError("compare_models sets free itself; pass candidates=")
+    known = {tuple(check_free(k)): r for k, r in (fitted or {}).items()}
     results = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for cand in candidates:
-            results[tuple(check_free(cand))] = fit(trace, x, free=cand, **fit_kwargs)
+            key = tuple(check_free(cand))
+            results[key] = known[key] if key in known else fit(trace, x, free=cand,
+                                                                  **fit_kwargs)
     return rank(results, criterion)
 
 
@@ -645,8 +652,26 @@ def example_trace(**overrides) -> tuple[Trace, dict]:
     swings = int(1.2 * truth["t_end"] * w0 / math.pi) + 8
     sol = solve(osc, truth["x0"], truth["v0"], method="reference", t_end=float(t[-1]) + 0.01,
                 max_swings=swings)
-    x = np.asarray(sol.x(jnp.asarray(t)))
+    x = np.asarray(_positions(sol, jnp.asarray(t)))
     rng = np.random.default_rng(truth["seed"])
     x = x + truth["noise"] * rng.standard_normal(t.size)
     return Trace(t=t, x=x, source="dampax example (reference integrator)",
                  time_column="t", position_column="x", n_rows=t.size), truth
+
+
+def _state_on_grid(sol, t, start, step):
+    # the whole state, as the eager evaluation computes it (a program that returned x alone
+    # would be compiled differently and round differently)
+    return sol.state(t, grid=(start, step))
+
+
+def _positions(sol, t):
+    """``sol.x(t)`` of a reference solution; on a uniform grid through a kept program
+    (``_cache.call_cached_tree``: a repeated ``dampax fit --example`` does not trace it)."""
+    from .._reference import _uniform
+
+    grid = _uniform(t)
+    if grid is None:
+        return sol.x(t)
+    start, step = (jnp.asarray(g, dtype=float) for g in grid)
+    return call_cached_tree("reference-state", (), _state_on_grid, sol, t, start, step)[0]

@@ -37,7 +37,8 @@ import optax
 import optimistix as optx
 
 from .._ansatz import decay
-from .._oscillator import Oscillator
+from .._cache import call_cached_tree
+from .._oscillator import Oscillator, is_concrete
 from .._solution import result_where
 from ._params import (
     Constants,
@@ -572,8 +573,15 @@ def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps
 
 def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
-    the same shapes shares one compiled function. ``static``: the keyword arguments of core."""
-    return core(jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
-                jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
-                as_arrays(consts), jnp.asarray(f_scale, dtype=float), **static)
+    the same shapes shares one compiled function. ``static``: the keyword arguments of core.
 
+    Called with concrete values (an eager fit), the compiled program is kept
+    (``_cache.call_cached_tree``): a repeated fit, also in a new process, neither traces nor
+    compiles it; under jit/vmap the plain traced route runs."""
+    args = (jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
+            jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
+            as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+    if is_concrete(args):
+        return call_cached_tree("fit-core", sorted(static.items()),
+                                functools.partial(core, **static), *args)
+    return core(*args, **static)

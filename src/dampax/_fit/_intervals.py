@@ -68,6 +68,29 @@ def bandwidth(g: np.ndarray, period_samples: float) -> int:
     return int(min(max(2 * lag, lo), hi))
 
 
+def _backward_ar1(J: np.ndarray, phi: float) -> np.ndarray:
+    """K = A^-T J: K_t = J_t + phi K_(t+1) from the last row back, row by row.
+
+    The same array as ``scipy.signal.lfilter([1], [1, -phi], J[::-1], axis=0)[::-1]``, to the
+    last bit and in the same memory layout (a C-ordered array, reversed; the layout sets the
+    order of the sums downstream), without importing scipy.signal (over a second).
+
+    Arguments:
+        J: an (n, p) array.
+        phi: the AR(1) coefficient.
+
+    Returns:
+        K, shaped like J.
+    """
+    n = J.shape[0]
+    out = np.empty(J.shape, dtype=J.dtype)  # the filtered reversed rows, as lfilter writes
+    acc = np.zeros(J.shape[1:], dtype=J.dtype)
+    for i in range(n):
+        acc = J[n - 1 - i] + phi * acc
+        out[i] = acc
+    return out[::-1]
+
+
 def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
                    lags: int | None = None):
     """AR(1)-prewhitened HAC covariance of the parameters (columns of J): (cov, L).
@@ -85,8 +108,6 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
         period_samples: samples per oscillation period (sets the bandwidth's floor).
         lags: bandwidth L (default: :func:`bandwidth`).
     """
-    from scipy.signal import lfilter
-
     r = np.asarray(r, dtype=float)
     J = np.asarray(J, dtype=float)
     n = r.size
@@ -95,7 +116,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     e = np.empty_like(r)
     e[0] = math.sqrt(1.0 - phi * phi) * r[0]
     e[1:] = r[1:] - phi * r[:-1]
-    K = lfilter([1.0], [1.0, -phi], J[::-1], axis=0)[::-1]
+    K = _backward_ar1(J, phi)
     K[0] = K[0] / math.sqrt(1.0 - phi * phi)
     g = K * e[:, None]
     L = bandwidth(g, period_samples) if lags is None else int(lags)

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache import call_cached_tree
 from ._core import FIT_RESULTS, core
 from ._params import PARAMS, TraceParams, as_arrays
 
@@ -123,10 +124,13 @@ def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int,
     P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0)
     tp, xp, wt, stride = thin(np.asarray(t), np.asarray(x), omega)
     p0s = as_arrays(TraceParams(*(jnp.asarray(P[:, i]) for i in range(P.shape[1]))))
-    out = _batch(jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt), p0s,
-                 as_arrays(vary, bool), as_arrays(consts), jnp.asarray(f_scale, dtype=float),
-                 model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
-                 rtol=rtol, atol=atol, opts=None)
+    static = dict(model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
+                  rtol=rtol, atol=atol, opts=None)
+    # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
+    out = call_cached_tree("fit-starts", sorted(static.items()),
+                           functools.partial(_batch, **static), jnp.asarray(tp),
+                           jnp.asarray(xp), jnp.asarray(wt), p0s, as_arrays(vary, bool),
+                           as_arrays(consts), jnp.asarray(f_scale, dtype=float))
     costs = 0.5 * np.asarray(out.chisqr, dtype=float)
     ok = np.asarray(out.code._value) == FIT_RESULTS.successful._value
     params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
