@@ -211,7 +211,8 @@ def test_phase_quadrature_against_scipy():
     every damping regime and on both sides of the switch from the t rule to the f rule."""
     from scipy.integrate import quad
 
-    from dampax._ansatz import _decay_constants, _decay_from, phase_excess
+    from dampax._cubic import phase_excess
+    from dampax._decay import _decay_constants, _decay_from
 
     for osc in (dp.Oscillator(m=M, k=K, mu=0.05, k3=300.0), dp.Oscillator(m=M, k=K, b=0.4,
                                                                            k3=-300.0),

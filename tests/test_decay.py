@@ -2,7 +2,7 @@
 
 f' = -(a f^2 + b' f + c), f(0) = 1 (a = d2 A, b' = d1, c = d0/A) is integrated numerically
 (scipy DOP853, rtol 1e-13, atol 1e-15, terminal event at f = 0 for the halt time) and compared
-with the closed form ``dampax._ansatz.decay`` / ``halt_time`` in every regime: each combination of
+with the closed form ``dampax._decay.decay`` / ``halt_time`` in every regime: each combination of
 a, b', c zero or positive and the discriminant b'^2 - 4ac negative, exactly zero and positive,
 plus near-boundary values that show the regimes meet continuously. The halt time is also checked
 against independent, cancellation-free closed forms (docs/DESIGN.md 2.3). Then the amplitude A and
@@ -19,7 +19,8 @@ import pytest  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import dampax as dp  # noqa: E402
-from dampax._ansatz import decay, halt_time, matched_amplitude  # noqa: E402
+from dampax._ansatz import matched_amplitude  # noqa: E402
+from dampax._decay import decay, halt_time  # noqa: E402
 
 F_ATOL = 1e-9  # f(t) against the numerical solution of eq. 20
 TAU_RTOL = 1e-9  # halt time, relative

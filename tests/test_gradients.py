@@ -22,7 +22,7 @@ from hypothesis import HealthCheck, assume, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import dampax as dp  # noqa: E402
-from dampax._ansatz import decay, halt_time  # noqa: E402
+from dampax._decay import decay, halt_time  # noqa: E402
 
 M, K, G = 1.0, 30.0, 9.81
 W0 = math.sqrt(K / M)

@@ -1,7 +1,7 @@
 """The lean evaluation of the ansatz (issue 12): per-point constants, a vectorized tan, state(t).
 
 x(t), v(t) and energy(t) compute q = sqrt|Q|, c + b'/2, a + b'/2 and the regime once per point
-and tan(q t) as a rational function (dampax._ansatz._tan_fraction) instead of XLA's float64 tan.
+and tan(q t) as a rational function (dampax._decay._tan_fraction) instead of XLA's float64 tan.
 Checked here: the rational tan against numpy's tan (3 ulp) and its derivative against
 jax.lax.tan's; f(t) against the textbook per-sample formula (numpy, every regime, Q = 0
 exactly); state(t) against x(t), v(t) and energy(t); NaN for t < 0 and for invalid solutions; a
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dampax as dp
-from dampax._ansatz import _tan_fraction, decay, halt_time
+from dampax._decay import _tan_fraction, decay, halt_time
 
 EPS = np.finfo(float).eps
 

@@ -16,7 +16,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._ansatz import AnsatzSolution, _atanc
+from ._ansatz import AnsatzSolution
+from ._decay import _atanc
 from ._oscillator import Oscillator, initial_amplitude_phase, jit_method
 from ._solution import (
     RESULTS,

@@ -36,8 +36,8 @@ import lineax as lx
 import optax
 import optimistix as optx
 
-from .._ansatz import decay
 from .._cache import call_cached_tree
+from .._decay import decay
 from .._oscillator import Oscillator, is_concrete
 from .._solution import result_where
 from ._params import (
@@ -102,7 +102,8 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     if consts.k3 is None:
         f = decay(tau, d2 * A, d1, d0 / A)
         return q.offset + A * f * jnp.cos(q.w0 * tau + phi)
-    from .._ansatz import _decay_constants, _decay_from, phase_excess
+    from .._cubic import phase_excess
+    from .._decay import _decay_constants, _decay_from
 
     k = _decay_constants(d2 * A, d1, d0 / A)
     f = _decay_from(k, tau)

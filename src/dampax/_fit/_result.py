@@ -13,7 +13,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .._ansatz import decay, halt_time
+from .._decay import decay, halt_time
 from . import _intervals
 from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
 from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
