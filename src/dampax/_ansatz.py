@@ -214,8 +214,8 @@ class AnsatzSolution(AbstractSolution):
         linear (known at trace time, or kappa = beta = 0 at run time: `if_cubic`)."""
         if self.linear:
             return fn(self.kappa, self.beta, operands, cubic=False)
-        return if_cubic(functools.partial(fn, cubic=True), self.kappa, self.beta, operands,
-                        functools.partial(fn, cubic=False))
+        return if_cubic(functools.partial(fn, cubic=True), functools.partial(fn, cubic=False),
+                        self.kappa, self.beta, operands)
 
     def _state(self, t):
         t = jnp.asarray(t, dtype=float)

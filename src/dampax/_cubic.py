@@ -38,10 +38,10 @@ def excess_frequency(f, w0, kappa):
     return w0 * kf2 / (jnp.sqrt(jnp.maximum(1.0 + kf2, 1e-300)) + 1.0)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 4))
-def if_cubic(fn, kappa, beta, operands, linear=None):
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def if_cubic(fn, linear, kappa, beta, operands):
     """``fn(kappa, beta, operands)``, a computation with cubic-stiffness terms, evaluated as
-    ``linear(kappa, beta, operands)`` (zeros by default) when those terms all vanish.
+    ``linear(kappa, beta, operands)`` when those terms all vanish.
 
     When every kappa and beta of the call (across a vmapped batch too: ``unvmap_any``) is 0,
     the linear form runs instead of ``fn`` (a branch, not both: the Gauss--Legendre phase
@@ -50,20 +50,15 @@ def if_cubic(fn, kappa, beta, operands, linear=None):
 
     Arguments:
         fn: a function of (kappa, beta, operands) returning a pytree of arrays.
+        linear: what ``fn`` is when kappa = beta = 0 (same signature, same output
+            structure), without its cubic terms.
         kappa, beta: (3/4) k3 A^2 / k and k3 A^2 / (32 k) (arrays of any shape).
         operands: a pytree of arrays passed on to ``fn``.
-        linear: what ``fn`` is when kappa = beta = 0 (same signature, same output
-            structure), without its cubic terms; None: zeros.
 
     Returns:
         ``fn(kappa, beta, operands)``.
     """
     live = eqxi.unvmap_any(jnp.any(kappa != 0.0) | jnp.any(beta != 0.0))
-    if linear is None:
-        def linear(*args):
-            return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype),
-                                          jax.eval_shape(fn, *args))
-
     return jax.lax.cond(live, fn, linear, kappa, beta, operands)
 
 
