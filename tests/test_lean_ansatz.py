@@ -1,9 +1,10 @@
 """The lean evaluation of the ansatz (issue 12): per-point constants, a vectorized tan, state(t).
 
 x(t), v(t) and energy(t) compute q = sqrt|Q|, c + b'/2, a + b'/2 and the regime once per point
-and tan(q t) as a rational function (dampax._decay._tan_fraction) instead of XLA's float64 tan.
-Checked here: the rational tan against numpy's tan (3 ulp) and its derivative against
-jax.lax.tan's; f(t) against the textbook per-sample formula (numpy, every regime, Q = 0
+and tan(q t) as a rational function (dampax._trig._tan_fraction) instead of XLA's float64 tan;
+x and v take sin and cos from polynomials too (dampax._trig.sincos). Checked here: the rational
+tan against numpy's tan (3 ulp) and its derivative against jax.lax.tan's; sincos against numpy's
+sin and cos (2 ulp, every quadrant, up to the 8e8 switch and beyond it) and its derivatives; f(t) against the textbook per-sample formula (numpy, every regime, Q = 0
 exactly); state(t) against x(t), v(t) and energy(t); NaN for t < 0 and for invalid solutions; a
 batched solution (array fields) and gradients under jit and vmap, including at mu = b = D = 0.
 """
@@ -14,7 +15,8 @@ import numpy as np
 import pytest
 
 import dampax as dp
-from dampax._decay import _tan_fraction, decay, halt_time
+from dampax._decay import decay, halt_time
+from dampax._trig import _tan_fraction, sincos
 
 EPS = np.finfo(float).eps
 
@@ -42,6 +44,37 @@ def test_rational_tan_derivatives_as_lax_tan():
                                    rtol=2e-15)
     np.testing.assert_allclose(jax.vmap(jax.grad(jax.grad(_tan)))(u),
                                jax.vmap(jax.grad(jax.grad(jnp.tan)))(u), rtol=1e-13, atol=1e-15)
+
+
+def test_sincos_within_two_ulp_of_numpy():
+    rng = np.random.default_rng(1)
+    k = np.arange(-8, 9)
+    u = np.concatenate([rng.uniform(-10.0, 10.0, 200_000), rng.uniform(-1e4, 1e4, 100_000),
+                        rng.uniform(-7.9e8, 7.9e8, 100_000), 10.0 ** rng.uniform(-300, 0, 20_000),
+                        k * np.pi / 4, k * np.pi / 2 + 1e-9, [0.0, -0.0]])
+    s, c = (np.asarray(v) for v in jax.jit(sincos)(u))
+    for got, ref in ((s, np.sin(u)), (c, np.cos(u))):
+        # 2 ulp of the value, or of 1e-16 near a zero of sin or cos (the reduction's limit)
+        assert np.all(np.abs(got - ref) <= 2.0 * np.spacing(np.maximum(np.abs(ref), 1e-16)))
+
+
+def test_sincos_beyond_the_switch_and_non_finite_is_libm():
+    # one argument of the call past 8e8 (or not finite): the whole call takes jnp.sin, jnp.cos,
+    # under vmap too (the branch is per call)
+    u = jnp.asarray([0.3, 2.0, 1e9, -3e12, np.inf, np.nan])
+    for f in (jax.jit(sincos), jax.vmap(sincos)):
+        s, c = f(u)
+        np.testing.assert_array_equal(s, jnp.sin(u))
+        np.testing.assert_array_equal(c, jnp.cos(u))
+
+
+def test_sincos_derivatives_exact():
+    u = jnp.asarray([0.0, 1e-8, 0.3, 0.7853981633974483, 2.5, -4.0, 1e5])
+    s, c = sincos(u)
+    np.testing.assert_array_equal(jax.vmap(jax.grad(lambda v: sincos(v)[0]))(u), c)
+    np.testing.assert_array_equal(jax.vmap(jax.grad(lambda v: sincos(v)[1]))(u), -s)
+    np.testing.assert_array_equal(jax.vmap(jax.jacfwd(jax.grad(lambda v: sincos(v)[0])))(u), -s)
+    np.testing.assert_allclose(c, np.cos(np.asarray(u)), rtol=0, atol=3e-16)
 
 
 def _decay_textbook(t, a, bp, c):

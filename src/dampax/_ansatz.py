@@ -25,6 +25,7 @@ from ._solution import (
     input_checks,
     stuck_at_start,
 )
+from ._trig import sincos
 
 Array = jax.Array
 
@@ -108,7 +109,7 @@ def _undamped_x(kappa, beta, operands, *, cubic: bool):
     th = w0 * t + phi
     if cubic:
         th = th + phase_excess(k, w0, kappa, t, f)
-    return A * f * jnp.cos(th)
+    return A * f * sincos(th)[1]
 
 
 def _state_terms(kappa, beta, operands, *, matched: bool, cubic: bool):
@@ -121,7 +122,7 @@ def _state_terms(kappa, beta, operands, *, matched: bool, cubic: bool):
     A, w0, phi, k, t = operands
     f = _decay_from(k, t)
     th = w0 * t + phi
-    cth, sth = jnp.cos(th), jnp.sin(th)
+    sth, cth = sincos(th)
     x = A * f * cth
     v = -w0 * A * f * sth
     rate = decay_rate(f, k.a, k.bp, k.c)

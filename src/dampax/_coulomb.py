@@ -29,6 +29,7 @@ from ._solution import (
     result_where,
     stuck_at_start,
 )
+from ._trig import sincos
 
 Array = jax.Array
 
@@ -143,7 +144,7 @@ class SwingSolution(_PiecewiseSolution):
         first = t < self.t1
         tau_t = jnp.where(first, tau0, tau)
         ex = jnp.exp(-g * tau_t)
-        cw, sw = jnp.cos(wd * tau_t), jnp.sin(wd * tau_t)
+        sw, cw = sincos(wd * tau_t)
         x_a = cen0 + ex * (U * cw + B * sw)
         v_a = ex * (V * cw - K * sw)
         x_b = jnp.where(resting, xj, cen + (xj - cen) * ex * (cw + (g / wd) * sw))
@@ -386,7 +387,7 @@ class RizcallahSolution(_PiecewiseSolution):
         t = jnp.asarray(t, dtype=float)
         w0, d, ph = self.omega0, self.d, self.phase0
         # one cos and sin per time: those of w0 t + phi0 by the addition theorems
-        cw, sw = jnp.cos(w0 * t), jnp.sin(w0 * t)
+        sw, cw = sincos(w0 * t)
         cph, sph = jnp.cos(ph), jnp.sin(ph)
         cth, sth = cw * cph - sw * sph, sw * cph + cw * sph
         x = (self.amplitude0 - d * t) * cth + (d / w0) * cph * sw

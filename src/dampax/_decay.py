@@ -22,30 +22,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._trig import _tan_fraction
+
 Array = jax.Array
 
 _SERIES = 1e-4  # |Q t^2| below which the Taylor series is used
-
-
-# tan(u) as a rational function (Cephes tan.c) in numerator/denominator form: it vectorizes,
-# unlike XLA's float64 tan on CPU (a scalar libm call, about as costly as the cos of x(t)), and
-# leaves the one division to f(t); within 3 ulp of the libm value, derivative within 2e-15
-_TAN_P = (-1.30936939181383777646e4, 1.15351664838587416140e6, -1.79565251976484877988e7)
-_TAN_Q = (1.36812963470692954678e4, -1.32089234440210967447e6, 2.50083801823357915839e7,
-          -5.38695755929454629881e7)
-_PIO2 = (1.570796310901641845703125, 1.589325471229585673428e-8, 6.12323399573676588614e-17)
-
-
-def _tan_fraction(u):
-    """(num, den) with num/den = tan(u), for |u| < 8e8 (f(t) needs 0 <= u < pi/2); den != 0."""
-    n = jnp.floor(u * (2.0 / jnp.pi) + 0.5)  # u = n pi/2 + z, subtracted in three exact parts
-    z = ((u - n * _PIO2[0]) - n * _PIO2[1]) - n * _PIO2[2]  # |z| <= pi/4
-    zz = z * z
-    p = (_TAN_P[0] * zz + _TAN_P[1]) * zz + _TAN_P[2]
-    q = (((zz + _TAN_Q[0]) * zz + _TAN_Q[1]) * zz + _TAN_Q[2]) * zz + _TAN_Q[3]  # < 0
-    r = z * q + z * (zz * p)  # tan(z) = r / q
-    even = 2.0 * jnp.floor(0.5 * n) == n  # tan(u) = tan(z), else -1/tan(z)
-    return jnp.where(even, r, -q), jnp.where(even, q, r)
 
 
 def _tanc_constants(Q):
