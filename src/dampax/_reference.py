@@ -281,16 +281,18 @@ def _hermite(h, th, y_a, y_b, args):
 def _knots(sol: ReferenceSolution):
     """The stored knots of one (unbatched) trajectory as one table, for the dense output.
 
-    Returns K, the rows (t, x, v, s) of the knots in time order (slot after slot; t = inf for
-    the padding after each slot's knots), gathered a row at a time.
+    Returns K, the columns (t, x, v, s) of the knots in time order (slot after slot; t = inf
+    for the padding after each slot's knots), gathered a column at a time. (Knots as columns:
+    as rows, the stack interleaved four arrays element by element, a copy that cost as much as
+    the dense output's arithmetic.)
     """
     S = jnp.broadcast_to(sol.seg_s[:, None], sol.seg_ts.shape)
-    return jnp.stack([sol.seg_ts, sol.seg_xs, sol.seg_vs, S], axis=-1).reshape(-1, 4)
+    return jnp.stack([sol.seg_ts, sol.seg_xs, sol.seg_vs, S]).reshape(4, -1)
 
 
 def _search_left(K, t):
     """Flat index of the last knot <= t for every t (a binary search per time)."""
-    T = K[:, 0]
+    T = K[0]
     real = jnp.isfinite(T)
     # padding takes the previous knot's time and index: non-decreasing, searchable
     filled = jax.lax.associative_scan(jnp.maximum, jnp.where(real, T, -jnp.inf))
@@ -302,7 +304,7 @@ def _search_left(K, t):
 def _state_at(sol: ReferenceSolution, K, t, left):
     """(x, v) of one (unbatched) trajectory at a scalar time t from its knot table K, given
     the flat index ``left`` of the last knot at or before t (`_search_left`, `_grid_left`)."""
-    n, width = K.shape[0], sol.seg_ts.shape[-1]
+    n, width = K.shape[1], sol.seg_ts.shape[-1]
     before = t < 0.0
     resting = sol.halted & (t >= sol.halt_time)
     beyond = (~resting) & (t > sol.t_cover)
@@ -312,7 +314,7 @@ def _state_at(sol: ReferenceSolution, K, t, left):
     # the interval's right knot: the next entry when it is a knot of the same slot; at a
     # slot's last knot (t = t_end) the knot itself
     nxt = jnp.minimum(left + 1, n - 1)
-    row_a, row_b = K[left], K[nxt]
+    row_a, row_b = K[:, left], K[:, nxt]
     same = (nxt % width != 0) & jnp.isfinite(row_b[0]) & (nxt != left)
     row_b = jnp.where(same, row_b, row_a)
     ok = jnp.isfinite(row_a[0])
@@ -344,7 +346,7 @@ def _grid_left(K, start, step, n: int):
     rounding of a grid point may land on either side of it; the interpolant is continuous
     there, so that changes nothing.
     """
-    T = K[:, 0]
+    T = K[0]
     pos = jnp.ceil((T - start) / step)
     pos = jnp.where(jnp.isfinite(T) & (pos < n), jnp.maximum(pos, 0.0), n).astype(int)
     first = jnp.full((n,), -1).at[pos].max(jnp.arange(T.shape[0]), mode="drop")
