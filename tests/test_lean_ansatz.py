@@ -4,9 +4,10 @@ x(t), v(t) and energy(t) compute q = sqrt|Q|, c + b'/2, a + b'/2 and the regime 
 and tan(q t) as a rational function (dampax._trig._tan_fraction) instead of XLA's float64 tan;
 x and v take sin and cos from polynomials too (dampax._trig.sincos). Checked here: the rational
 tan against numpy's tan (3 ulp) and its derivative against jax.lax.tan's; sincos against numpy's
-sin and cos (2 ulp, every quadrant, up to the 8e8 switch and beyond it) and its derivatives; f(t) against the textbook per-sample formula (numpy, every regime, Q = 0
-exactly); state(t) against x(t), v(t) and energy(t); NaN for t < 0 and for invalid solutions; a
-batched solution (array fields) and gradients under jit and vmap, including at mu = b = D = 0.
+sin and cos (2 ulp, every quadrant, up to the 8e8 switch and beyond it) and its derivatives;
+f(t) against the textbook per-sample formula (numpy, every regime, Q = 0 exactly); state(t)
+against x(t), v(t) and energy(t); NaN for t < 0 and for invalid solutions; a batched solution
+(array fields) and gradients under jit and vmap, including at mu = b = D = 0.
 """
 
 import jax
