@@ -24,6 +24,7 @@ import math
 import operator
 from collections.abc import Sequence
 
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -201,13 +202,19 @@ def _per_point(cfg: _Config, row):
         ref_ok = ref_ok & (ok | halted)
         halted = halted | seg_halted
 
-        def block(carry, j):
+        def live_block(carry, j):
             fallen, stats = carry
             idx = j * cfg.block + jnp.arange(cfg.block)
             t = idx * dt
             inside = idx < cfg.n_samples
             t_local = t if single else (idx - i0) * dt
-            x_ref, e_ref = ref._x_energy(t_local, (t_local[0], dt) if grid_ok else None)
+            # A branch of its own: x_ref and e_ref are then computed once and stored. Used
+            # directly, XLA fused the reference's Hermite interpolation into every consumer
+            # (each model's reduction, the energy floor's cumsum): six times per sample.
+            x_ref, e_ref = jax.lax.cond(
+                block_live(fallen, t[0], inside[0]),
+                lambda tl: ref._x_energy(tl, (tl[0], dt) if grid_ok else None),
+                lambda tl: (jnp.full_like(tl, jnp.nan), jnp.full_like(tl, jnp.nan)), t_local)
             below = inside & (e_ref < ENERGY_FLOOR * E0)
             fallen_t = fallen | (jnp.cumsum(below) > 0)
             errs = []
@@ -221,6 +228,23 @@ def _per_point(cfg: _Config, row):
             stats = tuple(_accumulate(st, w, t, errs)
                           for st, w in zip(stats, wins, strict=True))
             return (fallen_t[-1], stats), None
+
+        def block_live(fallen, t0, inside0):
+            """True when some point of the (vmapped) batch may have a sample of the block
+            (from t0 on) in a window: not past its halt, or, without one, its energy not yet
+            below the floor. Unbatched (``unvmap_any``), so a real branch."""
+            if single:
+                live = inside0 & jnp.where(halted, t0 <= t_halt, ~fallen)
+            else:  # either candidate window may still be open
+                live = inside0 & ((t0 <= t_halt) | ~fallen)
+            return eqxi.unvmap_any(live)
+
+        def block(carry, j):
+            # Blocks after every window of the batch has closed change nothing: skipped. (A
+            # point's `fallen` may then stay False past its halt; it is not used there.)
+            idx0 = j * cfg.block
+            live = block_live(carry[0], idx0 * dt, idx0 < cfg.n_samples)
+            return jax.lax.cond(live, live_block, lambda c, _: (c, None), carry, j)
 
         (fallen, stats), _ = jax.lax.scan(block, (fallen, stats),
                                           s * cfg.seg_blocks + jnp.arange(cfg.seg_blocks))
