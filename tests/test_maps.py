@@ -271,6 +271,41 @@ def test_long_window_in_segments_matches_scipy():
     assert float(got["window"]) == pytest.approx(t[window][-1] / (2 * math.pi), rel=1e-12)
 
 
+def test_blocks_after_every_window_closed_are_skipped_without_changing_the_map():
+    """A step whose points have all halted skips its later blocks of samples: a point of such a
+    step has the metrics it has in a step that must evaluate them (a point beside it still
+    moves), and they match scipy's stick-slip integration over the window."""
+    a, b, c, d = 0.3, 1.2, 2.0, 2.9
+    common = dict(d1_ratio=0.0, d2_ratio=0.05, periods=20.0, samples_per_period=64,
+                  models=("matched",), chunk_size=4, progress=False)
+    # 1281 samples: two blocks of 641 (10 periods each); d0 = 0.2 halts within a period
+    assert maps._config(("matched",), "reference", 20.0, 64, 1e-10, 1e-12).n_blocks == 2
+    # steps: the four d0 = 0.2 points (halted before the second block: skipped), then d0 = 0
+    skipped = error_map(d0_ratio=[0.2, 0.0], phi0=[a, b, c, d], **common)
+    # steps: three d0 = 0.2 points beside a d0 = 0 point, which keeps the second block live
+    evaluated = error_map(d0_ratio=[0.2, 0.0], phi0=[a, b, c], **common)
+    assert float(skipped["window"].sel(d0_ratio=0.2).max()) < 1.0
+    assert float(skipped["window"].sel(d0_ratio=0.0).min()) == pytest.approx(20.0)
+    for phi0 in (a, b, c):
+        for name in METRICS + ("window", "reference_halt_time"):
+            one = float(skipped[name].sel(d0_ratio=0.2, phi0=phi0).squeeze())
+            other = float(evaluated[name].sel(d0_ratio=0.2, phi0=phi0).squeeze())
+            assert one == pytest.approx(other, rel=0, abs=1e-15), name
+    mu, b_, D = ratios_to_constants(0.2, 0.0, 0.05, m=1.0, k=1.0, A0=1.0)
+    x0, v0 = math.cos(a), -math.sin(a)
+    t = np.arange(1281) * (2 * math.pi / 64)
+    segments, _, rest = scipy_stick_slip(1.0, 1.0, mu, b_, D, x0, v0, t[-1])
+    x_ref, _ = evaluate(segments, rest, t)
+    window = t <= rest[0]
+    sol = dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=mu, b=b_, D=D), x0, v0, method="ansatz")
+    err = np.abs(np.asarray(sol.x(t[window])) - x_ref[window])
+    got = skipped.sel(d0_ratio=0.2, phi0=a).squeeze()
+    assert float(got["max_error"]) == pytest.approx(err.max(), rel=1e-6)
+    assert float(got["rms_error"]) == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+    assert float(got["reference_halt_time"]) == pytest.approx(rest[0] / (2 * math.pi),
+                                                              rel=1e-9)
+
+
 def test_error_map_memory_does_not_grow_with_periods():
     """The compiled step's scratch memory (XLA's own analysis) for 2,000 periods is that of 100
     periods: the reference is kept one segment at a time."""
