@@ -9,7 +9,7 @@ device. One compiled function, ``jit(shard_map(vmap(per_point)))``, evaluates a 
 reference and every model are solved per point and compared on a fixed time grid, in blocks of
 samples (a ``lax.scan``) that reduce the metrics on the fly, so only a few numbers per point
 leave the device and memory stays bounded by ``chunk_size`` whatever the grid and the number
-of periods. Every step has the same shape (the last is padded), so nothing recompiles. The
+of periods; a block after every window of the step has closed is skipped. Every step has the same shape (the last is padded), so nothing recompiles. The
 step is sharded over all local devices (a 1-device mesh on one device: the same code path);
 on several hosts (after ``jax.distributed.initialize``) each process takes its share of the
 steps and the results are gathered at the end.
@@ -211,6 +211,7 @@ def _per_point(cfg: _Config, row):
             # A branch of its own: x_ref and e_ref are then computed once and stored. Used
             # directly, XLA fused the reference's Hermite interpolation into every consumer
             # (each model's reduction, the energy floor's cumsum): six times per sample.
+            # (Its predicate is the block's own, true here: the branch is the boundary.)
             x_ref, e_ref = jax.lax.cond(
                 block_live(fallen, t[0], inside[0]),
                 lambda tl: ref._x_energy(tl, (tl[0], dt) if grid_ok else None),
