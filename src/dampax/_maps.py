@@ -9,10 +9,11 @@ device. One compiled function, ``jit(shard_map(vmap(per_point)))``, evaluates a 
 reference and every model are solved per point and compared on a fixed time grid, in blocks of
 samples (a ``lax.scan``) that reduce the metrics on the fly, so only a few numbers per point
 leave the device and memory stays bounded by ``chunk_size`` whatever the grid and the number
-of periods; a block after every window of the step has closed is skipped. Every step has the same shape (the last is padded), so nothing recompiles. The
-step is sharded over all local devices (a 1-device mesh on one device: the same code path);
-on several hosts (after ``jax.distributed.initialize``) each process takes its share of the
-steps and the results are gathered at the end.
+of periods; a block after every window of the step has closed is skipped. Every step has
+the same shape (the last is padded), so nothing recompiles. The step is sharded over all
+local devices (a 1-device mesh on one device: the same code path); on several hosts (after
+``jax.distributed.initialize``) each process takes its share of the steps and the results are
+gathered at the end.
 """
 
 from __future__ import annotations
