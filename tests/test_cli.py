@@ -127,7 +127,7 @@ def test_syntax_error_exits_2(capsys):
 
 
 def _fake_reference(monkeypatch, behaviour):
-    """Replace the diffrax reference by the exact half-swings, or make it fail."""
+    """Replace the DOP853 reference by the exact half-swings, or make it fail."""
     import dampax._summary as summary
 
     real = summary.solve
@@ -152,7 +152,7 @@ def test_reference_row_and_curve(monkeypatch, tmp_path, capsys):
     assert main(["solve", "--mu", repr(MU_005), "--t-end", "4", "--plot", str(path)]) == 0
     captured = capsys.readouterr()
     assert seen == {"method": "reference", "t_end": 4.0}
-    assert _row(captured.out, "reference (diffrax)") == _row(captured.out, "exact half-swings")
+    assert _row(captured.out, "reference (DOP853)") == _row(captured.out, "exact half-swings")
     assert captured.err == "" and path.stat().st_size > 0
 
 
@@ -162,7 +162,7 @@ def test_failed_reference_is_a_note(monkeypatch, capsys):
     captured = capsys.readouterr()
     assert "dampax: note: reference integrator failed, skipped: the reference ran out" in \
         captured.err
-    assert _row(captured.out, "reference (diffrax)") == ["not available"]
+    assert _row(captured.out, "reference (DOP853)") == ["not available"]
     assert _value(captured.out, "A") == "0.2002"
 
 

@@ -299,7 +299,7 @@ class _Model(eqx.Module):
 # options of the reference integrator (for max_error they go to the reference, the rest to the
 # model)
 _REFERENCE_KEYS = ("t_end", "rtol", "atol", "max_swings", "max_steps_per_swing", "solver",
-                   "root_finder", "adjoint")
+                   "adjoint")
 
 
 def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator: Oscillator,

@@ -39,7 +39,7 @@ from ._version import __version__
 Array = jax.Array
 
 DEFAULT_MODELS = ("matched", "undamped", "matched_tail", "rizcallah")
-#: Accepted references: the diffrax integrator of eq. 3, or the exact half-swings (D = 0 only).
+#: Accepted references: the DOP853 integrator of eq. 3, or the exact half-swings (D = 0 only).
 REFERENCES = ("reference", "coulomb_exact")
 #: Per-point metrics, in the order of the compiled function's output.
 METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_position_error")
@@ -97,7 +97,6 @@ class _Config:
     rtol: float
     atol: float
     max_swings: int  # of the reference, per segment
-    max_steps_per_swing: int
     seg_blocks: int  # blocks per segment of the reference (all of them: one segment)
     cubic: bool = False  # rows carry a fifth column, k3_ratio (issue 14)
 
@@ -121,8 +120,7 @@ class _Config:
 def _solve_reference(cfg: _Config, osc, x0, v0, t_end):
     if cfg.reference == "reference":
         sol = solve(osc, x0, v0, method="reference", t_end=t_end, rtol=cfg.rtol,
-                    atol=cfg.atol, max_swings=cfg.max_swings,
-                    max_steps_per_swing=cfg.max_steps_per_swing)
+                    atol=cfg.atol, max_swings=cfg.max_swings)
     else:  # exact half-swings: valid only where D = 0 and b < 2 sqrt(k m) (its result says)
         sol = solve(osc, x0, v0, **MODELS[cfg.reference].solve_options)
     halted = jnp.isfinite(sol.halt_time) & (sol.halt_time <= t_end)
@@ -160,7 +158,7 @@ def _accumulate(stats, win, t, errs):
 def _per_point(cfg: _Config, row):
     """Metrics of every model at one grid point row = (d0r, d1r, d2r, phi0), w0 = A0 = 1.
 
-    The diffrax reference is integrated segment by segment (``cfg.seg_blocks`` blocks of
+    The reference is integrated segment by segment (``cfg.seg_blocks`` blocks of
     samples each, restarted from the state at the segment's end), so its memory does not grow
     with the window. The comparison window (to the reference's halt, or until its energy falls
     below the floor) is only known at the end; with several segments both candidates are
@@ -184,13 +182,6 @@ def _per_point(cfg: _Config, row):
     n_mod = len(cfg.models)
     single = cfg.n_segments == 1
     seg_len = cfg.seg_blocks * cfg.block  # samples per segment
-    grid_ok = False
-    if cfg.reference == "reference":
-        # merging the solver's steps into the block's grid costs O(steps) per block, a
-        # bisection per sample O(log(steps)): whichever is less
-        knots = cfg.max_swings * (cfg.max_steps_per_swing + 1)
-        grid_ok = knots <= cfg.block * math.log2(knots)
-
     def segment(carry, s):
         xs, vs, halted, t_halt, x_halt, ref_ok, fallen, stats = carry
         i0 = s * seg_len
@@ -215,7 +206,7 @@ def _per_point(cfg: _Config, row):
             # (Its predicate is the block's own, true here: the branch is the boundary.)
             x_ref, e_ref = jax.lax.cond(
                 block_live(fallen, t[0], inside[0]),
-                lambda tl: ref._x_energy(tl, (tl[0], dt) if grid_ok else None),
+                lambda tl: ref._x_energy(tl, (tl[0], dt)),
                 lambda tl: (jnp.full_like(tl, jnp.nan), jnp.full_like(tl, jnp.nan)), t_local)
             below = inside & (e_ref < ENERGY_FLOOR * E0)
             fallen_t = fallen | (jnp.cumsum(below) > 0)
@@ -365,8 +356,8 @@ def _config(models, reference, periods, samples_per_period, rtol, atol,
     cfg = _Config(models=models, reference=reference, n_samples=n_samples,
                   samples_per_period=samples_per_period, block=block,
                   rtol=float(rtol), atol=float(atol),
-                  max_swings=2 * math.ceil(seg_periods) + 6, max_steps_per_swing=64,
-                  seg_blocks=seg_blocks, cubic=cubic)
+                  max_swings=2 * math.ceil(seg_periods) + 6, seg_blocks=seg_blocks,
+                  cubic=cubic)
     return cfg
 
 
@@ -403,10 +394,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             grow with ``periods``; at most ``MAX_SAMPLES`` samples per point.
         samples_per_period: samples per undamped period, >= 2.
         chunk_size: grid points per device evaluated at once (bounds the memory), >= 1.
-        reference: "reference" (the diffrax integrator of eq. 3 with exact stick-slip) or
+        reference: "reference" (the DOP853 integrator of eq. 3 with exact stick-slip) or
             "coulomb_exact" (the exact half-swings, analytic and fast: valid only where
             d2 = 0 and d1 < 1, NaN elsewhere).
-        rtol, atol: tolerances of the diffrax reference (at A0 = 1, w0 = 1).
+        rtol, atol: tolerances of the DOP853 reference (at A0 = 1, w0 = 1).
         progress: show a tqdm progress bar over the steps (on stderr; nothing else is printed).
         k3_ratio: optional cubic stiffness axis k3 A0^2/k (issue 14; a number or a 1-D
             sequence, either sign, finite). Default None: no such axis, the map (its dims, its
@@ -546,7 +537,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "models": ", ".join(models),
         "reference": reference,
         "reference_description": (
-            "diffrax dopri8 integration of eq. 3, swing by swing with exact stick-slip"
+            "DOP853 integration of eq. 3, swing by swing with exact stick-slip"
             if reference == "reference" else "exact Coulomb (+ viscous) half-swings (D = 0)"),
         "reference_rtol": float(rtol) if reference == "reference" else 0.0,
         "reference_atol": float(atol) if reference == "reference" else 0.0,

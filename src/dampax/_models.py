@@ -90,7 +90,7 @@ class Model:
                     zorder=self.zorder, label=self.label)
 
 
-#: Every model, in table and legend order; ``reference`` is the diffrax integrator of eq. 3.
+#: Every model, in table and legend order; ``reference`` is the DOP853 integrator of eq. 3.
 MODELS: dict[str, Model] = {m.name: m for m in (
     Model("matched", "matched ansatz (eqs. 22-23)", (("method", "ansatz"),),
           "Lelas & Pezer eqs. 11, 20-23",
@@ -115,7 +115,7 @@ MODELS: dict[str, Model] = {m.name: m for m in (
           "Lelas & Pezer eq. 54 generalised; docs/DESIGN.md 2.6",
           "sliding friction, D = 0, underdamped (b < 2 sqrt(k m))", _exact_applies,
           "tab:purple", (0, (8, 3, 2, 3)), 1.4, 2.1, ("-", "exact")),
-    Model("reference", "reference (diffrax)", (("method", "reference"),),
+    Model("reference", "reference (DOP853)", (("method", "reference"),),
           "eq. 3 integrated swing by swing (docs/DESIGN.md 2.6)", "every oscillator", _always,
           "black", ":", 2.0, 4.0),
 )}

@@ -269,7 +269,7 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
     fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8.5,
                frameon=False)
     ref = ds.attrs.get("reference", "?")
-    ref_text = (f"diffrax reference (rtol {ds.attrs.get('reference_rtol', 0):g})"
+    ref_text = (f"DOP853 reference (rtol {ds.attrs.get('reference_rtol', 0):g})"
                 if ref == "reference" else "exact half-swings")
     fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
                  f"against the {ref_text}, up to its halt or at most "

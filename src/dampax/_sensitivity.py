@@ -545,7 +545,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
 
     Differentiates ``dampax.solve(osc, x0, v0, method=method, **solve_options)`` with respect to
     each name in ``wrt``, exactly (automatic differentiation through the closed forms, or
-    through the diffrax integration and its event times for the reference): the *local*
+    through the reference's integration and its event times for the reference): the *local*
     derivatives. For the halt time and position, which are only piecewise continuous in the
     parameters (they jump where a turning point crosses the band |x| = xc and a swing is lost),
     it also returns the *trend* derivative: for each theta_i of ``wrt`` the model is evaluated

@@ -42,7 +42,7 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         osc: the :class:`Oscillator`.
         x0, v0: initial displacement [m] and velocity [m/s].
         method: "ansatz" (Lelas & Pezer, eq. 11), "rizcallah" (sinusoidal friction),
-            "coulomb_exact" (exact half-swings; D = 0) or "reference" (diffrax integration of
+            "coulomb_exact" (exact half-swings; D = 0) or "reference" (DOP853 integration of
             eq. 3 with exact stick-slip); or "auto": the matched ansatz where the error atlas
             puts max |x - x_ref| / A0 below ``tolerance`` with a margin (twice the largest
             error at the atlas points around this one, see ``dampax._atlas``), else the

@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument("--models", default=",".join(DEFAULT_MODELS),
                      help=f"comma list of {', '.join(ANALYTIC)} (default: %(default)s)")
     run.add_argument("--reference", default="reference", choices=("reference", "coulomb_exact"),
-                     help="diffrax integration of eq. 3, or the exact half-swings (D = 0 only, "
+                     help="DOP853 integration of eq. 3, or the exact half-swings (D = 0 only, "
                           "fast) (default: %(default)s)")
     run.add_argument("--periods", type=float,
                      help=f"time window cap in undamped periods (default: {d['periods']:g}; "

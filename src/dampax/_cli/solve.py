@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="time span of the plot and the reference integration "
                           "(default: a bit past the latest halt, or 6 undamped periods)")
     out.add_argument("--no-reference", action="store_true",
-                     help="skip the reference integrator (diffrax)")
+                     help="skip the reference integrator (DOP853)")
 
 
 def run(args: argparse.Namespace) -> int:

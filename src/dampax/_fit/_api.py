@@ -207,7 +207,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
         k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
             the linear spring, every number as without k3); not with "k3" in ``free``.
-        model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (diffrax
+        model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (DOP853
             integration of eq. 3, started from the ansatz fit).
         fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
             True without an oscillator, False with one.

@@ -9,7 +9,7 @@ Fit models (:data:`FIT_MODELS`, one entry each):
   Pezer (eqs. 11, 20) with a = d2 A, b' = d1, c = d0 / A (eq. 21). Fitted in the coordinates
   (x0, y = A sin(phi)): x0 = A cos(phi) and v0 = -(a + b' + c) x0 - w0 y is the matched
   (x0, v0) <-> (A, phi) map of eqs. 22-23, so no quartic is solved inside the fit.
-- "reference": eq. 3 integrated by ``solve(method="reference")`` (diffrax, exact stick-slip)
+- "reference": eq. 3 integrated by ``solve(method="reference")`` (DOP853, exact stick-slip)
   from (x0, v0), forward-mode derivatives; started from the "ansatz" fit.
 - "envelope": E(t) = offset + A f(t - t1) for a table of successive maxima (eq. 20).
 
@@ -114,7 +114,7 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
 
 
 def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions):
-    """x(tau) of eq. 3 from (x0, v0 = y), integrated by the reference solver (diffrax)."""
+    """x(tau) of eq. 3 from (x0, v0 = y), integrated by the reference solver (DOP853)."""
     from .._solve import solve
 
     m = consts.m
@@ -219,7 +219,7 @@ FIT_MODELS = {m.name: m for m in (
         amplitude_phase=_ansatz_amplitude_phase),
     FitModel(
         name="reference", kind="trace",
-        description="eq. 3 integrated by diffrax, started from the ansatz fit",
+        description="eq. 3 integrated by DOP853, started from the ansatz fit",
         params=TraceParams, coords=TraceCoords, curve=_reference_curve, setup=trace_setup,
         to_coords=lambda p, consts: _coords_with(p, p.v0),
         to_params=lambda q, consts: _params_with(q, q.y), y_scale=lambda w0, sx: w0 * sx,
@@ -292,7 +292,7 @@ def _materialised(fn, args):
     Its JVP computes r and J = jacfwd(fn) together and returns J @ dtheta, so the linear map
     that optimistix keeps per step is a matrix product: materialising it (as QR or the normal
     equations do) and transposing it cost nothing more, and the model (for "reference" the
-    whole diffrax integrator) is traced and compiled once per step instead of once for the
+    whole reference integrator) is traced and compiled once per step instead of once for the
     linearisation and again for its transpose.
     """
     @jax.custom_jvp
