@@ -182,6 +182,10 @@ def _per_point(cfg: _Config, row):
     n_mod = len(cfg.models)
     single = cfg.n_segments == 1
     seg_len = cfg.seg_blocks * cfg.block  # samples per segment
+    # only friction stops the block for good (drag alone never does): without it the window
+    # "to the halt" is never the one used, and only the energy floor keeps a window open
+    can_halt = osc.mu > 0.0
+
     def segment(carry, s):
         xs, vs, halted, t_halt, x_halt, ref_ok, fallen, stats = carry
         i0 = s * seg_len
@@ -229,7 +233,7 @@ def _per_point(cfg: _Config, row):
             if single:
                 live = inside0 & jnp.where(halted, t0 <= t_halt, ~fallen)
             else:  # either candidate window may still be open
-                live = inside0 & ((t0 <= t_halt) | ~fallen)
+                live = inside0 & ((can_halt & (t0 <= t_halt)) | ~fallen)
             return eqxi.unvmap_any(live)
 
         def block(carry, j):
@@ -249,8 +253,17 @@ def _per_point(cfg: _Config, row):
     empty = (jnp.array(0), jnp.array(0.0), zeros, zeros, zeros)
     init = (x0, v0, jnp.array(False), jnp.array(jnp.inf), jnp.array(jnp.nan), jnp.array(True),
             jnp.array(False), (empty,) if single else (empty, empty))
+    def segment_or_skip(carry, s):
+        """A segment, or nothing once every window of the (vmapped) batch has closed: no
+        point may still halt in it or have its energy above the floor (``unvmap_any``: a
+        real branch). So the reference costs what the motion in the windows takes, not
+        what ``periods`` asks."""
+        halted, t_halt, fallen = carry[2], carry[3], carry[6]
+        live = (can_halt & (s * seg_len * dt <= t_halt)) | ~fallen
+        return jax.lax.cond(eqxi.unvmap_any(live), segment, lambda c, _: (c, None), carry, s)
+
     (_, _, halted, t_halt, x_halt, ref_valid, _, stats), _ = jax.lax.scan(
-        segment, init, jnp.arange(cfg.n_segments))
+        segment if single else segment_or_skip, init, jnp.arange(cfg.n_segments))
     if single:
         stats = stats[0]
     else:
