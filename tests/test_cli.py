@@ -243,3 +243,28 @@ def test_partial_outputs_are_removed(tmp_path):
         assert not tmp.exists()
         tmp.write_text("whole")
     assert target.read_text() == "whole" and list(tmp_path.iterdir()) == [target]
+
+
+def test_netcdf_files_have_no_fill_value_on_coordinates(tmp_path):
+    """dampax._io.write_netcdf, behind errormap.nc and posterior.nc: CF allows no _FillValue on
+    a coordinate variable, which xarray gives every float variable (NaN) unless told not to;
+    data variables keep theirs."""
+    import numpy as np
+    import xarray as xr
+    from helpers import check_cf_file
+
+    from dampax._io import write_netcdf
+
+    ds = xr.Dataset({"D": (("chain", "draw"), np.array([[0.1, np.nan, 0.3]] * 2)),
+                     "w": ("x", [1.0, 2.0])},
+                    coords={"chain": np.arange(2), "draw": np.arange(3), "x": [0.0, 0.5]})
+    plain = tmp_path / "plain.nc"
+    ds.to_netcdf(plain, engine="scipy")
+    with pytest.raises(AssertionError, match="coordinate x has a _FillValue"):
+        check_cf_file(plain)
+    path = write_netcdf(ds, tmp_path / "clean.nc")
+    assert path == tmp_path / "clean.nc" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "clean.nc", "plain.nc"]
+    attrs = check_cf_file(path)
+    assert np.isnan(attrs["D"]["_FillValue"]) and np.isnan(attrs["w"]["_FillValue"])
+    xr.testing.assert_identical(xr.load_dataset(path, engine="scipy"), ds)

@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
-    from .._io import atomic_path
+    from .._io import write_netcdf
     from .._maps import _axis, error_map, parse_axis
     from .._plot import ERROR_MAP_METRICS, plot_error_map
 
@@ -166,10 +166,7 @@ def run(args: argparse.Namespace) -> int:
     if bad_ref:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
               "not defined there); their metrics are NaN", file=sys.stderr)
-    path_nc = out / "errormap.nc"
-    with atomic_path(path_nc) as tmp:
-        ds.to_netcdf(tmp, engine="scipy")
-    written = [path_nc]
+    written = [write_netcdf(ds, out / "errormap.nc")]
     for metric in ERROR_MAP_METRICS:
         written.append(plot_error_map(ds, metric, out / f"{metric}.png"))
     print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "
