@@ -41,7 +41,7 @@ def no_exported_programs():
         yield
 
 
-# the settings of `dampax errormap --quick` (keep in step with dampax._cli.errormap.ERRORMAP_QUICK)
+# the settings of `dampax errormap --quick` (keep in step with dampax_cli._arguments.ERRORMAP_QUICK)
 QUICK = dict(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
              d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
              periods=10.0, samples_per_period=32, chunk_size=32, progress=False)
