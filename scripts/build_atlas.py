@@ -39,10 +39,9 @@ def main() -> None:
     atlas.attrs["title"] = "dampax error atlas: max |x - x_ref| / A0 of every analytic model"
     atlas.attrs["built_by"] = "python scripts/build_atlas.py"
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    from dampax._io import atomic_path
+    from dampax._io import write_netcdf
 
-    with atomic_path(args.out) as tmp:
-        atlas.to_netcdf(tmp, engine="scipy")
+    write_netcdf(atlas, args.out)  # CF: no _FillValue on the coordinates
     print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.0f} KiB, "
           f"{int(np.prod([v.size for v in GRID.values()]))} points x {len(MODELS)} models)")
 

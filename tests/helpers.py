@@ -82,3 +82,38 @@ def evaluate(segments, rest, ts):
         sel = ts >= rest[0]
         x[sel], v[sel] = rest[1], 0.0
     return x, v
+
+
+def check_cf_file(path, *, flags=()) -> dict:
+    """CF checks of a netCDF file, read undecoded with scipy.io (independent of xarray).
+
+    Asserts: the file has coordinate variables (a 1-d variable named as its dimension) and none
+    carries ``_FillValue`` (CF 2.5.1); each variable named in ``flags`` has ``flag_values`` and
+    ``flag_meanings`` (CF 3.5), as many distinct values as meanings, values of the variable's
+    own type, and every stored value among them; no other variable has half of that pair.
+
+    Returns:
+        {name: attributes} of every variable, for further checks.
+    """
+    from scipy.io import netcdf_file
+
+    with netcdf_file(path, "r", mmap=False) as f:
+        variables = {name: (var.dimensions, var.typecode(), dict(var._attributes),
+                            np.array(var.data)) for name, var in f.variables.items()}
+    coords = [name for name, (dims, *_) in variables.items() if dims == (name,)]
+    assert coords, f"no coordinate variable in {path}"
+    for name in coords:
+        assert "_FillValue" not in variables[name][2], f"coordinate {name} has a _FillValue"
+    for name, (_, typecode, attrs, data) in variables.items():
+        has = {"flag_values" in attrs, "flag_meanings" in attrs}
+        if name not in flags:
+            assert has == {False}, f"{name}: flag_values without flag_meanings or the reverse"
+            continue
+        assert has == {True}, f"flag variable {name} lacks flag_values / flag_meanings: {attrs}"
+        values = np.atleast_1d(attrs["flag_values"])
+        meanings = attrs["flag_meanings"]
+        meanings = (meanings.decode() if isinstance(meanings, bytes) else meanings).split()
+        assert len(values) == len(set(values.tolist())) == len(meanings) >= 2, (name, attrs)
+        assert values.dtype == data.dtype, (name, values.dtype, typecode)
+        assert set(np.unique(data).tolist()) <= set(values.tolist()), name
+    return {name: attrs for name, (_, _, attrs, _) in variables.items()}

@@ -161,3 +161,16 @@ def test_atlas_is_what_its_script_builds():
     ds = dp.error_map(**sub, models=("matched", "matched_tail"), progress=False)
     stored = atlas["max_error"].sel(model=["matched", "matched_tail"], **sub)
     np.testing.assert_allclose(np.asarray(stored), np.asarray(ds["max_error"]), rtol=1e-6)
+
+
+def test_atlas_file_is_cf_clean():
+    """The shipped file has no _FillValue on its coordinate variables (CF 2.5.1; the script
+    writes it with dampax._io.write_netcdf); max_error keeps NaN as its fill value."""
+    from importlib import resources
+
+    from helpers import check_cf_file
+
+    with resources.as_file(resources.files("dampax") / "data" / "error_atlas.nc") as path:
+        attrs = check_cf_file(path)
+    assert set(attrs) == {"model", "d0_ratio", "d1_ratio", "d2_ratio", "phi0", "max_error"}
+    assert np.isnan(attrs["max_error"]["_FillValue"])

@@ -243,3 +243,162 @@ def test_partial_outputs_are_removed(tmp_path):
         assert not tmp.exists()
         tmp.write_text("whole")
     assert target.read_text() == "whole" and list(tmp_path.iterdir()) == [target]
+
+
+def test_netcdf_files_have_no_fill_value_on_coordinates(tmp_path):
+    """dampax._io.write_netcdf, behind errormap.nc and posterior.nc: CF allows no _FillValue on
+    a coordinate variable, which xarray gives every float variable (NaN) unless told not to;
+    data variables keep theirs."""
+    import numpy as np
+    import xarray as xr
+    from helpers import check_cf_file
+
+    from dampax._io import write_netcdf
+
+    ds = xr.Dataset({"D": (("chain", "draw"), np.array([[0.1, np.nan, 0.3]] * 2)),
+                     "w": ("x", [1.0, 2.0])},
+                    coords={"chain": np.arange(2), "draw": np.arange(3), "x": [0.0, 0.5]})
+    plain = tmp_path / "plain.nc"
+    ds.to_netcdf(plain, engine="scipy")
+    with pytest.raises(AssertionError, match="coordinate x has a _FillValue"):
+        check_cf_file(plain)
+    path = write_netcdf(ds, tmp_path / "clean.nc")
+    assert path == tmp_path / "clean.nc" and sorted(p.name for p in tmp_path.iterdir()) == [
+        "clean.nc", "plain.nc"]
+    attrs = check_cf_file(path)
+    assert np.isnan(attrs["D"]["_FillValue"]) and np.isnan(attrs["w"]["_FillValue"])
+    xr.testing.assert_identical(xr.load_dataset(path, engine="scipy"), ds)
+
+
+# -- the launcher (dampax_cli), --quiet and progress bars (issue 26) --------------------------
+
+LIGHT = [["--version"], ["--help"], ["solve", "--bogus"]] + [
+    [name, "--help"] for name in ("solve", "errormap", "sensitivity", "fit", "reproduce")]
+
+
+def test_help_and_version_do_not_import_jax():
+    """`dampax --version`, `--help`, `dampax SUBCOMMAND --help` and a syntax error are answered
+    by the console script's launcher without importing dampax, JAX or numpy (-X importtime
+    lists every module the interpreter imported)."""
+    import tomllib
+
+    import dampax
+    from dampax import _cli
+
+    pyproject = Path(__file__).resolve().parents[1] / "pyproject.toml"
+    scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
+    assert scripts == {"dampax": "dampax_cli:main"}
+    for argv in LIGHT:
+        proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "dampax_cli", *argv],
+                              capture_output=True, text=True, timeout=60)
+        imported = {line.split("|")[-1].strip() for line in proc.stderr.splitlines()
+                    if line.startswith("import time:")}
+        assert "dampax_cli" in imported and "argparse" in imported, argv
+        heavy = {m for m in imported if m.split(".")[0] in ("dampax", "jax", "jaxlib", "numpy")}
+        assert heavy == set(), (argv, sorted(heavy))
+        if argv == ["--version"]:
+            assert (proc.returncode, proc.stdout) == (0, f"dampax {dampax.__version__}\n")
+        elif argv == ["--help"]:
+            assert proc.returncode == 0
+            assert all(re.search(rf"^\s+{name}\b", proc.stdout, re.MULTILINE)
+                       for name in _cli.SUBCOMMANDS), proc.stdout
+        elif argv[-1] == "--help":
+            assert proc.returncode == 0 and proc.stdout.startswith(f"usage: dampax {argv[0]}")
+            assert "-q, --quiet" in proc.stdout
+        else:
+            assert proc.returncode == 2 and "unrecognized arguments: --bogus" in proc.stderr
+
+
+def test_launcher_names_are_the_librarys():
+    """The option definitions of dampax_cli copy a few names of dampax's registries (it must
+    not import dampax): they are the library's."""
+    from dampax import _fit, _global, _maps, _models, _sensitivity
+    from dampax._fit import _core
+    from dampax_cli import _arguments as a
+
+    assert a.ANALYTIC == _models.ANALYTIC and a.MODELS == tuple(_models.MODELS)
+    assert (a.DEFAULT_MODELS, a.REFERENCES) == (_maps.DEFAULT_MODELS, _maps.REFERENCES)
+    assert (a.PARAMETERS, a.QUANTITIES) == (_sensitivity.PARAMETERS, _global.QUANTITIES)
+    assert a.FIT_MODELS == {name: _core.FIT_MODELS[name].description for name in _fit.MODELS}
+    assert (a.OPTIMIZERS, a.METHOD_NAMES, a.LOSSES) == (
+        _fit.OPTIMIZERS, _fit.METHOD_NAMES, _fit.LOSSES)
+
+
+def test_launcher_runs_the_command_quietly(monkeypatch, capsys):
+    """dampax_cli.main hands a parsed command to dampax._cli; --quiet prints nothing but
+    errors: not the results, not the notes on stderr, but the one line of invalid input."""
+    import dampax_cli
+
+    assert dampax_cli.main(["solve", *FAST, "--quiet"]) == 0  # compiled by the first test
+    assert capsys.readouterr() == ("", "")
+    assert dampax_cli.main(["solve", *FAST]) == 0
+    assert _value(capsys.readouterr().out, "A") == "0.2"
+    assert dampax_cli.main(["solve", "--m", "-1", "-q", *FAST]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and re.fullmatch(r"dampax: error: m\b[^\n]*\n", err), err
+    _fake_reference(monkeypatch, "fails")  # a note on stderr without --quiet (test above)
+    assert main(["solve", "--mu", repr(MU_005), "--quiet"]) == 0
+    assert capsys.readouterr() == ("", "")
+
+
+def test_quiet_keeps_error_lines_only(capsys):
+    """What --quiet silences (dampax._cli._common.silenced): stdout, stderr, Python warnings
+    and logging below ERROR; the lines of _common.error (a failed fit) still reach stderr,
+    and everything is back after the block."""
+    import logging
+    import warnings
+
+    from dampax._cli._common import error, silenced
+
+    with silenced(True):
+        print("a result")
+        print("dampax: note: something", file=sys.stderr)
+        warnings.warn("a warning", UserWarning, stacklevel=1)
+        logging.getLogger("jax").warning("a log warning")
+        error("dampax: fit failed: the reason")
+    assert capsys.readouterr() == ("", "dampax: fit failed: the reason\n")
+    with silenced(False):
+        print("a result")
+        error("dampax: fit failed")
+    assert capsys.readouterr() == ("a result\n", "dampax: fit failed\n")
+    assert logging.root.manager.disable == logging.NOTSET
+
+
+def test_progress_bars_only_on_a_terminal(monkeypatch, tmp_path, capsys):
+    """Progress bars are drawn only when stderr is a terminal (a pseudo-terminal here) and
+    neither --no-progress nor --quiet is given; errormap and reproduce pass that on."""
+    import argparse
+    import os
+
+    import dampax._maps
+    import dampax._reproduce
+    from dampax._cli._common import show_progress
+
+    master, slave = os.openpty()
+    with os.fdopen(slave, "w") as tty, open(tmp_path / "log", "w") as log:
+        assert tty.isatty() and not log.isatty()
+        for no_progress, quiet, stream, expected in [
+                (False, False, tty, True), (False, False, log, False),
+                (True, False, tty, False), (False, True, tty, False)]:
+            args = argparse.Namespace(no_progress=no_progress, quiet=quiet)
+            assert show_progress(args, stream) is expected
+    os.close(master)
+
+    seen = []
+
+    def fake(*args, progress, **kwargs):
+        seen.append(progress)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(dampax._maps, "error_map", fake)
+    monkeypatch.setattr(dampax._reproduce, "reproduce", fake)
+    for command in (["errormap", "--quick"], ["reproduce", "--figures", "none"]):
+        for terminal, extra, expected in [(False, [], False), (True, [], True),
+                                          (True, ["--no-progress"], False),
+                                          (True, ["--quiet"], False)]:
+            # stderr is pytest's capture (no terminal) unless told otherwise
+            monkeypatch.setattr(sys.stderr, "isatty", lambda terminal=terminal: terminal)
+            assert main([*command, "--out", str(tmp_path / command[0]), *extra]) == 2
+            assert seen.pop() is expected, (command, terminal, extra)
+    assert seen == []
+    assert capsys.readouterr().err.count("dampax: error: stop here") == 8

@@ -17,7 +17,7 @@ import equinox as eqx
 import numpy as np
 import pytest
 import xarray as xr
-from helpers import evaluate, ratios_to_constants, scipy_stick_slip
+from helpers import check_cf_file, evaluate, ratios_to_constants, scipy_stick_slip
 
 import dampax as dp
 import dampax._maps as maps
@@ -41,12 +41,13 @@ def no_exported_programs():
         yield
 
 
-# the settings of `dampax errormap --quick` (keep in step with dampax._cli.errormap.ERRORMAP_QUICK)
+# the settings of `dampax errormap --quick` (keep in step with dampax_cli._arguments.ERRORMAP_QUICK)
 QUICK = dict(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
              d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
              periods=10.0, samples_per_period=32, chunk_size=32, progress=False)
 MODELS = maps.DEFAULT_MODELS
 METRICS = ("max_error", "rms_error", "energy_error", "halt_time_error", "halt_position_error")
+FLAGS = ("valid", "reference_valid")  # bool, written as bytes 0 / 1 with CF flag attributes
 
 FOUR_DEVICES = textwrap.dedent("""
     import os, sys
@@ -121,11 +122,14 @@ def test_layout_and_attrs(quick_map, tmp_path):
     assert float(ds["max_error"].sel(d0_ratio=0.0, d2_ratio=0.0).max()) < 1e-8
     # the quick grid's damped points all stop or fade within the window
     assert float(ds["window"].max()) <= 10.0 + 1e-9
-    # netCDF round trip with the scipy engine
+    # netCDF round trip with the scipy engine; a plain to_netcdf is CF-clean too (no _FillValue
+    # on the coordinates, the two flags with flag_values / flag_meanings)
     path = tmp_path / "map.nc"
     ds.to_netcdf(path, engine="scipy")
     back = xr.load_dataset(path, engine="scipy")
     xr.testing.assert_allclose(back, ds)
+    assert back["valid"].dtype == bool and back["reference_valid"].dtype == bool
+    check_cf_file(path, flags=FLAGS)
 
 
 @pytest.mark.parametrize("m, k, A0", [(1.0, 30.0, 0.2), (2.0, 50.0, 0.3)])
@@ -224,6 +228,10 @@ def test_cli_quick(quick_map, tmp_path, capsys):
     captured = capsys.readouterr()
     ds = xr.load_dataset(out_dir / "errormap.nc", engine="scipy")
     xr.testing.assert_allclose(ds, quick_map)
+    attrs = check_cf_file(out_dir / "errormap.nc", flags=FLAGS)  # CF: see test_layout_and_attrs
+    assert "_FillValue" in attrs["max_error"]  # NaN marks missing data in data variables
+    assert attrs["valid"]["flag_meanings"].split() == [b"model_not_defined", b"model_defined"]
+    assert list(attrs["valid"]["flag_values"]) == [0, 1]
     pngs = sorted(p.name for p in out_dir.glob("*.png"))
     assert pngs == sorted(f"{m}.png" for m in METRICS)
     for png in pngs:
@@ -235,6 +243,32 @@ def test_cli_quick(quick_map, tmp_path, capsys):
     # the undamped (no-damping) corner is exact, so every row starts at d2 = 0 or above
     row = next(line.split() for line in out.splitlines() if line.split()[:1] == ["matched"])
     assert float(row[1]) >= 0.0
+
+
+def test_errormap_file_passes_the_cf_checker(quick_map, tmp_path):
+    """The IOOS compliance-checker's CF 1.10 suite, strict (errors, warnings and notes), on the
+    file as `dampax errormap` writes it (the quick map is the CLI's, test_cli_quick); skipped
+    unless compliance-checker is installed (it needs netCDF4: not a test dependency)."""
+    import json
+    import shutil
+
+    from dampax._io import write_netcdf
+
+    here = str(Path(sys.executable).parent)
+    checker = shutil.which("compliance-checker", path=os.pathsep.join(
+        [here, os.environ.get("PATH", "")]))
+    if checker is None:
+        pytest.skip("compliance-checker is not installed (pip install compliance-checker)")
+    path = write_netcdf(quick_map, tmp_path / "errormap.nc")
+    report = tmp_path / "report.json"
+    proc = subprocess.run([checker, "--test", "cf:1.10", "--criteria", "strict", "--format",
+                           "json", "--output", str(report), str(path)],
+                          capture_output=True, text=True, timeout=120)
+    result = json.loads(report.read_text())["cf:1.10"]
+    failed = [(c["name"], c["msgs"]) for level in ("high", "medium", "low")
+              for c in result[f"{level}_priorities"] if c["value"][0] < c["value"][1]]
+    assert failed == [] and proc.returncode == 0, (failed, proc.stdout[-2000:], proc.stderr)
+    assert result["scored_points"] == result["possible_points"] > 100
 
 
 def test_cli_bad_axis_exits_2(tmp_path, capsys):

@@ -74,3 +74,22 @@ def write_text(path, text: str) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return Path(path)
+
+
+def write_netcdf(ds, path) -> Path:
+    """Write an xarray Dataset as netCDF-3 (scipy backend) through :func:`atomic_path`.
+
+    CF conventions (2.5.1): coordinate variables carry no ``_FillValue`` (xarray would give
+    every floating-point variable ``_FillValue = NaN``); data variables keep theirs.
+
+    Arguments:
+        ds: the dataset.
+        path: the file.
+
+    Returns:
+        The path.
+    """
+    encoding = {name: {"_FillValue": None} for name in ds.coords}
+    with atomic_path(path) as tmp:
+        ds.to_netcdf(tmp, engine="scipy", encoding=encoding)
+    return Path(path)

@@ -65,8 +65,13 @@ _VARIABLE_ATTRS = {
         long_name="halt position, model minus reference, in units of xc = mu g / w0^2 (NaN "
                   "without friction or where the reference does not halt within the window)",
         units="1"),
-    "valid": dict(long_name="the model exists at this point (its validity flag)"),
-    "reference_valid": dict(long_name="the reference solved without running out of its budget"),
+    # flags (bool in memory, bytes 0/1 in a netCDF file): CF flag_values / flag_meanings
+    "valid": dict(long_name="the model exists at this point (its validity flag)",
+                  flag_values=np.array([0, 1], dtype=np.int8),
+                  flag_meanings="model_not_defined model_defined"),
+    "reference_valid": dict(long_name="the reference solved without running out of its budget",
+                            flag_values=np.array([0, 1], dtype=np.int8),
+                            flag_meanings="reference_failed reference_solved"),
     "window": dict(long_name="length of the comparison window in undamped periods (to the "
                              "reference's halt, or until its energy drops below "
                              f"{ENERGY_FLOOR:g} E0, at most `periods`)", units="1"),
@@ -567,7 +572,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "window": "the reference motion up to its halt, or until its energy falls below "
                   f"{ENERGY_FLOOR:g} E0 when it does not halt; at most `periods` periods",
     }
-    return xr.Dataset(data, coords=coords, attrs=attrs)
+    ds = xr.Dataset(data, coords=coords, attrs=attrs)
+    for name in ds.coords:  # CF: coordinate variables carry no _FillValue (ds.to_netcdf(path))
+        ds[name].encoding["_FillValue"] = None
+    return ds
 
 
 def _now() -> str:

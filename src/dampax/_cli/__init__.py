@@ -1,9 +1,15 @@
-"""The ``dampax`` command line: one module per subcommand, shared options in ``_common``.
+"""The ``dampax`` command line: one module per subcommand, shared code in ``_common``.
+
+The options are defined in :mod:`dampax_cli._arguments`, outside this package, so that the
+``dampax`` console script (:func:`dampax_cli.main`) answers ``--help`` and ``--version``
+without importing dampax and JAX; it hands a parsed command to :func:`run_parsed`.
+:func:`main` (``python -m dampax._cli``) parses with the same definitions.
 
 Each subcommand module has ``add_arguments(parser)`` and ``run(args) -> exit status`` and is
 registered in :data:`SUBCOMMANDS`. A ValueError from dampax (bad input, a model that does not
 exist) is reported as one line, ``dampax: error: <message>``, with exit status 2 (as argparse
-does for bad syntax); Ctrl-C ends any command with one line and exit status 130.
+does for bad syntax); Ctrl-C ends any command with one line and exit status 130. ``--quiet``
+(every subcommand) prints nothing but errors.
 """
 
 from __future__ import annotations
@@ -16,13 +22,14 @@ import sys
 import threading
 from collections.abc import Callable
 
-from .._cache import keep_every_program
-from .._version import __version__
-from . import errormap, fit, reproduce, sensitivity, solve
-from ._common import PROG
+import dampax_cli
 
-#: name -> (add_arguments(parser), run(args) -> exit status); the first docstring line of
-#: ``run`` is the subcommand's help.
+from .._cache import keep_every_program
+from . import errormap, fit, reproduce, sensitivity, solve
+from ._common import PROG, silenced
+
+#: name -> (add_arguments(parser), run(args) -> exit status); the help of each subcommand is
+#: its summary in ``dampax_cli._arguments.COMMANDS``.
 SUBCOMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
                              Callable[[argparse.Namespace], int]]] = {
     name: (module.add_arguments, module.run)
@@ -35,24 +42,11 @@ def build_parser() -> argparse.ArgumentParser:
     """The argument parser with one subparser per entry of :data:`SUBCOMMANDS`.
 
     Returns:
-        An ``argparse.ArgumentParser``; parsed arguments carry the subcommand's ``run``.
+        An ``argparse.ArgumentParser`` (:func:`dampax_cli.build_parser` with the
+        ``add_arguments`` of :data:`SUBCOMMANDS`); parsed arguments name the subcommand in
+        ``command``.
     """
-    parser = argparse.ArgumentParser(
-        prog=PROG,
-        description="Harmonic oscillator with Coulomb, viscous and quadratic damping: analytic "
-                    "models (Lelas & Pezer; Rizcallah) against the exact motion.",
-        epilog="The first run of a command compiles its models with JAX (often 10 s or more); "
-               "later runs re-use them from the cache in ~/.cache/dampax (DAMPAX_CACHE=0: "
-               "off; DAMPAX_CACHE_DIR: elsewhere). Exit status: 0 ok, 2 invalid input, "
-               "130 interrupted.")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, (add_arguments, run) in SUBCOMMANDS.items():
-        summary = (run.__doc__ or "").strip().splitlines()[0] if run.__doc__ else None
-        p = sub.add_parser(name, help=summary, description=summary)
-        add_arguments(p)
-        p.set_defaults(run=run)
-    return parser
+    return dampax_cli.build_parser({name: add for name, (add, _) in SUBCOMMANDS.items()})
 
 
 @contextlib.contextmanager
@@ -106,16 +100,28 @@ def main(argv: list[str] | None = None) -> int:
         argv: the arguments without the program name; default ``sys.argv[1:]``.
 
     Returns:
-        The exit status: 0 on success, 2 on invalid input (one line on stderr), 130 when
-        interrupted (Ctrl-C; no half-written file is left). Syntax errors and ``--help``
-        exit through argparse (SystemExit with status 2 / 0).
+        The exit status of :func:`run_parsed`. Syntax errors and ``--help`` exit through
+        argparse (SystemExit with status 2 / 0).
     """
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    return run_parsed(build_parser().parse_args(argv))
+
+
+def run_parsed(args: argparse.Namespace) -> int:
+    """Run the subcommand ``args.command`` of :data:`SUBCOMMANDS` on parsed arguments.
+
+    Arguments:
+        args: arguments parsed by :func:`build_parser` or :func:`dampax_cli.build_parser`.
+
+    Returns:
+        The exit status: 0 on success, 2 on invalid input (one line on stderr), 130 when
+        interrupted (Ctrl-C; no half-written file is left); a subcommand may return others
+        (``dampax fit``: 3, 4). With ``--quiet`` only error lines are printed.
+    """
+    run = SUBCOMMANDS[args.command][1]
     try:
         # keep_every_program: a repeated command compiles nothing, not even small programs
-        with _exit_on_interrupt(), keep_every_program():
-            return args.run(args)
+        with _exit_on_interrupt(), keep_every_program(), silenced(getattr(args, "quiet", False)):
+            return run(args)
     except (ValueError, OSError) as err:
         message = " ".join(str(err).split())
         print(f"{PROG}: error: {message}", file=sys.stderr)

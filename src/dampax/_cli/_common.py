@@ -1,13 +1,61 @@
 """What the ``dampax`` subcommands share: the program name, number formatting, the oscillator
-options and the checks run before any computing."""
+of the options (defined in :mod:`dampax_cli._arguments`), the checks run before any computing,
+and what ``--quiet`` and ``--no-progress`` switch off."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import math
+import os
+import sys
+import warnings
 from pathlib import Path
 
 PROG = "dampax"
+
+#: where :func:`error` writes: the command's stderr, kept while ``--quiet`` silences the rest
+_ERROR_STREAMS: list = []
+
+
+def error(text: str) -> None:
+    """Print a line that explains a failure (a non-zero exit status) on stderr, also under
+    ``--quiet``; the "dampax: error: ..." of invalid input is printed by dampax._cli."""
+    print(text, file=_ERROR_STREAMS[-1] if _ERROR_STREAMS else sys.stderr)
+
+
+@contextlib.contextmanager
+def silenced(quiet: bool):
+    """``--quiet``: inside the block stdout and stderr go nowhere (results, notes, warnings,
+    Python's warnings and logging below ERROR) but :func:`error` still reaches stderr."""
+    if not quiet:
+        yield
+        return
+    _ERROR_STREAMS.append(sys.stderr)
+    disabled = logging.root.manager.disable
+    with (open(os.devnull, "w") as null, contextlib.redirect_stdout(null),
+          contextlib.redirect_stderr(null), warnings.catch_warnings()):
+        warnings.simplefilter("ignore")
+        logging.disable(logging.WARNING)
+        try:
+            yield
+        finally:
+            logging.disable(disabled)
+            _ERROR_STREAMS.pop()
+
+
+def show_progress(args: argparse.Namespace, stream=None) -> bool:
+    """Whether to draw progress bars: only when stderr (``stream``) is a terminal, and neither
+    ``--no-progress`` nor ``--quiet`` was given (no bars in logs and pipes)."""
+    if getattr(args, "no_progress", False) or getattr(args, "quiet", False):
+        return False
+    stream = sys.stderr if stream is None else stream
+    isatty = getattr(stream, "isatty", None)
+    try:
+        return bool(isatty and isatty())
+    except (ValueError, OSError):  # a closed stream
+        return False
 
 
 def fmt(value: float, digits: int, *, inf: str = "inf", nan: str = "-") -> str:
@@ -41,31 +89,9 @@ def check_digits(digits: int) -> None:
         raise ValueError(f"--digits must be between 1 and 17, got {digits}")
 
 
-def add_oscillator_arguments(parser: argparse.ArgumentParser, *, mu: float = 0.0,
-                             D: float = 0.0,
-                             start_title: str = "initial state (default: the papers' block)"):
-    """Options --m --k --mu --b --D --g --x0 --v0 shared by the subcommands."""
-    osc = parser.add_argument_group("oscillator (m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|)")
-    osc.add_argument("--m", type=float, default=1.0, help="mass [kg] (default: %(default)s)")
-    osc.add_argument("--k", type=float, default=30.0,
-                     help="spring stiffness [N/m] (default: %(default)s)")
-    osc.add_argument("--mu", type=float, default=mu,
-                     help="Coulomb friction coefficient (default: %(default)s)")
-    osc.add_argument("--b", type=float, default=0.0,
-                     help="viscous damping [kg/s] (default: %(default)s)")
-    osc.add_argument("--D", type=float, default=D,
-                     help="quadratic drag [kg/m] (default: %(default)s)")
-    osc.add_argument("--g", type=float, default=9.81,
-                     help="gravitational acceleration [m/s^2] (default: %(default)s)")
-    start = parser.add_argument_group(start_title)
-    start.add_argument("--x0", type=float, default=0.2,
-                       help="initial displacement [m] (default: %(default)s)")
-    start.add_argument("--v0", type=float, default=0.0,
-                       help="initial velocity [m/s] (default: %(default)s)")
-
-
 def oscillator_from(args: argparse.Namespace):
-    """The :class:`~dampax.Oscillator` of the options of :func:`add_oscillator_arguments`."""
+    """The :class:`~dampax.Oscillator` of the options of
+    :func:`dampax_cli._arguments.add_oscillator_arguments`."""
     from .._oscillator import Oscillator
 
     return Oscillator(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g)

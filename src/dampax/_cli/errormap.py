@@ -8,54 +8,12 @@ import sys
 
 import numpy as np
 
-from .._maps import DEFAULT_MODELS, largest_ratio_below, worst_in_box
+from dampax_cli._arguments import ERRORMAP_DEFAULTS, ERRORMAP_QUICK
+from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
+
+from .._maps import largest_ratio_below, worst_in_box
 from .._models import ANALYTIC, MODELS, check_models
-from ._common import PROG, fmt, prepare_out_dir
-
-#: Grid and settings of ``dampax errormap`` (a few minutes on 2 cores with the reference) and
-#: of ``--quick`` (a smoke run). The grids include d0 = 0 and d2 = 0 for the summary table.
-ERRORMAP_DEFAULTS = dict(d0="0:0.1:16", d1="0", d2="0:0.75:16", phi0="0:7*pi/8:8",
-                         periods=20.0, samples_per_period=64, chunk_size=128)
-ERRORMAP_QUICK = dict(d0="0:0.1:4", d1="0", d2="0:0.75:4", phi0="0,pi/2",
-                      periods=10.0, samples_per_period=32, chunk_size=32)
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dampax errormap``."""
-    grid = parser.add_argument_group(
-        "grid of dimensionless ratios (START:STOP:N = N values, both ends included; or a "
-        "comma list; pi allowed, e.g. 0:7*pi/8:8; write a negative start as --phi0=-pi:0:5)")
-    d = ERRORMAP_DEFAULTS
-    q = ERRORMAP_QUICK
-    grid.add_argument("--d0", metavar="START:STOP:N",
-                      help=f"Coulomb ratio d0/(w0 A0) (default: {d['d0']}; quick: {q['d0']})")
-    grid.add_argument("--d2", metavar="START:STOP:N",
-                      help=f"quadratic ratio d2 A0/w0 (default: {d['d2']}; quick: {q['d2']})")
-    grid.add_argument("--phi0", metavar="START:STOP:N",
-                      help=f"initial phase [rad] (default: {d['phi0']}; quick: {q['phi0']}; "
-                           "phi0 + pi gives the mirror-image motion)")
-    grid.add_argument("--d1", metavar="START:STOP:N",
-                      help=f"viscous ratio d1/w0 (default: {d['d1']})")
-    grid.add_argument("--quick", action="store_true",
-                      help="a 4 x 4 x 2 smoke run over 10 periods (explicit options win)")
-    run = parser.add_argument_group("models and reference")
-    run.add_argument("--models", default=",".join(DEFAULT_MODELS),
-                     help=f"comma list of {', '.join(ANALYTIC)} (default: %(default)s)")
-    run.add_argument("--reference", default="reference", choices=("reference", "coulomb_exact"),
-                     help="DOP853 integration of eq. 3, or the exact half-swings (D = 0 only, "
-                          "fast) (default: %(default)s)")
-    run.add_argument("--periods", type=float,
-                     help=f"time window cap in undamped periods (default: {d['periods']:g}; "
-                          f"quick: {q['periods']:g})")
-    run.add_argument("--samples-per-period", type=int, metavar="N",
-                     help=f"time samples per period (default: {d['samples_per_period']}; "
-                          f"quick: {q['samples_per_period']})")
-    run.add_argument("--chunk-size", type=int, metavar="N",
-                     help=f"grid points per device evaluated at once; bounds the memory "
-                          f"(default: {d['chunk_size']})")
-    out = parser.add_argument_group("output")
-    out.add_argument("--out", default="errormap", metavar="DIR",
-                     help="folder for errormap.nc and the heat maps (default: %(default)s)")
-    out.add_argument("--no-progress", action="store_true", help="no progress bar")
+from ._common import PROG, fmt, prepare_out_dir, show_progress
 
 
 def _ratio_text(value) -> str:
@@ -129,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
-    from .._io import atomic_path
+    from .._io import write_netcdf
     from .._maps import _axis, error_map, parse_axis
     from .._plot import ERROR_MAP_METRICS, plot_error_map
 
@@ -160,16 +118,13 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
                    phi0=axes["phi0"], models=models, periods=periods, samples_per_period=spp,
-                   chunk_size=chunk, reference=args.reference, progress=not args.no_progress)
+                   chunk_size=chunk, reference=args.reference, progress=show_progress(args))
     elapsed = time.perf_counter() - start
     bad_ref = int((~ds["reference_valid"]).sum())
     if bad_ref:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
               "not defined there); their metrics are NaN", file=sys.stderr)
-    path_nc = out / "errormap.nc"
-    with atomic_path(path_nc) as tmp:
-        ds.to_netcdf(tmp, engine="scipy")
-    written = [path_nc]
+    written = [write_netcdf(ds, out / "errormap.nc")]
     for metric in ERROR_MAP_METRICS:
         written.append(plot_error_map(ds, metric, out / f"{metric}.png"))
     print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "

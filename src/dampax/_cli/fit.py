@@ -19,13 +19,10 @@ import warnings
 
 import numpy as np
 
+from dampax_cli._arguments import add_fit_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
+
 from .._fit import (
-    FIT_MODELS,
     FREE,
-    LOSSES,
-    METHOD_NAMES,
-    MODELS,
-    OPTIMIZERS,
     check_free,
     compare_envelope_models,
     compare_models,
@@ -36,104 +33,7 @@ from .._fit import (
 from .._io import write_text
 from .._oscillator import Oscillator
 from .._trace import load_trace
-from ._common import PROG, fmt, prepare_out_dir, split_names
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Arguments of ``dampax fit``."""
-    parser.epilog = (
-        "Without --k the fit is per unit mass: w0 is fitted, b/m [1/s] and D/m [1/unit].\n"
-        "exit status:\n"
-        "  0  the fit succeeded and the model describes the data\n"
-        "  2  invalid input, one line on stderr (also a trace without a free decay in it)\n"
-        "  3  the fit failed (the reason is the report's first line)\n"
-        "  4  the fit converged but the model does not describe the data\n"
-        "The results are written in every case but 2.")
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("path", nargs="?", help="text file with the trace (time and position "
-                        "columns), or with a table of maxima for --envelope")
-    parser.add_argument("--example", action="store_true",
-                        help="fit a synthetic trace with known constants (m = 0.2 kg, "
-                             "k = 15 N/m, mu = 0.002, D = 0.02 kg/m, noise 0.2 mm)")
-    read = parser.add_argument_group("reading the file")
-    read.add_argument("--time", metavar="COL", help="time column, name or index (default: 0)")
-    read.add_argument("--position", metavar="COL",
-                      help="position column, name or index (default: 1)")
-    read.add_argument("--rate", metavar="HZ|auto",
-                      help="rebuild time from the sample index: a rate [1/s], or 'auto' for "
-                           "buffered time stamps")
-    read.add_argument("--delimiter", help="column separator (default: detected)")
-    read.add_argument("--scale", type=float, default=1.0,
-                      help="factor applied to the positions (default: %(default)s)")
-    read.add_argument("--units", default=None,
-                      help="unit of the positions, for the report (m, cm, mm, deg, rad, ...; "
-                           "default: the unit in the position column's name, e.g. "
-                           "'Angle(deg)', else m)")
-    osc = parser.add_argument_group(
-        "oscillator (fixed constants; without --k the fit is per unit mass: w0 fitted, "
-        "b/m in 1/s and D/m in 1/unit)")
-    osc.add_argument("--m", type=float, default=None,
-                     help="mass [kg]; with it b and D are reported in kg/s and kg/m (positions "
-                          "in lengths); default: unit mass, per-mass b/m and D/m")
-    osc.add_argument("--k", type=float, default=None,
-                     help="stiffness [N/m] (needs --m): w0 = sqrt(k/m) fixed unless "
-                          "--fit-omega0; default: w0 fitted from the data")
-    osc.add_argument("--g", type=float, default=9.81,
-                     help="gravitational acceleration [m/s^2], converts the Coulomb term d0 "
-                          "to mu (default: %(default)s)")
-    model = parser.add_argument_group("model and fit")
-    model.add_argument("--free", default="mu,D",
-                       help="constants to fit, comma list of mu, b, D and k3 (the cubic "
-                            "stiffness, profiled; trace fits only) (default: %(default)s)")
-    model.add_argument("--model", default="ansatz", choices=MODELS,
-                       help="; ".join(f"{name}: {FIT_MODELS[name].description}"
-                                      for name in MODELS) + " (default: %(default)s)")
-    model.add_argument("--fit-omega0", action="store_true",
-                       help="with --m and --k: also fit w0 (k = m w0^2), needed when k/m is not "
-                            "known exactly (without --k w0 is always fitted)")
-    model.add_argument("--no-offset", action="store_true",
-                       help="do not fit the equilibrium offset (envelope fits have none)")
-    model.add_argument("--loss", default="linear", choices=LOSSES,
-                       help="soft_l1 for traces with outliers (default: %(default)s)")
-    model.add_argument("--optimizer", default="lm", choices=OPTIMIZERS,
-                       help="; ".join(f"{name}: {METHOD_NAMES[name]}" for name in OPTIMIZERS)
-                            + " (default: %(default)s)")
-    model.add_argument("--start", default="auto",
-                       help="fit start: auto (first extreme after the largest excursion), "
-                            "data (first sample) or a time [s] (default: %(default)s)")
-    model.add_argument("--end", type=float, default=None, help="fit end time [s]")
-    model.add_argument("--envelope", action="store_true",
-                       help="the file holds successive maxima (t, amplitude): envelope fit")
-    model.add_argument("--omega0", type=float, default=None,
-                       help="--envelope: angular frequency (default: from the peak spacing)")
-    model.add_argument("--no-compare", action="store_true",
-                       help="skip the ranking of candidate damping models")
-    model.add_argument("--starts", type=int, default=32,
-                       help="global starts: jittered starts around the turning-point guess, "
-                            "optimised in one vmapped batch (default: %(default)s; 1: the "
-                            "guess alone)")
-    model.add_argument("--seed", type=int, default=0,
-                       help="seed of the jittered starts and of the posterior's chains "
-                            "(default: %(default)s)")
-    model.add_argument("--max-steps", type=int, default=None,
-                       help="optimizer step budget per optimisation (default: 256 for lm)")
-    unc = parser.add_argument_group("uncertainty")
-    unc.add_argument("--intervals", action="store_true",
-                     help="print confidence intervals that allow for correlated residuals "
-                          "(FitResult.conf_interval: Newey-West sandwich) at --level")
-    unc.add_argument("--level", type=float, default=0.95,
-                     help="two-sided level of --intervals and of the posterior summary "
-                          "(default: %(default)s)")
-    unc.add_argument("--posterior", action="store_true",
-                     help="also sample the posterior with NUTS (blackjax, AR(1) noise) and "
-                          "write posterior.nc and corner.png")
-    unc.add_argument("--draws", type=int, default=1000,
-                     help="--posterior: draws per chain (default: %(default)s)")
-    unc.add_argument("--chains", type=int, default=4,
-                     help="--posterior: chains (default: %(default)s)")
-    out = parser.add_argument_group("output")
-    out.add_argument("--out", metavar="DIR", default="fit",
-                     help="folder for fit.json and fit.png (default: %(default)s)")
+from ._common import PROG, error, fmt, prepare_out_dir, split_names
 
 
 def _parse_rate(text):
@@ -300,11 +200,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"  {elapsed:.1f} s (compilation included); written: "
           f"{', '.join(str(p) for p in written)}")
     if not result.success:
-        print(f"{PROG}: fit failed: {_cli_words(result.reason)}", file=sys.stderr)
+        error(f"{PROG}: fit failed: {_cli_words(result.reason)}")
         return EXIT_FAILED
     if not result.adequate:
-        print(f"{PROG}: the model does not describe the data: "
-              f"{_cli_words('; '.join(result.inadequacy))}", file=sys.stderr)
+        error(f"{PROG}: the model does not describe the data: "
+              f"{_cli_words('; '.join(result.inadequacy))}")
         return EXIT_INADEQUATE
     return 0
 

@@ -5,22 +5,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ._common import PROG, prepare_out_dir
+from dampax_cli._arguments import add_reproduce_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dampax reproduce``."""
-    parser.add_argument("--out", default="reproduce", metavar="DIR",
-                        help="output folder (default: %(default)s)")
-    parser.add_argument("--figures", default="all", metavar="LIST",
-                        help="figures to draw: numbers 2-21, ranges (8-10), 'rizcallah', "
-                             "'all' or 'none', comma-separated (default: %(default)s)")
-    parser.add_argument("--no-numbers", action="store_true",
-                        help="skip numbers.csv / numbers.md")
-    parser.add_argument("--format", default="png", metavar="EXT",
-                        help="image format: png, pdf, svg, ... (default: %(default)s)")
-    parser.add_argument("--dpi", type=int, default=110, help="resolution (default: %(default)s)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+from ._common import PROG, error, prepare_out_dir, show_progress
 
 
 def run(args: argparse.Namespace) -> int:
@@ -35,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     prepare_out_dir(args.out)
     start = time.perf_counter()
     res = reproduce(args.out, figures=args.figures, numbers=not args.no_numbers,
-                    fmt=args.format, dpi=args.dpi, progress=not args.no_progress)
+                    fmt=args.format, dpi=args.dpi, progress=show_progress(args))
     elapsed = time.perf_counter() - start
     print(f"{PROG} reproduce: {len(res.figures)} figures"
           + (" and numbers.csv, numbers.md" if res.numbers_md else "")
@@ -50,5 +37,8 @@ def run(args: argparse.Namespace) -> int:
             if r.status == "MISMATCH":
                 print(f"  MISMATCH: {r.source}: {r.quantity}: paper {r.quoted}, "
                       f"dampax {r.computed:.6g}")
-        return 1 if counts["MISMATCH"] else 0
+        if counts["MISMATCH"]:
+            error(f"{PROG} reproduce: {counts['MISMATCH']} quoted values mismatched (see "
+                  f"{Path(args.out) / 'numbers.md'})")
+            return 1
     return 0

@@ -15,11 +15,12 @@ import sys
 
 import numpy as np
 
-from .._global import QUANTITIES, check_bounds
+from dampax_cli._arguments import add_sensitivity_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
+
+from .._global import check_bounds
 from .._models import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
 from .._sensitivity import (
-    PARAMETERS,
     TREND_NOTE,
     UNITS,
     Sensitivity,
@@ -30,7 +31,6 @@ from .._sensitivity import (
 from .._solve import solve
 from ._common import (
     PROG,
-    add_oscillator_arguments,
     check_digits,
     check_plot_path,
     fmt,
@@ -38,70 +38,6 @@ from ._common import (
     oscillator_text,
     split_names,
 )
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dampax sensitivity``."""
-    add_oscillator_arguments(parser, mu=0.05, D=1.0, start_title="initial state")
-    what = parser.add_argument_group("sensitivities")
-    what.add_argument("--wrt", default="mu,D", metavar="NAMES",
-                      help=f"comma-separated parameters to differentiate with respect to, from "
-                           f"{','.join(PARAMETERS)} (default: %(default)s)")
-    what.add_argument("--models", default=None, metavar="NAMES",
-                      help=f"comma-separated models: {', '.join(MODELS)} "
-                           "(default: matched,reference; with --global: matched)")
-    what.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
-                      help="time span of the plot (default: half an undamped period past the "
-                           "matched ansatz's halt, 2 to 12 periods; 4 periods if it never halts)")
-    what.add_argument("--samples", type=int, default=400, metavar="N",
-                      help="time samples of the plot (default: %(default)s)")
-    what.add_argument("--window", type=float, default=0.05, metavar="W",
-                      help="relative half-width of the trend window: the trend derivative is "
-                           "the least-squares slope of the halt time (position) over "
-                           "theta (1 - W) ... theta (1 + W), 0 < W < 1 (default: %(default)s, "
-                           "i.e. +-5 %%)")
-    what.add_argument("--window-points", type=int, default=41, metavar="N",
-                      help="parameter values per trend window, >= 3 (default: %(default)s)")
-    what.add_argument("--swings", action="store_true",
-                      help="also count the swings (turning points before the halt, the rest "
-                           "point included) and give their trend over the window; the local "
-                           "derivative of a count is 0, so a non-zero trend is flagged: a swing "
-                           "is lost or gained inside the window (costs compilation time)")
-    what.add_argument("--turning-points", type=int, default=0, metavar="N",
-                      help="also give the first N turning points (t_n, x_n: v = 0, t > 0) with "
-                           "their local and trend derivatives; the trend is fitted over the "
-                           "window points where turning point n exists, '-' where fewer than 3 "
-                           "have it (default: %(default)s, none; costs compilation time)")
-    glob = parser.add_argument_group(
-        "global sensitivity (Sobol' indices over ranges instead of derivatives at a point)")
-    glob.add_argument("--global", dest="global_spec", default=None, metavar="SPEC",
-                      help="ranges of the parameters, e.g. \"mu=0.01:0.05,D=0.5:3\" (names "
-                           f"from {','.join(PARAMETERS)}): prints Sobol' S1, ST with "
-                           "bootstrap 95%% half-widths and DGSM, and draws them as bars "
-                           "(--plot); the other parameters are those of the options above")
-    glob.add_argument("--quantity", default="halt_time", choices=QUANTITIES,
-                      help="quantity of the global study: halt time, halt position, energy or "
-                           "x at --time, or max_error (max |x - x_ref|/A0 of the model against "
-                           "the reference on [0, --time]) (default: %(default)s)")
-    glob.add_argument("--time", type=float, default=None, metavar="SECONDS",
-                      help="time of --quantity energy or x (required there); end of the "
-                           "max_error window (default: 10 undamped periods)")
-    glob.add_argument("--n", type=int, default=4096, metavar="N",
-                      help="base samples of the Saltelli design, >= 16, a power of 2 is best "
-                           "(N (k + 2) model evaluations for k parameters; default: "
-                           "%(default)s)")
-    glob.add_argument("--seed", type=int, default=0, metavar="SEED",
-                      help="seed of the design and the bootstrap (default: %(default)s)")
-    out = parser.add_argument_group("output")
-    out.add_argument("--digits", type=int, default=4, metavar="N",
-                     help="significant digits printed (default: %(default)s)")
-    out.add_argument("--plot", metavar="FILE.png", default="sensitivity.png",
-                     help="where to save the plot of dx/dtheta, or with --global the bar "
-                          "chart of S1 and ST (default: %(default)s)")
-    out.add_argument("--trend-plot", metavar="FILE.png", default=None,
-                     help="where to save the plot of the halt time and position over each "
-                          "parameter's trend window (default: --plot's name with _trend, e.g. "
-                          "sensitivity_trend.png; not drawn with --global)")
 
 
 def parse_global(spec: str) -> dict[str, tuple[float, float]]:

@@ -8,32 +8,16 @@ import sys
 
 import numpy as np
 
+from dampax_cli._arguments import add_solve_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
+
 from ._common import (
     PROG,
-    add_oscillator_arguments,
     check_digits,
     check_plot_path,
     fmt,
     oscillator_from,
     oscillator_text,
 )
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``dampax solve``."""
-    add_oscillator_arguments(parser)
-    out = parser.add_argument_group("output")
-    out.add_argument("--turning", type=int, default=6, metavar="N",
-                     help="turning points of the matched ansatz to print (default: %(default)s)")
-    out.add_argument("--digits", type=int, default=4, metavar="N",
-                     help="significant digits printed (default: %(default)s)")
-    out.add_argument("--plot", metavar="FILE.png",
-                     help="also save x(t) and E(t) of every model to this file")
-    out.add_argument("--t-end", type=float, default=None, metavar="SECONDS",
-                     help="time span of the plot and the reference integration "
-                          "(default: a bit past the latest halt, or 6 undamped periods)")
-    out.add_argument("--no-reference", action="store_true",
-                     help="skip the reference integrator (DOP853)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -121,12 +121,11 @@ class Posterior:
         return "\n".join(lines)
 
     def to_netcdf(self, path) -> Path:
-        """Write the draws as netCDF (scipy backend); returns the path."""
-        from .._io import atomic_path
+        """Write the draws as netCDF (scipy backend, no _FillValue on the coordinates chain
+        and draw, as CF asks); returns the path."""
+        from .._io import write_netcdf
 
-        with atomic_path(path) as tmp:
-            self.draws.to_netcdf(str(tmp), engine="scipy")
-        return Path(path)
+        return write_netcdf(self.draws, path)
 
     def corner(self, path, *, names=None) -> Path:
         """Save a corner plot (pairwise scatter and histograms) of the damping constants (or

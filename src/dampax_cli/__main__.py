@@ -1,0 +1,7 @@
+"""``python -m dampax_cli``: the ``dampax`` console script."""
+
+import sys
+
+from . import main
+
+sys.exit(main())
