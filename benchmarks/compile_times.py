@@ -54,7 +54,8 @@ def _child(which, trace_path):
 
     import dampax as dp
 
-    out = {"import": time.perf_counter() - w, "cache": str(jax.config.jax_compilation_cache_dir)}
+    out = {"import": time.perf_counter() - w, "cache": str(jax.config.jax_compilation_cache_dir),
+           "dampax": os.path.dirname(dp.__file__)}
     if which == "trace":
         t = np.arange(1500) / 500.0
         sol = dp.solve(dp.Oscillator(**TRACE_OSC), X0, 0.0, method="reference")
@@ -153,7 +154,7 @@ def main():
             print(f"  {name}: import {r['import']:.1f} s, cold call {r['cold'][0]:.1f} s wall / "
                   f"{r['cold'][1]:.1f} s CPU, warm call {r['warm'][0]:.2f} s{extra}"
                   + "".join(f"; {r[key]}" for key in ("parts", "fit") if key in r)
-                  + f" (cache {r['cache']})", flush=True)
+                  + f" (dampax from {r['dampax']}, cache {r['cache']})", flush=True)
 
     print("\n| | cold call, wall / CPU | warm call | cold - warm | before | target | met |")
     print("|---|---|---|---|---|---|---|")

@@ -82,7 +82,8 @@ def scipy_trajectory(k, mu, b, D, x0, v0, ts, rtol, atol):
                       events=event, dense_output=True)
         t_stop = r.t_events[0][0] if r.status == 1 else T_END
         inside = (ts > t) & (ts <= t_stop)
-        out[inside] = r.sol(ts[inside])[0]
+        if inside.any():  # (a swing may fall between two samples)
+            out[inside] = r.sol(ts[inside])[0]
         if r.status != 1:
             break
         t, x, v = t_stop, r.y_events[0][0][0], 0.0
@@ -189,7 +190,8 @@ def main():
     arrays = [jnp.asarray(p[name]) for name in NAMES]
     print(f"{n} trajectories, {args.samples} samples in [0, {T_END} s], truth on {check}; "
           f"jax {jax.__version__} on {jax.devices()[0].platform}, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}", flush=True)
+          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}; dampax "
+          f"{dp.__version__} from {os.path.dirname(dp.__file__)}", flush=True)
 
     w = time.perf_counter()
     truth = scipy_many(p, ts, TRUTH_RTOL, TRUTH_ATOL, check)
