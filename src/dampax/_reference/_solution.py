@@ -64,6 +64,11 @@ def uniform(t) -> tuple[float, float] | None:
     return float(a[0]), float(step)
 
 
+# the fields of a solution without the samples of `solve_reference(ts=...)`
+FIELDS = ("osc", "x0", "v0", "t_end", "halted", "halt_time", "halt_position", "result",
+          "n_swings", "swing_times", "turning_x", "t_cover", "rows", "n_rows")
+
+
 class ReferenceSolution(AbstractSolution):
     """Numerical reference solution of eq. 3 (see `solve_reference`).
 
@@ -119,15 +124,15 @@ class ReferenceSolution(AbstractSolution):
         return jnp.shape(self.halt_time)
 
     def _stored(self, t):
-        """The samples filled by the solve when t is its ``ts`` (the same array or values)."""
-        if self.ts is None:
-            return None
+        """True, False or a traced boolean: whether t is the ``ts`` of the solve (the same
+        array, or the same values; under jit the values are compared at run time)."""
+        if self.ts is None or jnp.shape(t) != self.ts.shape:
+            return False
         if t is self.ts:
-            return self.xs, self.vs
-        if (is_concrete(t) and is_concrete(self.ts) and np.shape(t) == np.shape(self.ts)
-                and np.array_equal(np.asarray(t, dtype=float), np.asarray(self.ts))):
-            return self.xs, self.vs
-        return None
+            return True
+        if is_concrete(t) and is_concrete(self.ts):
+            return bool(np.array_equal(np.asarray(t, dtype=float), np.asarray(self.ts)))
+        return jnp.all(jnp.asarray(t, dtype=float) == self.ts)
 
     def state(self, t, *, grid=None) -> tuple[Array, Array]:
         """Position and velocity at time(s) t, evaluated together.
@@ -148,8 +153,8 @@ class ReferenceSolution(AbstractSolution):
             (x(t), v(t)), each shaped like t (batch shape in front for a batched solution).
         """
         stored = self._stored(t)
-        if stored is not None:
-            return stored
+        if stored is True:
+            return self.xs, self.vs
         t = jnp.asarray(t, dtype=float)
         if grid is None:
             grid = uniform(t)
@@ -157,7 +162,11 @@ class ReferenceSolution(AbstractSolution):
             if t.ndim != 1:
                 raise ValueError(f"grid needs 1-D times, got t of shape {t.shape}")
             grid = tuple(jnp.asarray(g, dtype=float) for g in grid)
-        return _evaluate(self, t, grid)
+        bare = ReferenceSolution(**{f: getattr(self, f) for f in FIELDS})  # no samples
+        if stored is False:
+            return _evaluate(bare, t, grid)
+        return jax.lax.cond(stored, lambda: (self.xs, self.vs),
+                            lambda: _evaluate(bare, t, grid))
 
     def x(self, t) -> Array:
         """Position at time(s) t (see `state`).

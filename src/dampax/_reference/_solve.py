@@ -11,7 +11,7 @@ import numpy as np
 from .._oscillator import Oscillator, check_finite, check_real, is_concrete
 from .._solution import RESULTS
 from ._engine import _KINDS, integrate
-from ._solution import ReferenceSolution, sample_single
+from ._solution import FIELDS, ReferenceSolution, sample_single
 
 # Default t_end in undamped periods: 25 periods are about 50 swings.
 DEFAULT_PERIODS = 25.0
@@ -71,12 +71,8 @@ def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoi
     if ts is None:
         return sol
     xs, vs = sample_single(sol, ts)
-    return ReferenceSolution(**{**{f: getattr(sol, f) for f in _FIELDS}, "ts": ts, "xs": xs,
+    return ReferenceSolution(**{**{f: getattr(sol, f) for f in FIELDS}, "ts": ts, "xs": xs,
                                 "vs": vs})
-
-
-_FIELDS = ("osc", "x0", "v0", "t_end", "halted", "halt_time", "halt_position", "result",
-           "n_swings", "swing_times", "turning_x", "t_cover", "rows", "n_rows")
 
 
 def _solve_batched(osc, x0, v0, t_end, ts, **kw):
@@ -94,7 +90,7 @@ def _solve_batched(osc, x0, v0, t_end, ts, **kw):
     sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, ts, **kw))(*args)
     out = jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), sol)
     if ts is not None:  # the sample times are shared, not batched
-        out = ReferenceSolution(**{**{f: getattr(out, f) for f in _FIELDS}, "ts": ts,
+        out = ReferenceSolution(**{**{f: getattr(out, f) for f in FIELDS}, "ts": ts,
                                    "xs": out.xs, "vs": out.vs})
     return out
 
