@@ -115,7 +115,7 @@ def test_estimate_under_jit_vmap_grad():
 
 
 def test_auto_picks_the_ansatz_or_the_reference():
-    from dampax._atlas import solution_estimate
+    from dampax._solution import solution_estimate
 
     osc = dp.Oscillator(m=1.0, k=30.0, mu=0.0288, D=2.95)
     est = float(dp.solve(osc, 0.2, 0.0).error_estimate)

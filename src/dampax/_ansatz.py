@@ -187,6 +187,18 @@ class AnsatzSolution(AbstractSolution):
         """phi of eq. 11 (phi0 for the undamped phase); NaN where the model does not exist."""
         return jnp.where(self.valid, self.phi, jnp.nan)
 
+    @property
+    def model(self) -> str:
+        """"matched" or "undamped" (the registry names)."""
+        return "matched" if self.matched else "undamped"
+
+    def _atlas_start(self):
+        if self.matched:  # A, phi are matched to the initial state: x(0) = x0, v(0) = v0
+            x0, v0 = self._state(0.0)
+        else:  # A = A0, phi = phi0 (eq. 8)
+            x0, v0 = self.A * jnp.cos(self.phi), -self.omega0 * self.A * jnp.sin(self.phi)
+        return self.osc, x0, v0
+
     def _mask(self, value):
         return jnp.where(self.valid, value, jnp.nan)
 

@@ -90,6 +90,14 @@ class SwingSolution(_PiecewiseSolution):
     result: RESULTS
 
     @property
+    def model(self) -> str:
+        """"coulomb_exact" (the registry name)."""
+        return "coulomb_exact"
+
+    def _atlas_start(self):
+        return self.osc, self.x_start, self.v_start
+
+    @property
     def half_period(self):
         return jnp.pi / self.omegad
 
@@ -251,6 +259,14 @@ class TailSolution(AbstractSolution):
     found: Array  # the search window bracketed the last turning point outside the band
 
     @property
+    def model(self) -> str:
+        """"matched_tail" (the registry name)."""
+        return "matched_tail"
+
+    def _atlas_start(self):
+        return self.ansatz._atlas_start()
+
+    @property
     def amplitude(self):
         return self.ansatz.amplitude
 
@@ -382,6 +398,20 @@ class RizcallahSolution(_PiecewiseSolution):
     halt_position: Array
     osc: Oscillator
     result: RESULTS
+
+    @property
+    def model(self) -> str:
+        """"rizcallah" (the registry name)."""
+        return "rizcallah"
+
+    def _atlas_start(self):
+        A0, ph = self.amplitude0, self.phase0
+        # the atlas holds kappa = 4/pi only: kappa = 2 w0 d / (mu g)
+        osc = self.osc
+        kappa = 2.0 * self.omega0 * self.d / jnp.where(osc.mu > 0.0, osc.mu * osc.g, 1.0)
+        same = (osc.mu == 0.0) | (jnp.abs(kappa - 4.0 / math.pi) < 1e-9)
+        return (osc, jnp.where(same, A0 * jnp.cos(ph), jnp.nan),
+                -self.omega0 * A0 * jnp.sin(ph))
 
     def _free(self, t):
         t = jnp.asarray(t, dtype=float)

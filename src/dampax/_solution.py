@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._atlas import estimate
 from ._oscillator import _value_text, unconfined
 
 Array = jax.Array
@@ -173,9 +174,12 @@ class AbstractSolution(eqx.Module):
     @property
     def model(self) -> str:
         """The registry name of the model (``dampax.MODELS``), e.g. "matched_tail"."""
-        from ._atlas import model_of
+        raise NotImplementedError(f"{type(self).__name__} names no model")
 
-        return model_of(self)
+    def _atlas_start(self):
+        """(oscillator, x0, v0) the atlas is read at for this solution, or None where it holds
+        no estimate (the reference itself)."""
+        return None
 
     @property
     def error_estimate(self) -> Array:
@@ -187,8 +191,6 @@ class AbstractSolution(eqx.Module):
         periods). NaN outside the atlas, where the model does not exist, and for the reference
         itself. Works under jit and vmap.
         """
-        from ._atlas import solution_estimate
-
         return solution_estimate(self)
 
     def _x_energy(self, t, grid=None) -> tuple[Array, Array]:
@@ -212,3 +214,19 @@ class AbstractSolution(eqx.Module):
         else:
             body.append(f"result={self.message or 'successful'!r}")
         return f"{type(self).__name__}({', '.join(body)})"
+
+
+def solution_estimate(sol: AbstractSolution, *, bound: bool = False) -> Array:
+    """Expected (or, with ``bound``, upper) max |x - x_ref| / A0 of a solution: the atlas
+    (``dampax._atlas``, data the models read) at the solution's start. NaN for the reference,
+    off the atlas and for k3 != 0; 0 for a start at rest inside the band (exact)."""
+    start = sol._atlas_start()
+    if start is None:
+        return jnp.asarray(jnp.nan)
+    value = estimate(sol.model, *start, bound=bound)
+    # the atlas holds the linear spring only (k3 = 0): no estimate with a cubic stiffness
+    value = jnp.where(start[0].k3 != 0.0, jnp.nan, value)
+    head = sol.ansatz if hasattr(sol, "ansatz") else sol
+    if hasattr(head, "stuck"):  # at rest inside the band from the start: the answer is exact
+        value = jnp.where(head.stuck, 0.0, value)
+    return value

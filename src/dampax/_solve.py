@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._ansatz import AnsatzSolution, solve_ansatz
+from ._cache import call_cached_tree
 from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
 from ._models import METHODS
 from ._oscillator import (
@@ -20,6 +21,8 @@ from ._oscillator import (
     is_concrete,
     known_linear,
 )
+from ._reference import solve_reference
+from ._solution import solution_estimate
 
 #: Rizcallah's default amplitude factor (least squares)
 KAPPA = 4.0 / math.pi
@@ -116,8 +119,6 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             "(the plain ansatz and the reference accept arrays directly)")
     eager = is_concrete(osc, x0, v0)
     if method == "reference":
-        from ._reference import solve_reference
-
         sol = _reference_kept(osc, x0, v0, options) if eager else None
         if sol is None:
             sol = solve_reference(osc, x0, v0, **options)
@@ -141,9 +142,6 @@ def _reference_kept(osc, x0, v0, options):
         The solution, or None where the plain route must run: options that are not plain
         values, or a failed solution (the plain route raises its ValueError, budget named).
     """
-    from ._cache import call_cached_tree
-    from ._reference import solve_reference
-
     static = {k: v for k, v in options.items() if k != "t_end"}
     t_end = options.get("t_end")
     if not (all(isinstance(v, str | int | float | bool) for v in static.values())
@@ -182,8 +180,6 @@ def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
         sol = solve(osc, x0, v0, method="ansatz", throw=throw)
     except ValueError:  # the ansatz does not exist here: the reference does
         sol = None
-    from ._atlas import solution_estimate
-
     # the atlas' upper estimate (the largest error at the surrounding atlas points) times a
     # margin of 2, not the interpolation: the ansatz is only chosen where it is good with room
     # to spare (in tests 2 x the upper estimate was never below the true error)

@@ -119,6 +119,11 @@ class ReferenceSolution(AbstractSolution):
     vs: Array | None = None
 
     @property
+    def model(self) -> str:
+        """"reference" (the registry name)."""
+        return "reference"
+
+    @property
     def batch_shape(self) -> tuple[int, ...]:
         """Leading batch shape (() for a single trajectory)."""
         return jnp.shape(self.halt_time)
