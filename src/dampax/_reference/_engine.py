@@ -1,19 +1,16 @@
 """The integration loop: steps, swings and sticking of one trajectory, in one flat loop.
 
-Every iteration evaluates one DOP853 step (`_stepping.rk_step`) from the loop's state:
-- in stepping mode, a trial step of the controller's size (accepted or rejected by its error);
-  an accepted step that ends with s v > 0 is stored as a row and the state moves on;
-- an accepted step that crossed the velocity zero switches to locating mode: the next
-  `_events.NEWTON_ITERATIONS` iterations re-take the step from its start to Newton iterates of
-  the zero; the last stores the row up to the turning point and either halts (the block sticks)
-  or starts the next swing from (x*, 0) with the opposite sign.
-
-So every iteration costs the same, and under `jax.vmap` a lane that locates a turning point
-does not make the others compute a second step. The loop ends when the trajectory halts,
-reaches t_end, fails, or runs out of its budget: a trajectory costs the steps its motion
-takes, and nothing after its halt. The stored rows (`_sampling`: one per accepted step) are
-a buffer written once per row (`equinox.internal.while_loop` buffers: reverse-mode
-differentiable through recursive checkpointing without copying the table).
+Every iteration evaluates one DOP853 step (`_stepping.rk_step`) of the controller's size from
+the loop's state, accepted or rejected by its error. An accepted step is stored as a row, its
+interpolating polynomial (`_sampling.hermite_row`); when it ended with s v <= 0 it crossed the
+swing's velocity zero, which is found on that polynomial (`_events.turning_point`), and the
+block either sticks there for good or the next swing starts from (x*, 0) with the opposite
+sign. No step is re-taken, so every iteration costs the same, and under `jax.vmap` no lane
+waits for another's root finding. The loop ends when the trajectory halts, reaches t_end,
+fails, or runs out of its budget: a trajectory costs the steps its motion takes, and nothing
+after its halt. The rows are a buffer written once each (`equinox.internal.while_loop`
+buffers: reverse-mode differentiable through recursive checkpointing without copying the
+table).
 """
 
 from __future__ import annotations
@@ -25,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from .._solution import RESULTS, first_failure, input_checks
-from ._events import NEWTON_ITERATIONS, hermite_root, newton_update
+from ._events import turning_point
 from ._sampling import WIDTH, hermite_row
 from ._stepping import error_norm, ode_args, rk_step, step_factor
 
@@ -69,8 +66,7 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
     rest0 = (v0 == 0.0) & osc.sticks(x0)
     s0 = jnp.where(v0 != 0.0, jnp.sign(v0), -jnp.sign(x0))
     state = dict(
-        t=zero, x=x0, v=v0, s=s0, h=DT0_W0 / w_hi, locating=jnp.array(False),
-        it=jnp.array(0), t_guess=zero, halted=rest0, t_halt=zero, x_halt=x0,
+        t=zero, x=x0, v=v0, s=s0, h=DT0_W0 / w_hi, halted=rest0, t_halt=zero, x_halt=x0,
         finished=jnp.array(False), failed=jnp.array(False), budget=jnp.array(False),
         n_rows=jnp.array(0), n_swings=jnp.where(rest0, 0, 1),
         n_turns=jnp.array(0), rows=jnp.full((rows, WIDTH), jnp.inf),
@@ -89,10 +85,9 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
 
     def body(c):
         t, x, v, s = c["t"], c["x"], c["v"], c["s"]
-        locating = c["locating"]
         args = (s,) + params
         remaining = t_end - t
-        h = jnp.where(locating, c["t_guess"] - t, jnp.minimum(c["h"], remaining))
+        h = jnp.minimum(c["h"], remaining)
         # A branch of its own, so that its outputs are stored: used directly, XLA fused the
         # chain of stages into every consumer of x1, v1 and err (each select of the state),
         # about twenty copies of the step (jax.lax.optimization_barrier is dropped before
@@ -105,35 +100,27 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
         # vanishing or infinite error would give NaN cotangents)
         err = jax.lax.stop_gradient(err)
         finite = jnp.isfinite(x1) & jnp.isfinite(v1) & jnp.isfinite(err)
-
-        # stepping mode
-        accepted = ~locating & finite & (err <= 1.0)
+        accepted = finite & (err <= 1.0)
         crossed = accepted & (s * v1 <= 0.0)
         plain = accepted & ~crossed
         last = plain & (h >= remaining)
         h_next = jnp.minimum(h * step_factor(jnp.where(finite, err, jnp.inf)), dtmax)
-        h_next = jax.lax.stop_gradient(
-            jnp.where(locating, c["h"], jnp.where(plain & last, c["h"], h_next)))
-        tiny = ~locating & ~accepted & (h_next <= 1e-13 * jnp.maximum(t, 1.0 / w_hi))
+        h_next = jax.lax.stop_gradient(jnp.where(last, c["h"], h_next))
+        tiny = ~accepted & (h_next <= 1e-13 * jnp.maximum(t, 1.0 / w_hi))
+        failed = (~finite & (h <= 0.0)) | tiny
 
-        # locating mode: the re-taken step ended at the iterate t_guess; Newton's update
-        dt = newton_update(x1, v1, args)
-        final = locating & (c["it"] == NEWTON_ITERATIONS - 1)
-        t_sw = c["t_guess"] + dt
-        x_sw = x1 + v1 * dt
-        guess = hermite_root(t, x, v, t + h, x1, v1, args, crossed)
-        t_guess = jax.lax.stop_gradient(
-            jnp.where(crossed, guess, jnp.where(locating, c["t_guess"] + dt, c["t_guess"])))
-        stick = final & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu m g
-        reverse = final & ~stick
-        failed = (locating & ~finite) | (~locating & ~finite & (h <= 0.0)) | tiny
-
-        # the stored row: the polynomial of the accepted step, or of the step up to the
-        # turning point (`_sampling.hermite_row`, built here once per step)
-        store = plain | final
-        t_b = jnp.where(plain, jnp.where(last, t_end, t + h), t_sw)
-        x_b, v_b = jnp.where(plain, x1, x_sw), jnp.where(plain, v1, 0.0)
-        row = hermite_row(t, t_b, x, v, x_b, v_b, args)
+        # the stored row: the polynomial of the accepted step (`_sampling.hermite_row`, built
+        # here once per step); after a crossing it holds up to the turning point, found on it
+        # branches of their own (outputs stored), as the step: the row's ten coefficients and
+        # the Newton iterates on them were otherwise fused into every select that reads them
+        live = eqxi.unvmap_any(running(c))
+        row = jax.lax.cond(live, hermite_row, lambda *a: jnp.full(x.shape + (WIDTH,), jnp.inf),
+                           t, t + h, x, v, x1, v1, args)
+        t_sw, x_sw = jax.lax.cond(live, turning_point, lambda *a: (t, x),
+                                  row, t, h, v, v1, crossed)
+        stick = crossed & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu m g
+        reverse = crossed & ~stick
+        store = accepted
         n_rows = c["n_rows"]
         full = store & (n_rows >= rows)
         new_rows = eqxi.buffer_at_set(c["rows"], jnp.minimum(n_rows, rows - 1), row,
@@ -141,17 +128,15 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
         # the turning point (the rest point last): at most max_swings of them
         n_turns = c["n_turns"]
         new_turns = eqxi.buffer_at_set(c["turns"], jnp.minimum(n_turns, max_swings - 1),
-                                       jnp.stack([t_sw, x_sw]), pred=final & (n_turns < max_swings))
+                                       jnp.stack([t_sw, x_sw]),
+                                       pred=crossed & (n_turns < max_swings))
         too_many = reverse & (c["n_swings"] >= max_swings)
         return dict(
-            t=jnp.where(plain, t_b, jnp.where(final, t_sw, t)),
-            x=jnp.where(plain, x1, jnp.where(final, x_sw, x)),
-            v=jnp.where(plain, v1, jnp.where(final, 0.0, v)),
+            t=jnp.where(plain, jnp.where(last, t_end, t + h), jnp.where(crossed, t_sw, t)),
+            x=jnp.where(plain, x1, jnp.where(crossed, x_sw, x)),
+            v=jnp.where(plain, v1, jnp.where(crossed, 0.0, v)),
             s=jnp.where(reverse, -jnp.sign(x_sw), s),
             h=h_next,
-            locating=crossed | (locating & ~final),
-            it=jnp.where(locating & ~final, c["it"] + 1, 0),
-            t_guess=t_guess,
             halted=c["halted"] | stick,
             t_halt=jnp.where(stick, t_sw, c["t_halt"]),
             x_halt=jnp.where(stick, x_sw, c["x_halt"]),
@@ -160,13 +145,13 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
             budget=c["budget"] | full | too_many,
             n_rows=n_rows + jnp.where(store & ~full, 1, 0),
             n_swings=c["n_swings"] + jnp.where(reverse, 1, 0),
-            n_turns=n_turns + jnp.where(final, 1, 0),
+            n_turns=n_turns + jnp.where(crossed, 1, 0),
             rows=new_rows,
             turns=new_turns,
         )
 
     # iterations: every stored row, the re-taken steps of every turning point, and rejections
-    max_steps = 2 * rows + (NEWTON_ITERATIONS + 1) * max_swings + 64
+    max_steps = 2 * rows + 64
     final = eqxi.while_loop(running, body, state, max_steps=max_steps,
                             buffers=lambda c: (c["rows"], c["turns"]), kind=_KINDS[adjoint])
     out_of_steps = running(final)  # the loop's iteration cap
