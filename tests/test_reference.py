@@ -18,6 +18,7 @@ from scipy.integrate import solve_ivp  # noqa: E402
 
 from dampax._oscillator import Oscillator  # noqa: E402
 from dampax._reference import ReferenceSolution, solve_reference  # noqa: E402
+from helpers import evaluate, scipy_stick_slip  # noqa: E402
 
 G = 9.81
 TIGHT = dict(rtol=1e-12, atol=1e-14, max_swings=64, max_steps_per_swing=64)
@@ -520,3 +521,83 @@ def test_solution_type(batch_a):
     assert isinstance(batch_a, ReferenceSolution)
     assert batch_a.swing_times.shape == (len(CASES_A), 64)
     assert batch_a.turning_points(70)[0].shape == (len(CASES_A), 70)
+
+
+# ---------------------------------------------------------------- samples, cost, accuracy
+
+N_C = 12
+T_END_C = 3.0
+TS_C = np.linspace(0.0, T_END_C, 301)
+
+
+def _cases_c():
+    """Random cases with every damping term and a cubic stiffness (hardening and softening)."""
+    rng = np.random.default_rng(7)
+    m, k, mu, b, D, x0, v0 = random_cases(N_C, seed=7)
+    k3 = rng.uniform(-0.3, 1.0, N_C) * k / 0.3**2 * (rng.random(N_C) > 0.25)
+    return m, k, mu, b, D, x0, v0, k3
+
+
+@pytest.fixture(scope="module")
+def batch_c():
+    m, k, mu, b, D, x0, v0, k3 = _cases_c()
+    osc = Oscillator(m=m, k=k, mu=mu, b=b, D=D, k3=k3)
+    return (m, k, mu, b, D, x0, v0, k3), solve_reference(osc, x0, v0, t_end=T_END_C,
+                                                          ts=TS_C, **TIGHT)
+
+
+def test_samples_with_every_damping_and_k3_against_scipy(batch_c):
+    """solve(ts=) fills x, v at the samples: 1e-10 A0 from scipy's DOP853 with events."""
+    (m, k, mu, b, D, x0, v0, k3), sol = batch_c
+    assert np.all(np.asarray(sol.valid))
+    xs, vs = (np.asarray(a) for a in sol.state(TS_C))  # the samples of the solve
+    assert xs is not None and xs.shape == (N_C, TS_C.size)
+    for i in range(N_C):
+        segs, _, rest = scipy_stick_slip(m[i], k[i], mu[i], b[i], D[i], x0[i], v0[i], T_END_C,
+                                         k3=k3[i])
+        x_sp, v_sp = evaluate(segs, rest, TS_C)
+        a0 = np.hypot(x0[i], v0[i] / np.sqrt(k[i] / m[i]))
+        np.testing.assert_allclose(xs[i], x_sp, rtol=0, atol=1e-10 * a0)
+        np.testing.assert_allclose(vs[i], v_sp, rtol=0, atol=1e-9 * a0 * np.sqrt(k[i] / m[i]))
+
+
+def test_filled_samples_equal_the_dense_output_on_any_times(batch_c):
+    """The samples of solve(ts=) are the dense output's values there; unsorted times (the
+    binary-search path) give the same numbers as sorted ones (the merge)."""
+    _, sol = batch_c
+    filled = np.asarray(sol.x(TS_C))
+    shuffled = np.random.default_rng(0).permutation(TS_C.size)
+    again = np.asarray(sol.x(TS_C[shuffled]))[:, np.argsort(shuffled)]
+    np.testing.assert_array_equal(filled, again)
+    sub = TS_C[::7] + 1e-3  # sorted, not a uniform grid
+    np.testing.assert_array_equal(np.asarray(sol.x(sub)), np.asarray(sol.x(sub[::-1]))[:, ::-1])
+
+
+def test_samples_under_jit_and_vmap():
+    """Under jit, x(ts) of the solve's own ts returns its samples; vmapped scalar solves equal
+    the batched one."""
+    m, k, mu, b, D, x0, v0, k3 = (jnp.asarray(a[:4]) for a in _cases_c())
+
+    def one(m, k, mu, b, D, x0, v0, k3):
+        sol = solve_reference(Oscillator(m=m, k=k, mu=mu, b=b, D=D, k3=k3), x0, v0,
+                              t_end=T_END_C, ts=TS_C, max_swings=24)
+        return sol.x(TS_C), sol.x(TS_C[::-1])
+
+    a, back = jax.jit(jax.vmap(one))(m, k, mu, b, D, x0, v0, k3)
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(back)[:, ::-1])
+
+
+def test_cost_follows_the_motion():
+    """A trajectory that halts stores the steps of its motion and nothing after the halt: the
+    same rows for t_end = 3 s and 300 s (same budget); one that never halts stores steps in
+    proportion to its window."""
+    osc = Oscillator(m=1.0, k=30.0, mu=0.05, D=2.0)  # halts at 2.3 s
+    short = solve_reference(osc, 0.2, 0.0, t_end=3.0, max_swings=400)
+    long = solve_reference(osc, 0.2, 0.0, t_end=300.0, max_swings=400)
+    assert bool(short.halted) and bool(long.halted)
+    assert int(short.n_rows) == int(long.n_rows) < 60
+    np.testing.assert_array_equal(np.asarray(short.rows), np.asarray(long.rows))
+    free = Oscillator(m=1.0, k=30.0, b=0.05)
+    n1 = int(solve_reference(free, 0.2, 0.0, t_end=10.0, max_swings=400).n_rows)
+    n2 = int(solve_reference(free, 0.2, 0.0, t_end=20.0, max_swings=400).n_rows)
+    assert 1.8 < n2 / n1 < 2.2
