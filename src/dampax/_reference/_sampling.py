@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
@@ -107,6 +108,45 @@ def rows_of(starts, t, grid=None):
     return jax.lax.cond(ordered, _rows_sorted, _rows_search, starts, t)
 
 
+# Gathering a row of twelve numbers per sample dominated the dense output (XLA's gather on CPU
+# moves one element at a time). Sorted samples mostly share rows with their neighbours: in
+# chunks of _CHUNK samples, the _WINDOW rows from the chunk's first one are gathered once and
+# each sample selects its row among them; where some chunk spans more rows (steps much shorter
+# than the sample spacing), or the times are not sorted, every sample gathers its own row.
+_CHUNK = 16
+_WINDOW = 4
+
+
+def _windowed(coef, idx, t):
+    """x, v at t, each sample's row taken from the rows of its chunk's window (see above)."""
+    n = idx.shape[0]
+    pad = -n % _CHUNK
+    idx_p = jnp.concatenate([idx, jnp.broadcast_to(idx[-1:], (pad,))])
+    chunks = idx_p.reshape(-1, _CHUNK)
+    lo = chunks[:, 0]
+    rows = coef[jnp.minimum(lo[:, None] + jnp.arange(_WINDOW)[None, :], coef.shape[0] - 1)]
+    local = chunks - lo[:, None]
+    cols = []
+    for j in range(WIDTH):
+        val = jnp.broadcast_to(rows[:, :1, j], chunks.shape)
+        for w in range(1, _WINDOW):
+            val = jnp.where(local == w, rows[:, w : w + 1, j], val)
+        cols.append(val.reshape(-1)[:n])
+    return _evaluate_rows(jnp.stack(cols, axis=-1), t)
+
+
+def _gathered(coef, idx, t):
+    """x, v at t, every sample gathering its own row."""
+    return _evaluate_rows(coef[idx], t)
+
+
+def _evaluate_rows(row, t):
+    inv_h = row[:, 1]
+    t_a = jnp.where(jnp.isfinite(row[:, 0]), row[:, 0], t)  # no row: nothing moved
+    th = jnp.clip((t - t_a) * inv_h, 0.0, 1.0)
+    return _horner(row, th, inv_h == 0.0)
+
+
 def sample(coef, n_rows, t, grid=None):
     """(x, v) at the 1-D times t from the rows' polynomials (inside the integrated part).
 
@@ -119,9 +159,11 @@ def sample(coef, n_rows, t, grid=None):
     """
     t_safe = jnp.where(jnp.isfinite(t), t, 0.0)
     idx = jnp.clip(rows_of(coef[:, 0], t_safe, grid), 0, jnp.maximum(n_rows - 1, 0))
-    row = coef[idx]
-    inv_h = row[:, 1]
-    zero = inv_h == 0.0
-    t_a = jnp.where(jnp.isfinite(row[:, 0]), row[:, 0], t_safe)  # no row: nothing moved
-    th = jnp.clip((t_safe - t_a) * inv_h, 0.0, 1.0)
-    return _horner(row, th, zero)
+    if t.shape[0] < 2 * _CHUNK:
+        return _gathered(coef, idx, t_safe)
+    first = jnp.concatenate([idx, jnp.broadcast_to(idx[-1:], (-idx.shape[0] % _CHUNK,))])
+    local = first.reshape(-1, _CHUNK) - first.reshape(-1, _CHUNK)[:, :1]
+    fits = jnp.all((local >= 0) & (local < _WINDOW))
+    # unbatched predicate (every trajectory of a vmapped batch): a real branch; each branch
+    # evaluates the polynomials itself, so that the rows are not stored in between
+    return jax.lax.cond(eqxi.unvmap_all(fits), _windowed, _gathered, coef, idx, t_safe)
