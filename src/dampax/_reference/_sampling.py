@@ -109,34 +109,41 @@ def rows_of(starts, t, grid=None):
 
 
 # Gathering a row of twelve numbers per sample dominated the dense output (XLA's gather on CPU
-# moves one element at a time). Sorted samples mostly share rows with their neighbours: in
-# chunks of _CHUNK samples, the _WINDOW rows from the chunk's first one are gathered once and
-# each sample selects its row among them; where some chunk spans more rows (steps much shorter
-# than the sample spacing), or the times are not sorted, every sample gathers its own row.
+# moves one element at a time), and so did finding each sample's row. Neighbouring samples
+# mostly share rows: in chunks of _CHUNK samples, the row of the chunk's first sample is found
+# by a binary search, the _WINDOW rows from it (and the start of the next) are gathered once,
+# and each sample counts the row starts of the window it has passed. Where a chunk spans more
+# rows (steps much shorter than the sample spacing) or a sample precedes its chunk's first
+# (unsorted times), every sample finds and gathers its own row instead (`rows_of`).
 _CHUNK = 16
 _WINDOW = 4
 
 
-def _windowed(coef, idx, t):
-    """x, v at t, each sample's row taken from the rows of its chunk's window (see above)."""
-    n = idx.shape[0]
-    pad = -n % _CHUNK
-    idx_p = jnp.concatenate([idx, jnp.broadcast_to(idx[-1:], (pad,))])
-    chunks = idx_p.reshape(-1, _CHUNK)
-    lo = chunks[:, 0]
+def _windowed(coef, lo, t_chunks, n):
+    """x, v at the (chunked) times: each sample's row is one of its chunk's window."""
     rows = coef[jnp.minimum(lo[:, None] + jnp.arange(_WINDOW)[None, :], coef.shape[0] - 1)]
-    local = chunks - lo[:, None]
+    local = _passed(coef, lo, t_chunks)
     cols = []
     for j in range(WIDTH):
-        val = jnp.broadcast_to(rows[:, :1, j], chunks.shape)
+        val = jnp.broadcast_to(rows[:, :1, j], t_chunks.shape)
         for w in range(1, _WINDOW):
             val = jnp.where(local == w, rows[:, w : w + 1, j], val)
         cols.append(val.reshape(-1)[:n])
-    return _evaluate_rows(jnp.stack(cols, axis=-1), t)
+    return _evaluate_rows(jnp.stack(cols, axis=-1), t_chunks.reshape(-1)[:n])
 
 
-def _gathered(coef, idx, t):
-    """x, v at t, every sample gathering its own row."""
+def _passed(coef, lo, t_chunks):
+    """How many row starts after the chunk's first row each sample has passed (up to
+    _WINDOW; padding rows start at inf and are never passed)."""
+    nxt = jnp.minimum(lo[:, None] + jnp.arange(1, _WINDOW + 1)[None, :], coef.shape[0] - 1)
+    starts = jnp.where(lo[:, None] + jnp.arange(1, _WINDOW + 1)[None, :] < coef.shape[0],
+                       coef[nxt, 0], jnp.inf)
+    return sum((t_chunks >= starts[:, w : w + 1]).astype(jnp.int32) for w in range(_WINDOW))
+
+
+def _gathered(coef, n_rows, t, grid):
+    """x, v at t, every sample finding and gathering its own row."""
+    idx = jnp.clip(rows_of(coef[:, 0], t, grid), 0, jnp.maximum(n_rows - 1, 0))
     return _evaluate_rows(coef[idx], t)
 
 
@@ -158,12 +165,18 @@ def sample(coef, n_rows, t, grid=None):
         grid: optional (start, step) of a uniform t.
     """
     t_safe = jnp.where(jnp.isfinite(t), t, 0.0)
-    idx = jnp.clip(rows_of(coef[:, 0], t_safe, grid), 0, jnp.maximum(n_rows - 1, 0))
-    if t.shape[0] < 2 * _CHUNK:
-        return _gathered(coef, idx, t_safe)
-    first = jnp.concatenate([idx, jnp.broadcast_to(idx[-1:], (-idx.shape[0] % _CHUNK,))])
-    local = first.reshape(-1, _CHUNK) - first.reshape(-1, _CHUNK)[:, :1]
-    fits = jnp.all((local >= 0) & (local < _WINDOW))
+    n = t.shape[0]
+    if n < 2 * _CHUNK:
+        return _gathered(coef, n_rows, t_safe, grid)
+    t_chunks = jnp.concatenate([t_safe, jnp.broadcast_to(t_safe[-1:], (-n % _CHUNK,))])
+    t_chunks = t_chunks.reshape(-1, _CHUNK)
+    first = t_chunks[:, 0]
+    lo = jnp.clip(jnp.searchsorted(coef[:, 0], first, side="right") - 1, 0,
+                  jnp.maximum(n_rows - 1, 0))
+    fits = (jnp.all(t_chunks >= first[:, None])
+            & jnp.all(_passed(coef, lo, t_chunks) < _WINDOW))
     # unbatched predicate (every trajectory of a vmapped batch): a real branch; each branch
     # evaluates the polynomials itself, so that the rows are not stored in between
-    return jax.lax.cond(eqxi.unvmap_all(fits), _windowed, _gathered, coef, idx, t_safe)
+    return jax.lax.cond(eqxi.unvmap_all(fits),
+                        lambda: _windowed(coef, lo, t_chunks, n),
+                        lambda: _gathered(coef, n_rows, t_safe, grid))
