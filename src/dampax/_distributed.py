@@ -7,8 +7,8 @@ gathered map:
 - **local workers** (``error_map(..., processes=N)``, ``dampax errormap --processes N``):
   :func:`run_local` starts N Python processes (:func:`worker`) that join
   a ``jax.distributed`` run on 127.0.0.1 at a free port; process 0 writes the gathered map to a
-  temporary netCDF file (atomically), which the caller loads once every worker has exited with
-  status 0. The caller watches the workers: when one dies the others are stopped at once and
+  temporary file (atomically), which the caller loads once every worker has exited with
+  status 0 (``dampax errormap`` then writes errormap.nc, atomically too). The caller watches the workers: when one dies the others are stopped at once and
   :class:`DistributedError` says which died and how; nothing is returned or written.
 - **joining a run** (``dampax errormap --coordinator HOST:PORT --process-id I --num-processes N``
   in each process, or ``--cluster`` under Slurm / Open MPI, where
@@ -318,8 +318,8 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
 
     The workers join a ``jax.distributed`` run on 127.0.0.1 at a free port (each with its own
     CPU device: the step's compiled program is the one-process program), compute their shares,
-    and process 0 gathers them and writes the map to a temporary file, atomically; it is loaded
-    here once every worker has exited with status 0. A worker that dies or fails stops the
+    and process 0 gathers them and writes the map (the pickled Dataset) to a temporary file,
+    atomically; it is loaded here once every worker has exited with status 0. A worker that dies or fails stops the
     others at once. Workers end when this process ends (they watch their stdin).
 
     Arguments:
@@ -335,8 +335,9 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
         DistributedError: a worker died, failed or timed out; the message names it, how it
             ended and its last words. Nothing is left behind.
     """
+    import pickle
+
     import numpy as np
-    import xarray as xr
 
     spec = {key: (np.asarray(value, dtype=float).tolist() if isinstance(value, np.ndarray)
                   else list(value) if isinstance(value, tuple) else value)
@@ -344,7 +345,7 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
     address = f"127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="dampax-map-") as folder:
         folder = Path(folder)
-        result = folder / "map.nc"
+        result = folder / "map.pickle"
         procs, logs = [], []
         try:
             for i in range(processes):
@@ -368,7 +369,8 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
                 with contextlib.suppress(OSError, ValueError):
                     p.stdin.close()
                 p.wait()
-        return xr.load_dataset(result, engine="scipy")
+        with open(result, "rb") as f:  # written by worker 0 in this private folder
+            return pickle.load(f)
 
 
 def _wait(procs, logs, processes: int, shown: tuple[int, ...]) -> None:
@@ -417,11 +419,13 @@ def worker(path: str) -> int:
     """One local worker: join the run, compute its share, process 0 writes the map."""
     job = json.loads(Path(path).read_text())
     _watch_parent()
+    import pickle
+
     import numpy as np
 
     import dampax  # noqa: F401  (float64 and the compilation cache, as in the caller)
 
-    from ._io import write_netcdf
+    from ._io import atomic_path
     from ._maps import error_map
 
     try:
@@ -433,8 +437,9 @@ def worker(path: str) -> int:
                 kwargs[key] = np.asarray(kwargs[key], dtype=float)
         kwargs["models"] = tuple(kwargs["models"])
         ds = error_map(**kwargs, timeout=job["timeout"])
-        if job["output"] is not None:
-            write_netcdf(ds, job["output"])
+        if job["output"] is not None:  # the Dataset itself: nothing lost on the way back
+            with atomic_path(job["output"]) as tmp, open(tmp, "wb") as f:
+                pickle.dump(ds, f, protocol=pickle.HIGHEST_PROTOCOL)
     except DistributedError as err:
         _give_up(str(err))
     except BaseException:  # noqa: BLE001 - at once: jax's exit would wait for the others
