@@ -9,6 +9,7 @@ Python processes, each configuration the same map:
   (``XLA_FLAGS=--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1``) and pinned
   to its own core (``--pin``, the default: the caller's ``taskset`` is inherited, so workers are
   moved to core i after they start);
+- ``2 procs x 1 thread, unpinned``: the same, workers left to the scheduler;
 - ``2 procs, default``: ``processes=2`` with no flags (what ``dampax errormap --processes 2``
   does): both workers on both cores.
 
@@ -103,6 +104,7 @@ def main() -> None:
         "1 proc x 2 cores": (dict(processes=1), "0,1", None),
         "1 proc x 1 core": (dict(processes=1), "0", SINGLE),
         "2 procs x 1 core": (dict(processes=2, pin=True), "0,1", SINGLE),
+        "2 procs x 1 thread, unpinned": (dict(processes=2), "0,1", SINGLE),
         "2 procs, default": (dict(processes=2), "0,1", None),
     }
     n = grid[0] * grid[1] * grid[2]

@@ -114,8 +114,8 @@ def initialize(coordinator: str | None = None, process_id: int | None = None,
         names: how errors name the three arguments (the command line passes its options).
         on_timeout: called with a one-line message (from another thread) when connecting
             takes longer than ``timeout``; the command line prints it and ends the process.
-            Without it, JAX itself ends the process a few seconds later (status 134, "the
-            JAX distributed service detected fatal errors": it aborts, raising nothing).
+            Without it, JAX itself ends the process when ``timeout`` has passed (status 134,
+            "the JAX distributed service detected fatal errors": it aborts, raising nothing).
 
     Returns:
         (process index, process count).
@@ -123,7 +123,7 @@ def initialize(coordinator: str | None = None, process_id: int | None = None,
     Raises:
         ValueError: naming the argument: some but not all of the three are given, or one is
             malformed; or this process already ran JAX computations or joined a run.
-        DistributedError: the processes did not all connect within ``timeout``.
+        DistributedError: connecting failed where JAX raises an error instead of aborting.
     """
     import jax
     from jax._src import xla_bridge
@@ -162,7 +162,8 @@ def initialize(coordinator: str | None = None, process_id: int | None = None,
             coordinator, num_processes, process_id,
             initialization_timeout=seconds + (5 if watchdog else 0),
             heartbeat_timeout_seconds=min(2 * seconds, _HEARTBEAT_S),
-            shutdown_timeout_seconds=seconds, coordinator_bind_address=bind)
+            shutdown_timeout_seconds=max(seconds, int(DEFAULT_TIMEOUT)),  # process 0 may
+            coordinator_bind_address=bind)  # still be writing files while the others exit
     except ValueError as err:  # no cluster environment found, and no arguments
         raise ValueError(f"cannot join a jax.distributed run: {err} (outside Slurm / Open MPI "
                          f"give {', '.join(names)})") from None

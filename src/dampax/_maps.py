@@ -13,7 +13,8 @@ of periods; a block after every window of the step has closed is skipped. Every 
 the same shape (the last is padded), so nothing recompiles. The step is sharded over all
 local devices (a 1-device mesh on one device: the same code path); on several hosts (after
 ``jax.distributed.initialize``) each process takes its share of the steps and the results are
-gathered at the end.
+gathered at the end (``dampax._distributed``: the gather's timeout, local worker processes for
+``processes=N``).
 """
 
 from __future__ import annotations
@@ -433,7 +434,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             arguments), this process's share of the steps, the shares gathered so that every
             process returns the whole map. N >= 2: N local worker processes compute it (a
             ``jax.distributed`` run on 127.0.0.1 at a free port, each computing an equal share
-            of the steps; the map is bit for bit this process's); 1: this process.
+            of the steps; the map is bit for bit the one-process map); 1: this process.
         timeout: multi-process runs only: seconds for the processes to connect (processes >=
             2), and for each to wait at the gather for the others to finish their shares; a
             process that dies ends the run sooner. Past it the run fails (DistributedError).
