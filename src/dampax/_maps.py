@@ -13,7 +13,8 @@ of periods; a block after every window of the step has closed is skipped. Every 
 the same shape (the last is padded), so nothing recompiles. The step is sharded over all
 local devices (a 1-device mesh on one device: the same code path); on several hosts (after
 ``jax.distributed.initialize``) each process takes its share of the steps and the results are
-gathered at the end.
+gathered at the end (``dampax._distributed``: the gather's timeout, local worker processes for
+``processes=N``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cache import compile_cached
+from ._distributed import (DEFAULT_TIMEOUT, check_processes, check_timeout, compile_cached_here,
+                           gather)
 from ._models import ANALYTIC, MODELS, check_models
 from ._oscillator import Oscillator, from_ratios
 from ._solve import solve
@@ -322,6 +325,8 @@ def _executable(cfg: _Config, device_ids: tuple[int, ...], step: int):
     fn, mesh = _compiled(cfg, device_ids)
     rows = jax.ShapeDtypeStruct((step, cfg.width), jnp.float64,
                                 sharding=NamedSharding(mesh, P("points")))
+    if jax.process_index() != 0:  # jax's persistent cache keeps only process 0's programs
+        return compile_cached_here("error_map", (cfg, device_ids), fn, rows)
     return compile_cached("error_map", (cfg, device_ids), fn, rows)
 
 
@@ -403,7 +408,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               models: Sequence[str] = DEFAULT_MODELS, periods: float = 20.0,
               samples_per_period: int = 64, chunk_size: int = 128,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
-              progress: bool = True, k3_ratio=None):
+              progress: bool = True, k3_ratio=None, processes: int | None = None,
+              timeout: float = DEFAULT_TIMEOUT):
     """Errors of the analytic models against a reference over a grid of damping ratios.
 
     Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
@@ -439,6 +445,15 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             becomes the last dim; models without k3 (all but "matched") are NaN with
             ``valid`` False where k3 != 0, and a softening start beyond the barrier is invalid
             for every model. E0 stays k A0^2/2.
+        processes: None (default): computed in this process, or, after
+            ``jax.distributed.initialize()`` (a cluster: Slurm, Open MPI, or explicit
+            arguments), this process's share of the steps, the shares gathered so that every
+            process returns the whole map. N >= 2: N local worker processes compute it (a
+            ``jax.distributed`` run on 127.0.0.1 at a free port, each computing an equal share
+            of the steps; the map is bit for bit the one-process map); 1: this process.
+        timeout: multi-process runs only: seconds for the processes to connect (processes >=
+            2), and for each to wait at the gather for the others to finish their shares; a
+            process that dies ends the run sooner. Past it the run fails (DistributedError).
 
     Returns:
         An ``xarray.Dataset`` with dims (model, d0_ratio, d1_ratio, d2_ratio, phi0), plus
@@ -453,7 +468,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     Raises:
         ValueError: naming the argument, for an empty, non-finite or negative axis, an unknown
             model or reference, chunk_size < 1, periods <= 0, samples_per_period < 2 or
-            more than ``MAX_SAMPLES`` samples per point.
+            more than ``MAX_SAMPLES`` samples per point; processes < 1, or >= 2 in a process
+            that already joined a ``jax.distributed`` run; timeout <= 0.
+        dampax._distributed.DistributedError: a multi-process run failed: a process died,
+            failed or timed out (nothing is returned).
     """
     import xarray as xr
     from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
@@ -481,8 +499,20 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
 
+    processes = check_processes(processes)
+    timeout = check_timeout(timeout)
     cfg = _config(models, reference, periods, samples_per_period, rtol, atol, cubic)
     n_samples = cfg.n_samples
+    if processes is not None and processes > 1:
+        if jax.distributed.is_initialized():
+            raise ValueError(f"processes={processes}: this process is already one of a "
+                             "jax.distributed run (its share is computed with processes=None)")
+        from ._distributed import run_local
+
+        checked = dict(axes, models=models, periods=periods,
+                       samples_per_period=samples_per_period, chunk_size=chunk_size,
+                       reference=reference, rtol=rtol, atol=atol, k3_ratio=axes.get("k3_ratio"))
+        return run_local(checked, processes, timeout=timeout, progress=progress)
 
     shape = tuple(a.size for a in axes.values())
     grid = np.stack([g.ravel() for g in np.meshgrid(*axes.values(), indexing="ij")], axis=-1)
@@ -538,12 +568,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     finally:
         bar.close()
 
-    if n_proc > 1:
-        from jax.experimental import multihost_utils
-
+    if n_proc > 1:  # every process gets every share (waiting at most `timeout` for them)
         out_metrics, out_valid, out_info = (
-            np.asarray(a).reshape((-1,) + a.shape[2:]) for a in multihost_utils.process_allgather(
-                (out_metrics, out_valid, out_info), tiled=False))
+            np.asarray(a).reshape((-1,) + a.shape[2:])
+            for a in gather((out_metrics, out_valid, out_info), timeout=timeout))
     inverse = np.argsort(order)
     out_metrics = out_metrics[:n_points][inverse].reshape(shape + (n_mod, len(METRICS)))
     out_valid = out_valid[:n_points][inverse].reshape(shape + (n_mod,))

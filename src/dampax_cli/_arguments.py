@@ -114,6 +114,29 @@ def add_errormap_arguments(parser: argparse.ArgumentParser) -> None:
                      help="folder for errormap.nc and the heat maps (default: %(default)s)")
     out.add_argument("--no-progress", action="store_true",
                      help="no progress bar (there is none when stderr is not a terminal)")
+    par = parser.add_argument_group(
+        "several processes (jax.distributed: each process computes a share of the map, "
+        "process 0 gathers them and writes the files)")
+    par.add_argument("--processes", type=int, metavar="N",
+                     help="start N local worker processes on this machine (127.0.0.1, a free "
+                          "port) and gather their shares (default: this process alone)")
+    par.add_argument("--cluster", action="store_true",
+                     help="join a run launched by Slurm (srun) or Open MPI (mpirun): "
+                          "jax.distributed.initialize() reads the job's environment")
+    par.add_argument("--coordinator", metavar="HOST:PORT",
+                     help="join a run: process 0's address and a free port, the same in "
+                          "every process (with --process-id and --num-processes)")
+    par.add_argument("--process-id", type=int, metavar="I",
+                     help="with --coordinator: this process's index, 0 .. N-1")
+    par.add_argument("--num-processes", type=int, metavar="N",
+                     help="with --coordinator: the number of processes")
+    par.add_argument("--timeout", type=float, default=300.0, metavar="SECONDS",
+                     help="for the processes to connect, and for each to wait for the others "
+                          "at the gather; a process that dies ends the run sooner "
+                          "(default: %(default)g)")
+    parser.epilog = ("Exit status: 0 ok, 2 invalid input, 3 a run of several processes failed "
+                     "(a process died, failed or timed out; nothing is written), "
+                     "130 interrupted.")
 
 
 def add_sensitivity_arguments(parser: argparse.ArgumentParser) -> None:

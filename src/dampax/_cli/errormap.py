@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 
@@ -13,7 +14,7 @@ from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noq
 
 from .._maps import largest_ratio_below, worst_in_box
 from .._models import ANALYTIC, MODELS, check_models
-from ._common import PROG, fmt, prepare_out_dir, show_progress
+from ._common import PROG, error, fmt, prepare_out_dir, show_progress
 
 
 def _ratio_text(value) -> str:
@@ -83,10 +84,28 @@ def _print_errormap_summary(ds) -> None:
         print(f"  {line}")
 
 
+def _leave(status: int) -> None:
+    """End this process of a failed ``jax.distributed`` run now: JAX's exit handler would wait
+    at the run's shutdown barrier for the processes that died, then abort."""
+    import os
+
+    for stream in (sys.stdout, sys.stderr, sys.__stdout__, sys.__stderr__):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(status)
+
+
+def _give_up(message: str) -> None:
+    """Connecting took longer than --timeout: one line, status 3 (from the watchdog thread)."""
+    error(f"{PROG}: error: {message}")
+    _leave(3)
+
+
 def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
+    from .._distributed import DistributedError, check_processes, check_timeout, initialize
     from .._io import write_netcdf
     from .._maps import _axis, error_map, parse_axis
     from .._plot import ERROR_MAP_METRICS, plot_error_map
@@ -109,17 +128,48 @@ def run(args: argparse.Namespace) -> int:
                              ("--chunk-size", chunk, 0)):
         if not (math.isfinite(value) and value > low):
             raise ValueError(f"{flag} must be > {low:g}, got {value}")
+    processes = check_processes(args.processes, "--processes")
+    timeout = check_timeout(args.timeout, "--timeout")
+    explicit = (args.coordinator, args.process_id, args.num_processes)
+    joining = args.cluster or any(v is not None for v in explicit)
+    if processes is not None and joining:
+        raise ValueError("--processes starts local workers; it does not go with --cluster or "
+                         "--coordinator (which join a run started elsewhere)")
+    if args.cluster and any(v is not None for v in explicit):
+        raise ValueError("--cluster reads the run from the environment; give it without "
+                         "--coordinator, --process-id and --num-processes")
     out = prepare_out_dir(args.out)
 
+    rank, size = 0, processes or 1
+    if joining:  # before any JAX computation in this process
+        try:
+            rank, size = initialize(*explicit, timeout=timeout,
+                                    names=("--coordinator", "--process-id", "--num-processes"),
+                                    on_timeout=_give_up)
+        except DistributedError as err:
+            error(f"{PROG}: error: {err}")
+            return 3
     n = int(np.prod([a.size for a in axes.values()]))
-    print(f"{PROG} errormap: {n} points ({axes['d0'].size} d0 x {axes['d1'].size} d1 x "
-          f"{axes['d2'].size} d2 x {axes['phi0'].size} phi0), models {', '.join(models)}; "
-          f"reference: {args.reference}; window <= {periods:g} periods, {spp} samples/period")
+    if rank == 0:
+        print(f"{PROG} errormap: {n} points ({axes['d0'].size} d0 x {axes['d1'].size} d1 x "
+              f"{axes['d2'].size} d2 x {axes['phi0'].size} phi0), models "
+              f"{', '.join(models)}; reference: {args.reference}; window <= {periods:g} "
+              f"periods, {spp} samples/period" + (f"; {size} processes" if size > 1 else ""))
     start = time.perf_counter()
-    ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
-                   phi0=axes["phi0"], models=models, periods=periods, samples_per_period=spp,
-                   chunk_size=chunk, reference=args.reference, progress=show_progress(args))
+    try:
+        ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
+                       phi0=axes["phi0"], models=models, periods=periods,
+                       samples_per_period=spp, chunk_size=chunk, reference=args.reference,
+                       progress=show_progress(args), processes=processes, timeout=timeout)
+    except DistributedError as err:
+        error(f"{PROG}: error: {err}")
+        if joining:  # the run is broken: jax's shutdown at exit would wait for the dead
+            _leave(3)
+        return 3
     elapsed = time.perf_counter() - start
+    if rank != 0:  # process 0 writes the files and the summary
+        print(f"{PROG} errormap: process {rank} of {size}: share done in {elapsed:.1f} s")
+        return 0
     bad_ref = int((~ds["reference_valid"]).sum())
     if bad_ref:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
