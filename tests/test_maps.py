@@ -353,3 +353,24 @@ def test_error_map_memory_does_not_grow_with_periods():
 
     small, large = scratch(100.0), scratch(2000.0)
     assert large < 1.5 * small
+
+
+def test_longest_windows_apart_and_closed_windows_skipped_change_nothing():
+    """The few points whose windows are far longer than the rest run in steps of their own
+    (TAIL_CHUNK points), and steps skip what is past every window: the map is the one that
+    computes every point in one step."""
+    from dampax._maps import TAIL_CHUNK, _tail_count, _window_estimate
+
+    kw = dict(d0_ratio=[0.0, 0.05, 0.1], d1_ratio=[0.0, 0.2], d2_ratio=0.0,
+              phi0=[0.0, 1.0, 2.5], models=("matched", "coulomb_exact"),
+              reference="coulomb_exact", periods=30.0, samples_per_period=16, progress=False)
+    grid = np.stack([g.ravel() for g in np.meshgrid(kw["d0_ratio"], kw["d1_ratio"], [0.0],
+                                                    kw["phi0"], indexing="ij")], axis=-1)
+    estimate = np.sort(_window_estimate(grid, kw["periods"]))[::-1]
+    assert _tail_count(estimate, 16, TAIL_CHUNK) > 0  # the undamped points form a tail
+    apart = error_map(**kw, chunk_size=16)
+    together = error_map(**kw, chunk_size=32)  # one step holds every point: no tail
+    for name in METRICS + ("window", "reference_halt_time"):
+        np.testing.assert_array_equal(np.asarray(apart[name]), np.asarray(together[name]),
+                                      err_msg=name)
+    assert float(apart["window"].max()) == pytest.approx(30.0)  # the undamped motion

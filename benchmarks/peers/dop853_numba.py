@@ -59,6 +59,19 @@ def _acc(x, v, p):
 
 
 @njit(inline="always")
+def _stages(kx, kv, x, v, h, p, first, stop):
+    """Stages first..stop-1 of the tableau from the ones before them (in place)."""
+    for i in range(first, stop):
+        dx = 0.0
+        dv = 0.0
+        for q in range(i):
+            dx += _A[i, q] * kx[q]
+            dv += _A[i, q] * kv[q]
+        xi, vi = x + dx * h, v + dv * h
+        kx[i], kv[i] = vi, _acc(xi, vi, p)
+
+
+@njit(inline="always")
 def _initial_step(x, v, ax, av, interval, p, rtol, atol):
     """scipy's ``select_initial_step`` (order 7, no max_step) at (x, v) with f = (ax, av)."""
     sx = atol + abs(x) * rtol
@@ -134,14 +147,7 @@ def _solve_many(k, k3, mu, b, D, x0, v0, m, g, t_end, ts, rtol, atol, xs, stats)
                 h = t_new - t
                 h_abs = h
                 kx[0], kv[0] = fx, fv
-                for i in range(1, N_STAGES):
-                    dx = 0.0
-                    dv = 0.0
-                    for q in range(i):
-                        dx += _A[i, q] * kx[q]
-                        dv += _A[i, q] * kv[q]
-                    xi, vi = x + dx * h, v + dv * h
-                    kx[i], kv[i] = vi, _acc(xi, vi, p)
+                _stages(kx, kv, x, v, h, p, 1, N_STAGES)
                 dx = 0.0
                 dv = 0.0
                 for q in range(N_STAGES):
@@ -177,14 +183,7 @@ def _solve_many(k, k3, mu, b, D, x0, v0, m, g, t_end, ts, rtol, atol, xs, stats)
             event = s * v_new <= 0.0
             if event or (j < n_ts and ts[j] <= t_new):
                 # dense output: the 3 extra stages and the 7 coefficients (scipy's F)
-                for i in range(13, 16):
-                    dx = 0.0
-                    dv = 0.0
-                    for q in range(i):
-                        dx += _A[i, q] * kx[q]
-                        dv += _A[i, q] * kv[q]
-                    xi, vi = x + dx * h, v + dv * h
-                    kx[i], kv[i] = vi, _acc(xi, vi, p)
+                _stages(kx, kv, x, v, h, p, 13, 16)
                 Fx[0], Fv[0] = x_new - x, v_new - v
                 Fx[1], Fv[1] = h * kx[0] - Fx[0], h * kv[0] - Fv[0]
                 Fx[2] = 2.0 * Fx[0] - h * (kx[12] + kx[0])

@@ -240,8 +240,8 @@ def _per_point(cfg: _Config, row):
             below the floor. Unbatched (``unvmap_any``), so a real branch."""
             if single:
                 live = inside0 & jnp.where(halted, t0 <= t_halt, ~fallen)
-            else:  # either candidate window may still be open
-                live = inside0 & ((can_halt & (t0 <= t_halt)) | ~fallen)
+            else:  # to its halt once halted; before, either candidate may still be open
+                live = inside0 & jnp.where(halted, t0 <= t_halt, can_halt | ~fallen)
             return eqxi.unvmap_any(live)
 
         def block(carry, j):
@@ -267,7 +267,7 @@ def _per_point(cfg: _Config, row):
         real branch). So the reference costs what the motion in the windows takes, not
         what ``periods`` asks."""
         halted, t_halt, fallen = carry[2], carry[3], carry[6]
-        live = (can_halt & (s * seg_len * dt <= t_halt)) | ~fallen
+        live = jnp.where(halted, s * seg_len * dt <= t_halt, can_halt | ~fallen)
         return jax.lax.cond(eqxi.unvmap_any(live), segment, lambda c, _: (c, None), carry, s)
 
     (_, _, halted, t_halt, x_halt, ref_valid, _, stats), _ = jax.lax.scan(
@@ -368,6 +368,22 @@ def _window_estimate(grid, periods: float) -> np.ndarray:
         rate = d2 * f * f + d1 * f + d0
         t = np.trapezoid(np.where(rate > 0.0, 1.0 / rate, np.inf), f, axis=1)
     return np.minimum(np.nan_to_num(t, nan=np.inf), 2.0 * math.pi * periods)
+
+
+#: points per step (and device) of the longest windows (see `_tail_count`)
+TAIL_CHUNK = 8
+
+
+def _tail_count(estimate, step: int, tail_step: int) -> int:
+    """How many of the points (sorted by estimated window, longest first) form the tail: those
+    whose window is more than 4x the longest outside the first step. A multiple of
+    ``tail_step``, at most one step; 0 when there is no such tail (or one step holds all)."""
+    if estimate.size <= step or tail_step >= step:
+        return 0
+    far = int(np.sum(estimate > 4.0 * estimate[step]))
+    if far == 0:
+        return 0
+    return min(-(-far // tail_step) * tail_step, step)
 
 
 def _positive_int(name: str, value, minimum: int = 1) -> int:
@@ -520,14 +536,21 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     # points with long windows computed together (longest first): a vmapped step costs its
     # slowest point, so one point that never stops should not keep a whole step of points
     # that stopped long ago integrating (the metrics do not depend on the company a point keeps)
-    order = np.argsort(-_window_estimate(grid, periods), kind="stable")
+    estimate = _window_estimate(grid, periods)
+    order = np.argsort(-estimate, kind="stable")
     grid = grid[order]
 
     devices = jax.local_devices()
     _, mesh = _compiled(cfg, tuple(d.id for d in devices))
     step = chunk_size * len(devices)
-    n_steps = -(-n_points // step)
     n_proc, proc = jax.process_count(), jax.process_index()
+    # the few points whose windows are far longer than all others' (a motion that never
+    # stops runs the whole window) go first, in steps of TAIL_CHUNK points: a vmapped loop
+    # costs about the same per iteration for few points as for a step of them
+    tail = _tail_count(estimate[order], step, TAIL_CHUNK * len(devices)) if n_proc == 1 else 0
+    tail_grid, grid = grid[:tail], grid[tail:]
+    n_main = n_points - tail
+    n_steps = -(-n_main // step)
     per_proc = -(-n_steps // n_proc)
     my_steps = range(proc * per_proc, min((proc + 1) * per_proc, n_steps))
 
@@ -545,6 +568,14 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     # compiled ahead of the first step (from the persistent cache when it has it), so the bar
     # says "compiling" meanwhile and its rate and ETA come from measured steps only
     executable = _executable(cfg, tuple(d.id for d in devices), step)
+    tail_out = None
+    if tail:
+        tail_step = TAIL_CHUNK * len(devices)
+        tail_exe = _executable(cfg, tuple(d.id for d in devices), tail_step)
+        bar.set_description("error map: the longest windows")
+        parts = [tail_exe(jax.device_put(tail_grid[i:i + tail_step], rows_sharding))
+                 for i in range(0, tail, tail_step)]
+        tail_out = [np.concatenate([np.asarray(p[j]) for p in parts]) for j in range(3)]
     bar.set_description("error map")
     bar.reset(total=len(my_steps))
 
@@ -572,6 +603,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         out_metrics, out_valid, out_info = (
             np.asarray(a).reshape((-1,) + a.shape[2:])
             for a in gather((out_metrics, out_valid, out_info), timeout=timeout))
+    if tail_out is not None:
+        out_metrics, out_valid, out_info = (np.concatenate([t, a[:n_main]]) for t, a in
+                                            zip(tail_out, (out_metrics, out_valid, out_info),
+                                                strict=True))
     inverse = np.argsort(order)
     out_metrics = out_metrics[:n_points][inverse].reshape(shape + (n_mod, len(METRICS)))
     out_valid = out_valid[:n_points][inverse].reshape(shape + (n_mod,))
