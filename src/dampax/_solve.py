@@ -22,6 +22,7 @@ from ._oscillator import (
     known_linear,
 )
 from ._reference import solve_reference
+from ._reference._solve import DEFAULT_PERIODS, default_swings
 from ._solution import solution_estimate
 
 #: Rizcallah's default amplitude factor (least squares)
@@ -148,6 +149,10 @@ def _reference_kept(osc, x0, v0, options):
             and is_concrete(t_end)):
         return None
     extra = () if t_end is None else (jnp.asarray(t_end, dtype=float),)
+    if static.get("max_swings") is None:  # the budget from the values, as the plain route's
+        span = (DEFAULT_PERIODS * 2.0 * math.pi / np.asarray(osc.omega0) if t_end is None
+                else t_end)
+        static["max_swings"] = default_swings(osc, x0, v0, span)
 
     def program(osc, x0, v0, *t_end):
         return solve_reference(osc, x0, v0, t_end=t_end[0] if t_end else None, **static)
