@@ -130,7 +130,7 @@ def map_costs(args):
         x0, v0 = np.cos(ph.ravel()), -np.sin(ph.ravel())
         t_end = p * 2 * math.pi
 
-        def bare(osc=osc, t_end=t_end):
+        def bare(osc=osc, t_end=t_end, x0=x0, v0=v0):
             return dp.solve(osc, x0, v0, method="reference", t_end=t_end).halt_time
 
         cb, _ = best(bare, max(1, args.repeat // 2))

@@ -226,7 +226,8 @@ def main():
         prog = Dampax(ts, vmapped, with_ts)
         if dampax_rtol is None:
             rtol, err, met = pick(
-                tolerances, lambda r: max_error(prog.get(r, arrays)(*arrays), truth), "dampax")
+                tolerances, lambda r, p=prog: max_error(p.get(r, arrays)(*arrays), truth),
+                "dampax")
             dampax_rtol = rtol
         else:  # the vmapped variant at the natural call's tolerance
             rtol = dampax_rtol

@@ -31,7 +31,8 @@ import dampax  # noqa: E402, F401  (jax_enable_x64 is set on import)
 #: the rest follow in their usual order. Only the order of the files under xdist changes.
 COST_ORDER = (
     "tests/test_fit.py", "tests/test_cubic.py", "tests/test_sensitivity.py",
-    "tests/test_speed.py", "notebooks/04_fitting_real_data.ipynb", "tests/test_maps.py", "tests/test_distributed.py",
+    "tests/test_speed.py", "notebooks/04_fitting_real_data.ipynb", "tests/test_maps.py",
+    "tests/test_distributed.py",
     "notebooks/05_sensitivity.ipynb", "tests/test_results.py", "tests/test_global.py",
     "tests/test_reference.py", "tests/test_models.py", "tests/test_atlas.py",
     "tests/test_domain.py", "tests/test_cli.py", "notebooks/03_error_maps.ipynb",

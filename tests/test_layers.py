@@ -35,7 +35,8 @@ def _imports(path: Path) -> set[str]:
             if target.startswith("dampax"):
                 out.add(target)
                 for alias in node.names:  # "from . import _x" names a module
-                    if (SRC.parent / (target.replace(".", "/") + "/" + alias.name + ".py")).exists():
+                    module = SRC.parent / target.replace(".", "/") / (alias.name + ".py")
+                    if module.exists():
                         out.add(f"{target}.{alias.name}")
         elif isinstance(node, ast.Import):
             out.update(a.name for a in node.names if a.name.startswith("dampax"))

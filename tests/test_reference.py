@@ -14,11 +14,11 @@ import jax
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from helpers import evaluate, scipy_stick_slip  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 from dampax._oscillator import Oscillator  # noqa: E402
 from dampax._reference import ReferenceSolution, solve_reference  # noqa: E402
-from helpers import evaluate, scipy_stick_slip  # noqa: E402
 
 G = 9.81
 TIGHT = dict(rtol=1e-12, atol=1e-14, max_swings=64, max_steps_per_swing=64)

@@ -5,10 +5,11 @@ Three ways to run one error map in several processes, each computing its share o
 gathered map:
 
 - **local workers** (``error_map(..., processes=N)``, ``dampax errormap --processes N``):
-  :func:`run_local` starts N Python processes (:func:`worker`) that join
+  :func:`run_local` starts N Python processes (``dampax._worker.worker``) that join
   a ``jax.distributed`` run on 127.0.0.1 at a free port; process 0 writes the gathered map to a
   temporary file (atomically), which the caller loads once every worker has exited with
-  status 0 (``dampax errormap`` then writes errormap.nc, atomically too). The caller watches the workers: when one dies the others are stopped at once and
+  status 0 (``dampax errormap`` then writes errormap.nc, atomically too). The caller watches
+  the workers: when one dies the others are stopped at once and
   :class:`DistributedError` says which died and how; nothing is returned or written.
 - **joining a run** (``dampax errormap --coordinator HOST:PORT --process-id I --num-processes N``
   in each process, or ``--cluster`` under Slurm / Open MPI, where
@@ -41,7 +42,6 @@ import sys
 import tempfile
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -320,7 +320,8 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
     The workers join a ``jax.distributed`` run on 127.0.0.1 at a free port (each with its own
     CPU device: the step's compiled program is the one-process program), compute their shares,
     and process 0 gathers them and writes the map (the pickled Dataset) to a temporary file,
-    atomically; it is loaded here once every worker has exited with status 0. A worker that dies or fails stops the
+    atomically; it is loaded here once every worker has exited with status 0. A worker that
+    dies or fails stops the
     others at once. Workers end when this process ends (they watch their stdin).
 
     Arguments:
@@ -412,40 +413,6 @@ def _give_up(message: str) -> None:
     os._exit(3)
 
 
-#: the command of a local worker (not ``-m dampax._distributed``: dampax imports this module)
-_WORKER = "import sys; from dampax._distributed import worker; sys.exit(worker(sys.argv[1]))"
-
-
-def worker(path: str) -> int:
-    """One local worker: join the run, compute its share, process 0 writes the map."""
-    job = json.loads(Path(path).read_text())
-    _watch_parent()
-    import pickle
-
-    import numpy as np
-
-    import dampax  # noqa: F401  (float64 and the compilation cache, as in the caller)
-
-    from ._io import atomic_path
-    from ._maps import error_map
-
-    try:
-        initialize(job["coordinator"], job["process_id"], job["num_processes"],
-                   timeout=job["timeout"], bind=job["coordinator"], on_timeout=_give_up)
-        kwargs = job["kwargs"]
-        for key in ("d0_ratio", "d1_ratio", "d2_ratio", "phi0", "k3_ratio"):
-            if kwargs.get(key) is not None:
-                kwargs[key] = np.asarray(kwargs[key], dtype=float)
-        kwargs["models"] = tuple(kwargs["models"])
-        ds = error_map(**kwargs, timeout=job["timeout"])
-        if job["output"] is not None:  # the Dataset itself: nothing lost on the way back
-            with atomic_path(job["output"]) as tmp, open(tmp, "wb") as f:
-                pickle.dump(ds, f, protocol=pickle.HIGHEST_PROTOCOL)
-    except DistributedError as err:
-        _give_up(str(err))
-    except BaseException:  # noqa: BLE001 - at once: jax's exit would wait for the others
-        traceback.print_exc()
-        sys.stderr.flush()
-        os._exit(1)
-    return 0
-
+#: the command of a local worker (`dampax._worker.worker`: above the map, which imports this
+#: module, so no import cycle; not ``-m``: dampax imports the package first)
+_WORKER = "import sys; from dampax._worker import worker; sys.exit(worker(sys.argv[1]))"

@@ -32,8 +32,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._cache import compile_cached
-from ._distributed import (DEFAULT_TIMEOUT, check_processes, check_timeout, compile_cached_here,
-                           gather)
+from ._distributed import (
+    DEFAULT_TIMEOUT,
+    check_processes,
+    check_timeout,
+    compile_cached_here,
+    gather,
+)
 from ._models import ANALYTIC, MODELS, check_models
 from ._oscillator import Oscillator, from_ratios
 from ._solve import solve

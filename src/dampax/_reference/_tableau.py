@@ -1,3 +1,4 @@
+# ruff: noqa: E501  (coefficient tables, one row a line)
 """Butcher tableau of DOP853 (Hairer, Norsett & Wanner; the coefficients as in scipy's
 scipy/integrate/_ivp/dop853_coefficients.py, BSD-3-Clause): 12 stages for the 8th-order
 solution, and the 5th- and 3rd-order error estimators that also use f(y1)."""
