@@ -114,9 +114,11 @@ def rows_of(starts, t, grid=None):
 # by a binary search, the _WINDOW rows from it (and the start of the next) are gathered once,
 # and each sample counts the row starts of the window it has passed. Where a chunk spans more
 # rows (steps much shorter than the sample spacing) or a sample precedes its chunk's first
-# (unsorted times), every sample finds and gathers its own row instead (`rows_of`).
+# (unsorted times), every sample finds and gathers its own row instead (`rows_of`), for the
+# whole batch. (1,024 random trajectories, 1,000 samples in 5 s: a chunk of 16 spans at most 5
+# rows at rtol = 1e-10 and 6 at 1e-11; a window of 4 made the default fall back.)
 _CHUNK = 16
-_WINDOW = 4
+_WINDOW = 6
 
 
 def _windowed(coef, lo, t_chunks, n):
