@@ -471,6 +471,7 @@ class FitContext:
     units: str = "m"
     analysis: object = None
     starts: object = None
+    profile: object = None
 
 
 def _trace_derived(params: dict, coords, ctx: FitContext):
@@ -524,6 +525,9 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     derive = _trace_derived if kind == "trace" else _envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
     converged = bool(out.code == FIT_RESULTS.successful)
+    capped = bool(out.code == FIT_RESULTS.max_steps_reached)
+    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
+    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":
         from ._checks import assess
@@ -531,11 +535,11 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
         fails, bad, diag = assess(t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
                                   varied=varied_names(ctx.vary), derived=derived,
                                   an=ctx.analysis, converged=converged, message=text,
-                                  kind=kind)
+                                  kind=kind, model=ctx.model, jac=jac, rows=rows,
+                                  capped=capped, profile=ctx.profile, chisqr=chisqr)
+        converged = converged or "note_steps" in diag
     elif not converged:
         fails = [f"the optimizer did not converge ({text})"]
-    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
-    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     return FitResult(
         params=params, stderr=stderr, varied=varied_names(ctx.vary), covariance=cov,
         correlation=corr, residuals=ctx.x - curve, t=ctx.t, x=ctx.x, model_x=curve,
