@@ -217,7 +217,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             k3 A^2/(m w0^2) in [-0.3, 0.3] (A: the window's first amplitude). Its interval
             comes from the curvature of S at the minimum, with sigma^2 = S/(n - p) inflated by
             (1 + rho)/(1 - rho) for the residuals' lag-1 autocorrelation rho; the other
-            parameters' intervals are those at the fitted k3 (conditional on it). Per unit
+            parameters' intervals (``conf_interval``) add k3's uncertainty carried over by
+            the change of their optima with k3 (the profile's fits beside). Per unit
             mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
         k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
             the linear spring, every number as without k3); not with "k3" in ``free``.
@@ -436,9 +437,16 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
                       "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
                       "at_bound": abs(e_best) >= 0.3}}
+    # the others' intervals allow for k3's uncertainty (issue 25): cov += g g^T sd_e^2 with g
+    # the change of each optimum with e (central differences of the profile's fits)
+    extra = None
+    plus, minus = run(e_best + h), run(e_best - h)
+    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
+    if np.all(np.isfinite(g)) and math.isfinite(sd_e):
+        extra = np.outer(g, g) * sd_e * sd_e
     return dataclasses.replace(
         best, params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
-        free=tuple(best.free) + ("k3",), profiled=profile,
+        free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
         derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
                  "k3_z": float(norm.ppf(0.975))})
 

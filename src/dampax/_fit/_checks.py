@@ -58,10 +58,10 @@ END_PERIODS = 4.0
 NEWTON_TOL = 0.09
 #: the intervals hold when, with a parameter held 2 interval sd from its value and the others
 #: refitted, the cost rises at least this multiple of what the intervals assume: a rise of c
-#: times puts the true bound of a 90 % interval at 1/sqrt(c) of the reported one, and a
-#: coverage of at least 85 % needs 1/sqrt(c) <= 1.645/1.44 (a larger rise: wider intervals
-#: than needed, conservative)
-PROFILE_MIN = (1.44 / 1.645) ** 2
+#: times puts the true bound of an interval at 1/sqrt(c) of the reported one, so that a 90 %
+#: interval covers 2 Phi(1.645 sqrt(c)) - 1; below this c it covers less than 80 % (a larger
+#: rise: wider intervals than needed, conservative)
+PROFILE_MIN = (1.2816 / 1.645) ** 2
 
 
 def check_sampling(t: np.ndarray, x: np.ndarray) -> None:

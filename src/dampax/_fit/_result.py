@@ -94,6 +94,7 @@ class FitResult:
     jac: np.ndarray | None = None
     profiled: dict = field(default_factory=dict)
     resid_rows: np.ndarray | None = None
+    extra_cov: np.ndarray | None = None
 
     def _hac(self):
         """(HAC covariance over ``varied``, bandwidth) of ``_intervals.hac_covariance``."""
@@ -108,6 +109,8 @@ class FitResult:
                 period = 1.0
             cached = _intervals.hac_covariance(self.jac, self.resid_rows,
                                                period_samples=period)
+            if self.extra_cov is not None:  # a profiled k3: its uncertainty carried over
+                cached = (cached[0] + self.extra_cov, cached[1])
             object.__setattr__(self, "_hac_cache", cached)
         return cached
 
@@ -229,7 +232,7 @@ class FitResult:
                 for name in self.profiled:
                     lo, hi = ci[name]
                     lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
-                                 "the others are conditional on it)")
+                                 "the others allow for its uncertainty)")
         pairs = []
         n = len(self.varied)
         for i in range(n):
