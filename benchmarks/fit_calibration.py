@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 import warnings
@@ -213,12 +214,16 @@ def truth_of(spec: dict, free) -> dict:
 # fitting and judging
 
 
-def fit_one(spec, t, x, model, *, free=None, fixed=None):
+#: the reference model's swing budget for every trace (one compiled program for all)
+MAX_SWINGS = int(1.15 * HALF_SWINGS[1]) + 16
+
+
+def fit_one(spec, t, x, model, *, free=None, fixed=None, max_swings=MAX_SWINGS):
     """dp.fit of a drawn trace as a user would call it; returns (result or None, error)."""
     import dampax as dp
 
     free = tuple(spec["free"] if free is None else free)
-    kw = dict(model=model, max_swings=int(1.15 * HALF_SWINGS[1]) + 16)
+    kw = dict(model=model, max_swings=max_swings)
     fixed = fixed or {}
     if spec["given"]:
         kw["oscillator"] = dp.Oscillator(m=spec["m"], k=spec["k"], **fixed)
@@ -296,20 +301,27 @@ def ansatz_error(spec) -> float:
         return math.nan
 
 
-def run_case(spec, t, x, model) -> dict:
-    """Fit, refit with one constant fixed after a true refusal, and judge."""
+def run_case(spec, t, x, model, *, max_swings=MAX_SWINGS) -> dict:
+    """Fit, refit with all but one of the named constants fixed after a true refusal, and
+    judge."""
     rec = dict(model=model, status="fit")
     began = time.perf_counter()
-    res, err = fit_one(spec, t, x, model)
+    res, err = fit_one(spec, t, x, model, max_swings=max_swings)
     if res is None:
-        if any(s in err for s in TRUE_REASONS) and len(spec["free"]) > 1:
-            rec.update(status="refused (true reason)", error=err)
-            keep = spec["free"][0]
-            fixed = {name: truth_of({**spec, "given": spec["given"]}, spec["free"]).get(name)
-                     for name in spec["free"] if name != keep}
-            res, err2 = fit_one(spec, t, x, model, free=(keep,), fixed=fixed)
+        named = re.match(r"^(.*?) are not separately identifiable", err)
+        if named and any(s in err for s in TRUE_REASONS):
+            # fix all but one of the named constants at their truth, as the message says
+            # the first named one stays free
+            group = [g.strip() for g in re.split(r",| and ", named.group(1)) if g.strip()]
+            truth = truth_of(spec, spec["free"])
+            fixed = {g: truth[g] for g in group[1:]}
+            free = tuple(f for f in spec["free"] if f not in fixed)
+            rec.update(status="refused (true reason)", error=err, fixed=sorted(fixed))
+            res, err2 = fit_one(spec, t, x, model, free=free, fixed=fixed,
+                                max_swings=max_swings)
             if res is None:
-                rec.update(status="refused", error=f"{err}; then, with one fixed: {err2}")
+                rec.update(status="refused", error=f"{err}; then, with {sorted(fixed)} fixed: "
+                                                   f"{err2}")
         else:
             rec.update(status="refused", error=err)
     if res is not None:

@@ -20,7 +20,7 @@ import numpy as np
 from .._cache import call_cached_tree
 from .._oscillator import Oscillator
 from .._trace import Trace, load_trace
-from ._checks import check_sampling, check_trace
+from ._checks import check_sampling, check_trace, looks_stuck
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -349,8 +349,13 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         # the cost by steps): the exact model gets its own batch of starts around the
         # turning-point guess, the approximate model's optimum among them
         text = f"started from the {first} fit ({int(out.steps)} steps)"
-        start_p = out.params
-        if starts > 1:
+        approx = out.params
+        out = run(approx, spec.name, fs)
+        if starts > 1 and looks_stuck(t, xw, np.asarray(out.curve)[:n], an_w,
+                                      float(out.params.w0), out.code):
+            # what the exact model's fit shows is not noise: a batch of its own starts around
+            # the turning-point guess (the approximate model's optimum and this one among
+            # them), the lower cost kept
             opts = _reference_options(spec, _swings_bucket(max_swings, t, guess.w0), 1e-8,
                                       1e-10, t, guess.w0)
             found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts,
@@ -358,11 +363,17 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
                                fit_omega0=fit_omega0, omega=an_w.omega,
                                w0_spread=an_w.omega_spread, model=spec.name,
                                optimizer=optimizer, max_steps=steps, rtol=float(rtol),
-                               atol=float(atol), opts=opts, extra=(out.params,))
-            start_p = found.params
-            text += f" and {int(starts) - 1} jittered starts of the {spec.name} model"
+                               atol=float(atol), opts=opts, extra=(approx, out.params))
+            other = run(found.params, spec.name, fs)
+            c0, c1 = float(out.chisqr), float(other.chisqr)
+            text += (f"; its residuals were not noise: {int(starts) - 2} jittered starts of "
+                     f"the {spec.name} model")
+            if math.isfinite(c1) and (c1 < c0 or not math.isfinite(c0)):
+                out = other
+                text += f" found a lower cost ({0.5 * c1:.4g} < {0.5 * c0:.4g})"
+            else:
+                text += " found no lower cost"
         stages.append(text)
-        out = run(start_p, spec.name, fs)
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     best = out
 

@@ -262,6 +262,24 @@ def end_mismatch(t, r, t_model, t_data, phi):
     return float(chi2.sf(ratio * meff, meff)) if meff > 0 else 1.0
 
 
+def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
+    """Whether a fit of the exact model shows what a local optimum leaves: the optimizer did
+    not converge, the residuals hold structure that AR(1) noise cannot produce
+    (:func:`residual_structure`), or the motion ends of model and data disagree
+    (:func:`end_mismatch`). Then ``fit`` searches further (a batch of starts)."""
+    from ._core import FIT_RESULTS
+
+    c = np.asarray(curve, dtype=float)
+    if not bool(code == FIT_RESULTS.successful) or not np.all(np.isfinite(c)):
+        return True
+    r = np.asarray(x, dtype=float) - c
+    st = residual_structure(t, r, w0)
+    if st["p"] < STRUCTURE_P:
+        return True
+    end_d = an.end_t if an.halted else float(t[-1])
+    return end_mismatch(t, r, model_end(t, c), end_d, st["phi"]) < END_P
+
+
 def newton_decrement(jac, rows, values=None, names=()) -> float:
     """What one more Gauss-Newton step would take off the cost, in noise variances:
     r^T J (J^T J)^+ J^T r / s2 with s2 = r^T r / (n - p); its square root bounds how many

@@ -24,9 +24,10 @@ where the prewhitened residuals are not white (Ljung-Box test at 1 %): for AR(1)
 the prewhitened sandwich alone is exact (issue 25: a kernel of a few periods is biased low on
 short windows). Its bandwidth L comes from the data: the lag at which the envelope (running
 maximum over one period) of the autocorrelation of the summed scores falls below 0.1, doubled,
-and kept between two periods and a quarter of the trace. Intervals are normal: value +- z sd (clipped at 0 for the damping
-constants, which are >= 0). The calibration (benchmarks/calibration.py, issue 11 item 6)
-measures how often they contain the truth for AR(1) noise.
+and kept between two periods and a quarter of the trace. Intervals are normal: value +- z sd
+(clipped at 0 for the damping constants, which are >= 0). The calibrations
+(benchmarks/calibration.py, issue 11 item 6; benchmarks/fit_calibration.py, issue 25) measure
+how often they contain the truth.
 """
 
 from __future__ import annotations
