@@ -244,10 +244,10 @@ def model_end(t: np.ndarray, curve: np.ndarray) -> float:
 
 def end_mismatch(t, r, t_model, t_data, phi):
     """p-value that the residuals between the motion ends of model and data (where one of them
-    swings and the other rests) are no larger than elsewhere: their mean square over the
-    rest's, times the effective number of samples (m (1 - phi^2) / (1 + phi^2) for AR(1)),
-    against chi2 of that many degrees of freedom. 1 when the ends agree."""
-    from scipy.stats import chi2
+    swings and the other rests) are no larger than elsewhere: the ratio of their mean squares
+    against F(m1, m2), m the effective numbers of samples of each part (m (1 - phi^2) /
+    (1 + phi^2) for AR(1) noise). 1 when the ends agree."""
+    from scipy.stats import f
 
     lo, hi = min(t_model, t_data), max(t_model, t_data)
     inside = (t > lo) & (t <= hi)
@@ -258,8 +258,9 @@ def end_mismatch(t, r, t_model, t_data, phi):
     if not ref > 0:
         return 1.0
     ratio = float(np.mean(r[inside] ** 2)) / ref
-    meff = m * (1.0 - phi * phi) / (1.0 + phi * phi)
-    return float(chi2.sf(ratio * meff, meff)) if meff > 0 else 1.0
+    shrink = (1.0 - phi * phi) / (1.0 + phi * phi)
+    m1, m2 = m * shrink, (r.size - m) * shrink
+    return float(f.sf(ratio, m1, m2)) if m1 > 0 and m2 > 0 else 1.0
 
 
 def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:

@@ -261,8 +261,12 @@ def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Ana
     end_t = float(t[idx[-1]]) if halted else float(t[-1])
     tx = y[idx]
     # offset: the centres of successive half swings alternate about it by the friction's
-    # shift (and the decrement): average an even number of them
-    if tx.size >= 3:
+    # shift (and the decrement): average an even number of them; with fewer than four
+    # turning points of data that halt, the rest position (within mu g/w0^2 of it; the centre
+    # of one half swing is off by half its decrement, which drag makes large)
+    if halted and tx.size <= 3 and int(idx[-1]) < t.size - 8:
+        off = float(np.median(y[int(idx[-1]):]))
+    elif tx.size >= 3:
         mids = 0.5 * (tx[:-1] + tx[1:])
         k = min(mids.size, 40)
         k -= k % 2
