@@ -20,7 +20,7 @@ import numpy as np
 from .._cache import call_cached_tree
 from .._oscillator import Oscillator
 from .._trace import Trace, load_trace
-from ._checks import check_sampling, check_trace
+from ._checks import check_sampling, check_trace, looks_stuck
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -133,6 +133,17 @@ def _reference_options(model: FitModel, max_swings, rtol, atol, t, w0):
     return ReferenceOptions(int(max_swings), float(rtol), float(atol))
 
 
+def _swings_bucket(max_swings, t, w0) -> int:
+    """max_swings of a batch of starts: the user's, else the window's half swings (at 1.5
+    times the start's w0, for the jittered ones) rounded up to a power of two, so that
+    windows of similar length share the compiled batch."""
+    if max_swings is not None:
+        return int(max_swings)
+    span = float(np.max(np.asarray(t)) - np.asarray(t)[0])
+    need = int(1.5 * span * float(w0) / math.pi) + 8
+    return 1 << int(math.ceil(math.log2(max(need, 16))))
+
+
 # ----------------------------------------------------------------------------------------------
 # fits
 
@@ -165,7 +176,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
         units: str | None = None, starts: int = 32, seed: int = 0,
-        k3: float | None = None) -> FitResult:
+        k3: float | None = None, _inner: bool = False) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
 
     From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
@@ -181,14 +192,17 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     vmapped call on a thinned copy of the trace (``_starts``), the best is polished on the
     whole trace. With ``loss="soft_l1"`` the fit then restarts from the linear-loss optimum
     with the scale from its residuals (1.4826 MAD); a model with ``start_from`` (the reference)
-    starts from the optimum of that model (the ansatz).
+    starts from the optimum of that model (the ansatz) and from a batch of jittered starts of
+    its own around the turning-point guess (the ansatz's optimum among them).
 
     Failures are named: ``success`` is False, with a one-line ``reason``, when the optimizer
-    did not converge, a parameter ran to absurd values, the fitted w0 is more than 2 % off the
-    data's zero-crossing frequency, the model stops moving well before (or after) the data, or
-    a standard error is not finite. ``adequate`` says separately whether the model describes
-    the data (``_checks``). Input without a free decay in it (constant, pure noise, growing or
-    time-reversed, constant time, shorter than two periods) raises ValueError.
+    did not converge, a parameter ran to absurd values, the model stops moving before (or
+    after) the data, a standard error is not finite, the intervals do not hold (the cost is not
+    quadratic over them), or, for the exact model "reference", the residuals hold structure
+    that AR(1) noise cannot produce (``_checks``: tests with known null distributions, none on
+    zero crossings). ``adequate`` says separately whether the model describes the data. Input
+    without a free decay in it (constant, pure noise, growing or time-reversed, constant time)
+    raises ValueError; a trace that halts after one swing is fitted.
 
     Arguments:
         trace_or_t: a :class:`Trace` (from :func:`load_trace`), a file path, or the times t.
@@ -203,7 +217,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             k3 A^2/(m w0^2) in [-0.3, 0.3] (A: the window's first amplitude). Its interval
             comes from the curvature of S at the minimum, with sigma^2 = S/(n - p) inflated by
             (1 + rho)/(1 - rho) for the residuals' lag-1 autocorrelation rho; the other
-            parameters' intervals are those at the fitted k3 (conditional on it). Per unit
+            parameters' intervals (``conf_interval``) add k3's uncertainty carried over by
+            the change of their optima with k3 (the profile's fits beside). Per unit
             mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
         k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
             the linear spring, every number as without k3); not with "k3" in ``free``.
@@ -230,7 +245,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         A :class:`FitResult`.
 
     Raises:
-        ValueError: bad arguments, or a trace without a free decay in it (the reason named).
+        ValueError: bad arguments, a trace without a free decay in it, or a window that fixes
+            the combined decay of some damping terms but not their split ("mu and D are not
+            separately identifiable ...: fix all but one of them"); the reason named.
     """
     check_choice("model", model, MODELS)
     check_choice("loss", loss, LOSSES)
@@ -266,15 +283,18 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     check_sampling(t_all, x_all)
     warn = []
     an = analyse(t_all, x_all)
-    if not fit_omega0 and abs(an.omega / osc["w0"] - 1.0) > 0.03:
-        warn.append(f"the data oscillate at {an.omega:.5g} rad/s but sqrt(k/m) = "
+    if not fit_omega0 and an.n_turns >= 5 and \
+            abs(an.omega / osc["w0"] - 1.0) > 0.03 + 2.0 * an.omega_spread:
+        # the turning points (not the zero crossings, which friction moves) keep the clock
+        warn.append(f"the data's turning points are {math.pi / an.omega:.5g} s apart, "
+                    f"half a period of {an.omega:.5g} rad/s, but sqrt(k/m) = "
                     f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k")
     i0 = start_index(t_all, x_all, an, start)
     i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
     t, xw = t_all[i0:i1], x_all[i0:i1]
     if t.size < 10:
         raise ValueError(f"the fit window [{t_all[i0]:g}, {end}] holds fewer than 10 samples")
-    an_w = analyse(t, xw)
+    an_w = analyse(t, xw, omega0=None if fit_omega0 else osc["w0"])
     check_trace(t, xw, an_w)
     if per_mass:
         osc = {**osc, "w0": an_w.omega, "k": an_w.omega ** 2}
@@ -292,9 +312,16 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     tp, xp, wt = _pad(t, xw, _bucket(n))
     steps = int(max_steps or MAX_STEPS[optimizer])
 
-    def run(p_start, name, fs):
-        opts = _reference_options(FIT_MODELS[name], max_swings, 1e-8, 1e-10, t, p_start.w0)
-        return run_core(tp, xp, wt, p_start, vary, consts, fs, model=name, optimizer=optimizer,
+    last = {}
+
+    def run(p_start, name, fs, mask=vary):
+        # the swing budget rounded up (_swings_bucket): windows of similar length share the
+        # compiled fit
+        opts = last.get("opts") if mask is not vary else _reference_options(
+            FIT_MODELS[name], _swings_bucket(max_swings, t, p_start.w0), 1e-8, 1e-10, t,
+            p_start.w0)
+        last.update(opts=opts, name=name, fs=fs)
+        return run_core(tp, xp, wt, p_start, mask, consts, fs, model=name, optimizer=optimizer,
                         max_steps=steps, rtol=float(rtol), atol=float(atol), opts=opts)
 
     stages = []
@@ -305,7 +332,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if starts > 1 and not FIT_MODELS[first].integrates:
         found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts, f_scale=fs,
                            n=int(starts), seed=int(seed), fit_omega0=fit_omega0,
-                           omega=an_w.omega, model=first, optimizer=optimizer,
+                           omega=an_w.omega, w0_spread=an_w.omega_spread, model=first,
+                           optimizer=optimizer,
                            max_steps=steps, rtol=float(rtol), atol=float(atol))
         start_p = found.params
     out = run(start_p, first, fs)
@@ -316,14 +344,53 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         stages.append(f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}")
         out = run(out.params, first, fs)
     if spec.start_from:
-        stages.append(f"started from the {first} fit ({int(out.steps)} steps)")
-        out = run(out.params, spec.name, fs)
+        # the approximate model's optimum can lie in another basin of the exact model (a
+        # strongly damped trace that halts after a few swings: where the block sticks changes
+        # the cost by steps): the exact model gets its own batch of starts around the
+        # turning-point guess, the approximate model's optimum among them
+        text = f"started from the {first} fit ({int(out.steps)} steps)"
+        approx = out.params
+        out = run(approx, spec.name, fs)
+        if starts > 1 and looks_stuck(t, xw, np.asarray(out.curve)[:n], an_w,
+                                      float(out.params.w0), out.code):
+            # what the exact model's fit shows is not noise: a batch of its own starts around
+            # the turning-point guess (the approximate model's optimum and this one among
+            # them), the lower cost kept
+            opts = _reference_options(spec, _swings_bucket(max_swings, t, guess.w0), 1e-8,
+                                      1e-10, t, guess.w0)
+            found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts,
+                               f_scale=fs, n=int(starts), seed=int(seed) + 1,
+                               fit_omega0=fit_omega0, omega=an_w.omega,
+                               w0_spread=an_w.omega_spread, model=spec.name,
+                               optimizer=optimizer, max_steps=steps, rtol=float(rtol),
+                               atol=float(atol), opts=opts, extra=(approx, out.params))
+            other = run(found.params, spec.name, fs)
+            c0, c1 = float(out.chisqr), float(other.chisqr)
+            text += (f"; its residuals were not noise: {int(starts) - 2} jittered starts of "
+                     f"the {spec.name} model")
+            if math.isfinite(c1) and (c1 < c0 or not math.isfinite(c0)):
+                out = other
+                text += f" found a lower cost ({0.5 * c1:.4g} < {0.5 * c0:.4g})"
+            else:
+                text += " found no lower cost"
+        stages.append(text)
     init = {name: getattr(guess, name) for name in varied_names(vary)}
-    return build_result(out, FitContext(
+    best = out
+
+    def profile(name, value):  # the fit with one parameter held (the intervals' check)
+        prof = run(best.params._replace(**{name: float(value)}), last["name"], last["fs"],
+                   mask=vary._replace(**{name: False}))
+        return float(prof.chisqr)
+
+    res = build_result(out, FitContext(
         model=model, free=free, vary=vary, consts=consts, t=t, x=xw, loss=loss,
         optimizer=optimizer, f_scale=fs, init=init, source=source, full_t=t_all, full_x=x_all,
         warnings=tuple(warn), stages="; ".join(stages), per_mass=per_mass, units=unit,
-        analysis=an_w, starts=found))
+        analysis=an_w, starts=found,
+        profile=profile if loss == "linear" and not _inner else None))
+    if "unidentifiable" in res.diagnostics and not _inner:
+        raise ValueError(res.diagnostics["unidentifiable"])
+    return res
 
 
 def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
@@ -355,7 +422,7 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     def run(e):
         e = float(e)
         if e not in cache:
-            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, **inner)
+            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, _inner=True, **inner)
         return cache[e]
 
     def cost(e):
@@ -381,9 +448,16 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
                       "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
                       "at_bound": abs(e_best) >= 0.3}}
+    # the others' intervals allow for k3's uncertainty (issue 25): cov += g g^T sd_e^2 with g
+    # the change of each optimum with e (central differences of the profile's fits)
+    extra = None
+    plus, minus = run(e_best + h), run(e_best - h)
+    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
+    if np.all(np.isfinite(g)) and math.isfinite(sd_e):
+        extra = np.outer(g, g) * sd_e * sd_e
     return dataclasses.replace(
         best, params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
-        free=tuple(best.free) + ("k3",), profiled=profile,
+        free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
         derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
                  "k3_z": float(norm.ppf(0.975))})
 

@@ -586,3 +586,25 @@ def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
         return call_cached_tree("fit-core", sorted(static.items()),
                                 functools.partial(core, **static), *args)
     return core(*args, **static)
+
+
+def _curves(t, P, consts, *, model, opts):
+    """The model at the times t for every row of P (physical parameters in the layout
+    PARAMS); t[0] is the fit start."""
+    spec = FIT_MODELS[model]
+    span = jnp.maximum(jnp.max(t) - t[0], 1e-12)
+
+    def one(p):
+        q = spec.to_coords(TraceParams(*(p[i] for i in range(p.shape[0]))), consts)
+        return spec.curve(t - t[0], q, consts, span, opts)
+
+    return jax.vmap(one)(P)
+
+
+def curves(t, P, consts, *, model: str, opts=None):
+    """:func:`_curves` through a kept program (one per model, padded length and options):
+    the model curves of a batch of parameter vectors, for the checks of a finished fit."""
+    args = (jnp.asarray(t, dtype=float), jnp.asarray(P, dtype=float), as_arrays(consts))
+    static = dict(model=model, opts=opts)
+    return call_cached_tree("fit-curves", sorted(static.items()),
+                            functools.partial(_curves, **static), *args)

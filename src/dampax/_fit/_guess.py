@@ -1,9 +1,13 @@
 """Initial guesses (numpy): what a trace says before any fit.
 
-Noise from second differences, the offset from the midpoints of successive extremes, the
-frequency from the zero crossings (FFT when there are few), (d0, d1, d2) of eq. 21 from the
+Noise from higher differences; the turning points (velocity zeros) by a zigzag with a noise
+and range based reversal, the noise's wiggles merged away and the data's halt found where
+they come to rest; the offset from the midpoints of successive turning points, the frequency
+from their spacing (pi/w0 for Coulomb friction, which moves the zero crossings but not them;
+a least-squares sinusoid when there are fewer than two), (d0, d1, d2) of eq. 21 from the
 envelope decrement dE/dt = -(d0 + d1 E + d2 E^2) (eq. 20) by non-negative least squares, and
-the initial state from a least-squares sinusoid (docs/DESIGN.md, fitting).
+the initial state from a least-squares sinusoid over the part that moves (docs/DESIGN.md,
+fitting).
 """
 
 from __future__ import annotations
@@ -28,15 +32,28 @@ from ._params import (
 
 @dataclass
 class Analysis:
-    """What :func:`analyse` finds in a trace.
+    """What :func:`analyse` finds in a trace, before any fit.
+
+    Everything comes from the turning points (velocity zeros), which friction and drag do not
+    move off the motion's own clock: Coulomb friction shifts the centre of each half swing by
+    +-mu m g/k, which moves the zero crossings, but the turning points of eq. 3 stay pi/w0
+    apart (pi/w_d with viscous damping).
 
     Attributes:
-        offset: the equilibrium position.
-        omega: angular frequency of the zero crossings.
-        noise: sigma of the measurement noise.
-        ext_i, ext_t: sample index and time of the extreme of every half cycle.
-        ext_x: the signed extremes, relative to the offset.
-        n_cross: number of zero crossings.
+        offset: the equilibrium position (mean of the centres of successive half swings).
+        omega: angular frequency: pi / the spacing of the turning points, or a least-squares
+            sinusoid over the moving part when there are fewer than two.
+        noise: sigma of the white part of the measurement noise (second differences).
+        ext_i, ext_t: sample index and time of every turning point inside the trace (the
+            rest point last when the data halt).
+        ext_x: the turning points, relative to the offset.
+        n_turns: number of turning points.
+        halted: the data stop moving inside the trace (no reversal after the last turning
+            point for at least half a period).
+        end_t: where the data stop moving (the last turning point when halted, else t[-1]).
+        omega_spread: relative uncertainty of ``omega`` as a start (a few turning points
+            fix it to a few per cent, many to a few per mille).
+        level: the reversal a turning point needs (noise and range based).
     """
 
     offset: float
@@ -45,35 +62,28 @@ class Analysis:
     ext_i: np.ndarray
     ext_t: np.ndarray
     ext_x: np.ndarray
-    n_cross: int
+    n_turns: int = 0
+    halted: bool = False
+    end_t: float = math.nan
+    omega_spread: float = 0.3
+    level: float = 0.0
 
 
 def _noise_sigma(x: np.ndarray) -> float:
-    """sigma of white noise from the MAD of the second differences (var = 6 sigma^2)."""
-    if x.size < 5:
+    """sigma of the white part of the noise: the MAD of the k-th differences (var =
+    C(2k, k) sigma^2), the smallest over k = 2..5 (a smooth signal adds (w dt)^k A to the
+    k-th differences, which the higher orders shed where the sampling is coarse)."""
+    if x.size < 8:
         return 0.0
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    return float(MAD * np.median(np.abs(d2 - np.median(d2))) / math.sqrt(6.0))
-
-
-def _crossings(y: np.ndarray, h: float) -> np.ndarray:
-    """Indices i where y changes sign between i and i+1, with hysteresis h (noise-proof)."""
-    state = 0
-    last_change = -1
-    out = []
-    sign = np.sign(y)
-    for i in np.flatnonzero(np.abs(y) > h):
-        s = 1 if y[i] > 0 else -1
-        if state != 0 and s != state:
-            # the last sign change before i
-            j = i - 1
-            while j > last_change and sign[j] == s:
-                j -= 1
-            out.append(max(j, 0))
-        if s != state:
-            last_change = i
-        state = s
-    return np.asarray(out, dtype=int)
+    best = math.inf
+    d = np.asarray(x, dtype=float)
+    for k in range(1, 6):
+        d = np.diff(d)
+        if k < 2:
+            continue
+        s = float(MAD * np.median(np.abs(d - np.median(d))) / math.sqrt(math.comb(2 * k, k)))
+        best = min(best, s)
+    return best
 
 
 def _frequency_fft(t: np.ndarray, y: np.ndarray) -> float:
@@ -98,46 +108,207 @@ def despike(x: np.ndarray, width: int = 5) -> np.ndarray:
     return np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=1)
 
 
-def analyse(t: np.ndarray, x: np.ndarray) -> Analysis:
-    """Offset, frequency, noise and the extreme of every half cycle of a trace (glitches of
-    one or two samples removed by a running median first).
+def zigzag(y: np.ndarray, h: float):
+    """Turning points of a trace: the extremes confirmed by a reversal of more than ``h``.
+
+    Returns:
+        (indices, pending): the confirmed extremes in time order (an extreme at the first
+        sample is the window's edge, not a reversal, and is left out) and the index of the
+        extreme after the last one, which no reversal has confirmed (the data halt there, or
+        the trace ends).
+    """
+    n = y.size
+    out = []
+    imax = imin = 0
+    trend = 0
+    for i in range(1, n):
+        v = y[i]
+        if trend >= 0 and v > y[imax]:
+            imax = i
+        if trend <= 0 and v < y[imin]:
+            imin = i
+        if trend >= 0 and y[imax] - v > h:
+            out.append(imax)
+            trend, imin = -1, i
+        elif trend <= 0 and v - y[imin] > h:
+            out.append(imin)
+            trend, imax = 1, i
+    pending = imax if trend == 1 else imin if trend == -1 else -1
+    out = [i for i in out if i > 0]
+    return np.asarray(out, dtype=int), pending
+
+
+def _sinusoid_frequency(t, y, lo, hi):
+    """Angular frequency in [lo, hi] of the least-squares c + (a + a' s) cos(w s) +
+    (b + b' s) sin(w s) (a scan on a log grid, then a finer one around the best)."""
+    s = t - t[0]
+    span = max(float(s[-1]), 1e-300)
+
+    def rss(w):
+        cw, sw = np.cos(w * s), np.sin(w * s)
+        X = np.stack([np.ones_like(s), cw, sw, (s / span) * cw, (s / span) * sw], axis=1)
+        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+        r = y - X @ coef
+        return float(r @ r)
+
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), 160))
+    best = grid[int(np.argmin([rss(w) for w in grid]))]
+    fine = np.linspace(best / 1.03, best * 1.03, 61)
+    return float(fine[int(np.argmin([rss(w) for w in fine]))])
+
+
+def _merge_wiggles(y, idx, t, half):
+    """Turning points without the noise's wiggles: while two successive ones are closer than
+    0.4 half periods, the pair is dropped (keeping, of the two extremes of the same kind, the
+    more extreme one)."""
+    idx = list(idx)
+    while len(idx) >= 2:
+        gaps = np.diff(t[idx])
+        j = int(np.argmin(gaps))
+        if not gaps[j] < 0.4 * half:
+            break
+        a, b = idx[j], idx[j + 1]  # a short swing a -> b
+        # b is a max (min) when y[b] > y[a]; the previous extreme of b's kind is idx[j - 1]
+        if j >= 1:
+            prev = idx[j - 1]
+            b_more = (y[b] > y[prev]) if y[b] > y[a] else (y[b] < y[prev])
+            drop = (j - 1, j) if b_more else (j, j + 1)
+        elif j + 2 < len(idx):
+            nxt = idx[j + 2]
+            a_more = (y[a] > y[nxt]) if y[a] > y[b] else (y[a] < y[nxt])
+            drop = (j + 1, j + 2) if a_more else (j, j + 1)
+        else:
+            drop = (j, j + 1)
+        idx = [i for k, i in enumerate(idx) if k not in drop]
+    return np.asarray(idx, dtype=int)
+
+
+def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Analysis:
+    """Turning points, offset, frequency, noise and where the data stop moving.
+
+    Arguments:
+        t, x: the trace (sorted, finite).
+        omega0: the angular frequency when it is known (an oscillator without
+            ``fit_omega0``): it sets the half period that separates a halt from a pause.
 
     Returns:
         An :class:`Analysis`.
     """
     noise = _noise_sigma(x)
-    x = despike(x)
-    off = float(np.median(x))
-    for _ in range(2):
-        y = x - off
-        h = max(5.0 * noise, 1e-3 * float(np.max(np.abs(y))))
-        cross = _crossings(y, h)
-        ext_i = []
-        for a, b in zip(cross[:-1], cross[1:], strict=True):
-            seg = np.abs(y[a + 1: b + 1])
-            ext_i.append(a + 1 + int(np.argmax(seg)))
-        ext_i = np.asarray(ext_i, dtype=int)
-        if ext_i.size >= 3:
-            mids = 0.5 * (y[ext_i[:-1]] + y[ext_i[1:]])
-            off += float(np.median(mids[: max(3, min(len(mids), 40))]))
-    y = x - off
-    if cross.size >= 4:
-        tc = []
-        for i in cross:  # linear interpolation of the zero between i and i+1
-            y0, y1 = y[i], y[min(i + 1, len(y) - 1)]
-            frac = y0 / (y0 - y1) if y1 != y0 else 0.0
-            tc.append(t[i] + frac * (t[min(i + 1, len(t) - 1)] - t[i]))
-        tc = np.asarray(tc)
-        dtc = np.diff(tc)
-        half = float(np.median(dtc))
-        steps = np.maximum(np.round(dtc / half), 1.0)
-        k = np.concatenate([[0.0], np.cumsum(steps)])
-        slope = np.polyfit(k, tc, 1)[0]
-        omega = math.pi / slope
+    y = despike(x)
+    half_range = 0.5 * float(np.ptp(y))
+    level = max(8.0 * noise, 0.05 * half_range)
+    idx, pending = zigzag(y, level)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    # the half period: the given one, else the duration of the largest swing between two
+    # turning points (a noisy tail cannot disturb it), else a least-squares sinusoid over
+    # the part of the trace that moves
+    known = omega0 is not None and math.isfinite(omega0) and omega0 > 0
+    if known:
+        half = math.pi / omega0
+    elif idx.size >= 2:
+        k = int(np.argmax(np.abs(np.diff(y[idx]))))
+        half = float(t[idx[k + 1]] - t[idx[k]])
+    elif t.size >= 8:
+        ref = float(np.median(y[-max(t.size // 8, 4):]))
+        moving = np.flatnonzero(np.abs(y - ref) > level)
+        stop = max(int(moving[-1]) + 1 if moving.size else t.size, 8)
+        T = float(t[stop - 1] - t[0])
+        lo = 0.25 * math.pi / max(T, 1e-300)
+        hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
+        half = math.pi / _sinusoid_frequency(t[:stop], y[:stop], lo, hi)
     else:
-        omega = _frequency_fft(t, y)
-    return Analysis(offset=off, omega=omega, noise=noise, ext_i=ext_i, ext_t=t[ext_i],
-                    ext_x=y[ext_i], n_cross=int(cross.size))
+        half = math.nan
+    truncated = False
+    if math.isfinite(half):
+        idx = _merge_wiggles(y, idx, t, half)
+        # a free oscillation reverses every half period: after a longer pause the data had
+        # stopped, and what follows are the noise's reversals
+        gaps = np.diff(t[idx])
+        long = np.flatnonzero(gaps > 1.6 * half)
+        if long.size:
+            idx = idx[: long[0] + 1]
+            truncated = True
+    # halted: after the last turning point the data come to rest and stay there (for half
+    # a period at least); else the pending extreme is the window's edge
+    halted = False
+    last = int(idx[-1]) if idx.size else 0
+    tail = y[last:]
+    if tail.size > 8:
+        end_part = tail[-max(tail.size // 4, 4):]
+        rest = float(np.median(end_part))
+        band = max(0.5 * level, 3.0 * MAD * float(np.median(np.abs(end_part - rest))))
+        inside = np.abs(tail - rest) <= band
+        # arrival: the first sample after which 95 % of the samples stay inside the band
+        later_out = np.cumsum(~inside[::-1])[::-1]
+        frac = later_out / np.arange(tail.size, 0, -1)
+        ok = np.flatnonzero(inside & (frac <= 0.05))
+        if not ok.size and truncated:
+            ok = np.flatnonzero(inside)
+        if ok.size:
+            arrive = last + int(ok[0])
+            stay = float(t[-1] - t[arrive])
+            ref = half if math.isfinite(half) else float(t[arrive] - t[0])
+            if truncated or (stay >= 0.5 * ref and stay > 4 * dt):
+                # the data rest for half a period (a swing would have reversed): they halted,
+                # at the arrival (the last turning point itself when the last swing is within
+                # the band)
+                if arrive > last and abs(y[arrive] - y[last]) > level:
+                    idx = np.append(idx, arrive)
+                    halted = True
+                elif idx.size:
+                    halted = True
+    end_t = float(t[idx[-1]]) if halted else float(t[-1])
+    tx = y[idx]
+    # offset: the centres of successive half swings alternate about it by the friction's
+    # shift (and the decrement): average an even number of them; with fewer than four
+    # turning points of data that halt, the rest position (within mu g/w0^2 of it; the centre
+    # of one half swing is off by half its decrement, which drag makes large)
+    if halted and tx.size <= 3 and int(idx[-1]) < t.size - 8:
+        off = float(np.median(y[int(idx[-1]):]))
+    elif tx.size >= 3:
+        mids = 0.5 * (tx[:-1] + tx[1:])
+        k = min(mids.size, 40)
+        k -= k % 2
+        off = float(np.mean(mids[:k]))
+    elif tx.size == 2:
+        off = float(0.5 * (tx[0] + tx[1]))
+    else:
+        moving = t <= end_t
+        off = float(np.median(y[moving])) if np.any(moving) else float(np.median(y))
+    # frequency: from the turning points that reversals confirmed (the arrival at rest is
+    # not one: the data reach the rest band a little before they stop)
+    conf = idx[:-1] if halted else idx
+    spread = 0.3
+    if known:
+        omega = float(omega0)
+        spread = 0.0
+    elif conf.size >= 3:
+        k = np.arange(conf.size, dtype=float)
+        tk = t[conf]
+        coef = np.polyfit(k, tk, 1)
+        slope = float(coef[0])
+        omega = math.pi / slope if slope > 0 else _frequency_fft(t, y - off)
+        resid = tk - np.polyval(coef, k)
+        se = float(np.sqrt(np.sum(resid * resid) / max(conf.size - 2, 1)
+                           / np.sum((k - k.mean()) ** 2)))
+        spread = float(min(0.3, max(3e-3, 4.0 * se / max(slope, 1e-300),
+                                    0.5 / conf.size ** 2)))
+    elif conf.size == 2:
+        omega = math.pi / float(t[conf[1]] - t[conf[0]])
+        spread = 0.15
+    else:
+        stop = int(np.searchsorted(t, end_t + (0.5 * half if math.isfinite(half) else 0.0)))
+        stop = min(max(stop, 8), t.size)
+        tm, ym = t[:stop], y[:stop]
+        T = float(tm[-1] - tm[0]) if tm.size > 1 else float(t[-1] - t[0])
+        lo = 0.25 * math.pi / max(T, 1e-300)
+        hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
+        omega = _sinusoid_frequency(tm, ym, lo, hi) if tm.size >= 8 else \
+            _frequency_fft(t, y - off)
+    return Analysis(offset=off, omega=omega, noise=noise, ext_i=idx, ext_t=t[idx],
+                    ext_x=tx - off, n_turns=int(idx.size), halted=halted, end_t=end_t,
+                    omega_spread=spread, level=level)
 
 
 def _nnls_small(X: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -195,11 +366,12 @@ def _guess_d(t_e, E, free, fixed_d, *, step: int = 2, noise: float = 0.0):
     return d, True
 
 
-def _initial_state(t, y, omega, t_start):
-    """x0, v0 at t_start by linear least squares of the first 1.5 periods:
+def _initial_state(t, y, omega, t_start, t_end=math.inf):
+    """x0, v0 at t_start by linear least squares of the first 1.5 periods (before
+    ``t_end``, where the data stop moving):
     y = (a + a' s) cos(w s) + (c + c' s) sin(w s), s = t - t_start."""
     s = t - t_start
-    sel = s <= 3.0 * math.pi / omega
+    sel = s <= min(3.0 * math.pi / omega, max(t_end - t_start, 0.5 * math.pi / omega))
     if np.sum(sel) < 8:
         sel = np.arange(len(s)) < min(len(s), 8)
     s, y = s[sel], y[sel]
@@ -222,8 +394,10 @@ def start_index(t, x, an: Analysis, start) -> int:
     Arguments:
         t, x: the whole trace.
         an: its :class:`Analysis`.
-        start: "auto" (the first extreme after the largest excursion, which skips a hand
-            release), "data" / None (the first sample) or a time.
+        start: "auto" (the first turning point after the largest excursion, which skips a
+            hand release; for a trace with fewer than 8 turning points, the largest excursion
+            itself when the trace begins within the swing that reaches it and the data move in
+            the quarter period before it), "data" / None (the first sample) or a time.
     """
     if start is None or start == "data":
         return 0
@@ -234,10 +408,27 @@ def start_index(t, x, an: Analysis, start) -> int:
         return i
     if start != "auto":
         raise ValueError(f"start must be 'auto', 'data', None or a time, got {start!r}")
-    y = np.abs(despike(x) - an.offset)
-    i_big = int(np.argmax(y))
+    y = despike(x)
+    i_big = int(np.argmax(np.abs(y - an.offset)))
+    quarter = 0.5 * math.pi / an.omega
+    before = (t >= t[i_big] - quarter) & (t <= t[i_big])
+    near = an.ext_i[np.abs(an.ext_t - t[i_big]) <= 0.25 * quarter]
+    spare = 0.25 * 0.5 * float(np.ptp(y[i_big:]))
+    if an.n_turns < 8 and near.size and t[i_big] - t[0] <= 2.0 * quarter and (
+            t[i_big] - t[0] < quarter or float(np.ptp(y[before])) > 2.0 * an.level) and \
+            0.5 * float(np.ptp(y[near[0]:])) >= spare:
+        # a trace that halts within a few swings cannot spare one: when it begins within the
+        # swing that reaches the largest excursion, and that is a turning point (the data
+        # move before it: no hold, no lead-in of a hand release), the fit starts there
+        return int(near[0])
     later = an.ext_i[an.ext_t > t[i_big] + 0.25 * math.pi / an.omega]
-    return int(later[0]) if later.size else 0
+    if later.size:
+        # skip the release only when that leaves a swing to fit: the data after the first
+        # turning point must still move by a quarter of what they moved from the release on
+        if 0.5 * float(np.ptp(y[later[0]:])) >= spare:
+            return int(later[0])
+        return i_big
+    return 0
 
 
 def guess_trace(t, x, free, osc: dict, fit_omega0: bool, offset: bool,
@@ -251,17 +442,23 @@ def guess_trace(t, x, free, osc: dict, fit_omega0: bool, offset: bool,
         fit_omega0, offset: w0 from the data (else sqrt(k/m)); offset from the data (else 0).
         an: the window's :class:`Analysis` (default: computed).
     """
-    an = an or analyse(t, x)
+    an = an or analyse(t, x, omega0=None if fit_omega0 else osc["w0"])
     off = an.offset if offset else 0.0
     w0 = an.omega if fit_omega0 else osc["w0"]
     fixed_d = damping_d(osc["mu"], osc["b"], osc["D"], w0, osc["m"], osc["g"])
     E = np.abs(an.ext_x) if offset else np.abs(x[an.ext_i])
-    d, ok = _guess_d(an.ext_t, E, free, fixed_d, noise=an.noise)
-    x0, v0 = _initial_state(t, x - off, an.omega, t[0])
-    if not ok:  # too few extremes: a mild decay over the window
+    step = 2 if E.size >= 5 else 1
+    d, ok = _guess_d(an.ext_t, E, free, fixed_d, step=step, noise=an.noise)
+    x0, v0 = _initial_state(t, x - off, w0, t[0], an.end_t)
+    if not ok and free:  # too few turning points: the decay over the moving part
         A = math.hypot(x0, v0 / w0)
-        span = max(t[-1] - t[0], 1e-12)
-        share = 0.5 * A / span / max(len(free), 1)
+        if an.halted:  # from A to rest within the moving part
+            span = max(an.end_t - t[0], math.pi / w0)
+            lost = A
+        else:
+            span = max(t[-1] - t[0], 1e-12)
+            lost = 0.5 * A if E.size < 2 else max(float(E[0] - E[-1]), 0.1 * A)
+        share = lost / span / len(free)
         d = list(d)
         for f in free:
             d[POWER[f]] = share / [1.0, A, A * A][POWER[f]]
@@ -281,10 +478,10 @@ def initial_guess(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bool |
                   offset: bool = True):
     """Initial parameters for :func:`~dampax.fit_arrays`, from a trace that starts at t[0].
 
-    Offset from the midpoints of successive extremes, w0 from the zero crossings (FFT when
-    there are few), (d0, d1, d2) of eq. 21 from the envelope decrement per cycle (eq. 20) by
-    non-negative least squares, x0 and v0 from a least-squares sinusoid over the first 1.5
-    periods.
+    Offset from the midpoints of successive turning points, w0 from their spacing (a
+    least-squares sinusoid when there are few), (d0, d1, d2) of eq. 21 from the envelope
+    decrement (eq. 20) by non-negative least squares, x0 and v0 from a least-squares sinusoid
+    over the first 1.5 periods (of the part that moves).
 
     Arguments:
         t, x: the trace.

@@ -19,12 +19,15 @@ Why this and not a bootstrap or a profile likelihood: it needs no refits (the Ja
 residuals of the fit are enough, so it costs milliseconds and works for every model, the
 reference integrator included), it makes no assumption on the form of the correlation (an AR(1)
 profile would miss the oscillating correlation of a phase drift), and a block bootstrap of
-residuals needs the same block length choice as the bandwidth here. The bandwidth L comes from
-the data: the lag at which the envelope (running maximum over one period) of the
-autocorrelation of the summed scores falls below 0.1, doubled, and kept between two periods and
-a quarter of the trace. Intervals are normal: value +- z sd (clipped at 0 for the damping
-constants, which are >= 0). The calibration (benchmarks/calibration.py, issue 11 item 6)
-measures how often they contain the truth for AR(1) noise.
+residuals needs the same block length choice as the bandwidth here. The kernel is used only
+where the prewhitened residuals are not white (Ljung-Box test at 1 %): for AR(1) or white noise
+the prewhitened sandwich alone is exact (issue 25: a kernel of a few periods is biased low on
+short windows). Its bandwidth L comes from the data: the lag at which the envelope (running
+maximum over one period) of the autocorrelation of the summed scores falls below 0.1, doubled,
+and kept between two periods and a quarter of the trace. Intervals are normal: value +- z sd
+(clipped at 0 for the damping constants, which are >= 0). The calibrations
+(benchmarks/calibration.py, issue 11 item 6; benchmarks/fit_calibration.py, issue 25) measure
+how often they contain the truth.
 """
 
 from __future__ import annotations
@@ -35,8 +38,8 @@ from statistics import NormalDist
 import numpy as np
 
 #: a line for the reports and the docs
-METHOD = ("AR(1)-prewhitened Newey-West (HAC) sandwich covariance, Bartlett kernel, bandwidth "
-          "from the score autocorrelation")
+METHOD = ("AR(1)-prewhitened Newey-West (HAC) sandwich covariance; Bartlett kernel (bandwidth "
+          "from the score autocorrelation) only where the prewhitened residuals are not white")
 
 
 def _autocov(g: np.ndarray, max_lag: int) -> np.ndarray:
@@ -91,6 +94,30 @@ def _backward_ar1(J: np.ndarray, phi: float) -> np.ndarray:
     return out[::-1]
 
 
+#: the prewhitened residuals count as white (no kernel: the AR(1) sandwich) unless the
+#: Ljung-Box test rejects whiteness at this level
+WHITE_P = 0.01
+
+
+def whiteness_p(e: np.ndarray, period_samples: float) -> float:
+    """p-value of the Ljung-Box test that ``e`` is white, over lags 1..m with m one period
+    (at least 10, at most n/5 and 200): Q = n (n + 2) sum rho_k^2 / (n - k) ~ chi2(m)."""
+    from scipy.stats import chi2
+
+    e = np.asarray(e, dtype=float)
+    n = e.size
+    m = int(min(max(round(period_samples), 10), n // 5, 200))
+    if m < 1:
+        return 1.0
+    e = e - e.mean()
+    den = float(e @ e)
+    if not den > 0:
+        return 1.0
+    rho = np.array([float(e[k:] @ e[:-k]) / den for k in range(1, m + 1)])
+    q = n * (n + 2) * float(np.sum(rho * rho / (n - np.arange(1, m + 1))))
+    return float(chi2.sf(q, m))
+
+
 def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
                    lags: int | None = None):
     """AR(1)-prewhitened HAC covariance of the parameters (columns of J): (cov, L).
@@ -100,7 +127,12 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     phi^2) r_0, phi the lag-1 autocorrelation of r), K = A^-T J (a backward recursion
     K_t = J_t + phi K_(t+1)), and Cov(e) is estimated by the Bartlett-kernel HAC of the scores
     K_t e_t, which takes up what correlation the AR(1) filter leaves (the oscillating
-    residuals of a phase drift). For white residuals phi ~ 0 and this is the plain HAC.
+    residuals of a phase drift). When the prewhitened residuals e pass the Ljung-Box test of
+    whiteness (:func:`whiteness_p` >= :data:`WHITE_P`) the kernel is left out (L = 0): the
+    noise is AR(1) (or white), for which the prewhitened sandwich is exact, while a Bartlett
+    kernel of a few periods is biased low (the scores of a least-squares optimum sum to zero,
+    so their long-run variance shrinks as the bandwidth grows: 90 % intervals covered 55-65 %
+    of the truths of benchmarks/fit_calibration.py with it).
 
     Arguments:
         J: residual Jacobian (n x p) at the optimum, rows of the data only.
@@ -111,6 +143,9 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     r = np.asarray(r, dtype=float)
     J = np.asarray(J, dtype=float)
     n = r.size
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
+        # a fit without a finite Jacobian (it diverged): no interval
+        return np.full((J.shape[1], J.shape[1]), np.nan), 0
     phi = float(np.dot(r[1:], r[:-1]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
     phi = min(max(phi, -0.99), 0.999)
     e = np.empty_like(r)
@@ -119,7 +154,12 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     K = _backward_ar1(J, phi)
     K[0] = K[0] / math.sqrt(1.0 - phi * phi)
     g = K * e[:, None]
-    L = bandwidth(g, period_samples) if lags is None else int(lags)
+    if lags is not None:
+        L = int(lags)
+    elif whiteness_p(e, period_samples) >= WHITE_P:
+        L = 0  # AR(1) noise: the prewhitened residuals are white, the sandwich is exact
+    else:
+        L = bandwidth(g, period_samples)
     L = min(L, g.shape[0] - 1)
     G = _autocov(g, L)
     w = 1.0 - np.arange(L + 1) / (L + 1.0)

@@ -10,7 +10,7 @@ offset (when fitted), the cubic stiffness k3 itself (when free: it has either si
 sigma and atanh phi_n; with k3 the model is the ansatz with the amplitude-dependent phase of
 docs/cubic_stiffness.md. Weakly informative priors, documented in :data:`PRIORS`: log c ~ N(log
 c_guess, 3) around the turning-point guess of the constant (a factor 20 per sigma), w0 ~
-N(w_cross, 0.05 w_cross) around the zero-crossing frequency, offset ~ N(offset_fit, A), x0 and y
+N(w_turn, 0.05 w_turn) around the turning points' frequency, offset ~ N(offset_fit, A), x0 and y
 ~ N(their least-squares values, 2 A), log sigma ~ N(log rms, 2), atanh phi_n ~ N(0, 2), k3
 A^2/(m w0^2) ~ N(0, 0.5). The sampler runs on u with theta = theta_map + L u, L the Cholesky
 factor of the Laplace covariance at the posterior mode (found by L-BFGS from the least-squares
@@ -45,7 +45,7 @@ MAX_SAMPLES = 4096
 #: the priors, for the docs and the report
 PRIORS = {
     "damping constant c (free)": "log c ~ Normal(log c_guess, 3), c_guess from the turning points",
-    "w0": "Normal(w_cross, 0.05 w_cross), w_cross the zero-crossing frequency",
+    "w0": "Normal(w_turn, 0.05 w_turn), w_turn the turning points' frequency",
     "offset": "Normal(offset of the least-squares fit, A)",
     "x0, y = A sin(phi)": "Normal(least-squares value, 2 A)",
     "sigma (AR(1) innovation sd)": "log sigma ~ Normal(log rms of the fit, 2)",
@@ -308,7 +308,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     r = np.asarray(res.residuals)[::stride]
     phi_hat = float(np.clip(np.corrcoef(r[:-1], r[1:])[0, 1], -0.9, 0.995))
     sig_hat = float(np.std(r[1:] - phi_hat * r[:-1])) or 1e-12
-    w_cross = p["w0"] / (1.0 + float(res.diagnostics.get("w0/crossing - 1", 0.0)))
+    w_cross = p["w0"] / (1.0 + float(res.diagnostics.get("w0/turning - 1", 0.0)))
     # prior centres and widths, and the start (theta at the least-squares fit)
     centre, width, theta0 = [], [], []
     for c in free:

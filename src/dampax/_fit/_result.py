@@ -94,6 +94,7 @@ class FitResult:
     jac: np.ndarray | None = None
     profiled: dict = field(default_factory=dict)
     resid_rows: np.ndarray | None = None
+    extra_cov: np.ndarray | None = None
 
     def _hac(self):
         """(HAC covariance over ``varied``, bandwidth) of ``_intervals.hac_covariance``."""
@@ -108,6 +109,8 @@ class FitResult:
                 period = 1.0
             cached = _intervals.hac_covariance(self.jac, self.resid_rows,
                                                period_samples=period)
+            if self.extra_cov is not None:  # a profiled k3: its uncertainty carried over
+                cached = (cached[0] + self.extra_cov, cached[1])
             object.__setattr__(self, "_hac_cache", cached)
         return cached
 
@@ -229,7 +232,7 @@ class FitResult:
                 for name in self.profiled:
                     lo, hi = ci[name]
                     lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
-                                 "the others are conditional on it)")
+                                 "the others allow for its uncertainty)")
         pairs = []
         n = len(self.varied)
         for i in range(n):
@@ -471,6 +474,7 @@ class FitContext:
     units: str = "m"
     analysis: object = None
     starts: object = None
+    profile: object = None
 
 
 def _trace_derived(params: dict, coords, ctx: FitContext):
@@ -524,6 +528,9 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     derive = _trace_derived if kind == "trace" else _envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
     converged = bool(out.code == FIT_RESULTS.successful)
+    capped = bool(out.code == FIT_RESULTS.max_steps_reached)
+    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
+    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":
         from ._checks import assess
@@ -531,11 +538,11 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
         fails, bad, diag = assess(t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
                                   varied=varied_names(ctx.vary), derived=derived,
                                   an=ctx.analysis, converged=converged, message=text,
-                                  kind=kind)
+                                  kind=kind, model=ctx.model, jac=jac, rows=rows,
+                                  capped=capped, profile=ctx.profile, chisqr=chisqr)
+        converged = converged or "note_steps" in diag
     elif not converged:
         fails = [f"the optimizer did not converge ({text})"]
-    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
-    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     return FitResult(
         params=params, stderr=stderr, varied=varied_names(ctx.vary), covariance=cov,
         correlation=corr, residuals=ctx.x - curve, t=ctx.t, x=ctx.x, model_x=curve,

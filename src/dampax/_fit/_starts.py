@@ -73,8 +73,12 @@ class Starts:
                 "costs": [float(c) if math.isfinite(c) else None for c in self.costs]}
 
 
-def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool = True):
-    """``n`` starts around p0 (the first one is p0), as a (n, 7) array in the layout PARAMS."""
+def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool = True,
+             w0_spread: float = 0.003):
+    """``n`` starts around p0 (the first one is p0), as a (n, 7) array in the layout PARAMS.
+
+    w0 is multiplied by 1 + w0_spread z (exp(w0_spread z) above 0.003: a trace with few
+    turning points fixes its frequency to a few per cent only)."""
     rng = np.random.default_rng(seed)
     base = np.asarray(p0, dtype=float)
     P = np.tile(base, (n, 1))
@@ -85,7 +89,8 @@ def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool =
         i = PARAMS.index(name)
         P[1:, i] = base[i] * np.exp(1.5 * z[:, i])
     if fit_omega0:
-        P[1:, 3] = base[3] * (1.0 + 0.003 * z[:, 3])
+        P[1:, 3] = base[3] * (1.0 + 0.003 * z[:, 3] if w0_spread <= 0.003 else
+                              np.exp(w0_spread * z[:, 3]))
     amp = np.exp(0.1 * z[:, 5])
     P[1:, 5] *= amp
     P[1:, 6] *= amp
@@ -118,14 +123,21 @@ def thin(t: np.ndarray, x: np.ndarray, omega: float):
 
 def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int, seed: int,
                fit_omega0: bool, omega: float, model: str, optimizer: str, max_steps: int,
-               rtol: float, atol: float) -> Starts:
+               rtol: float, atol: float, w0_spread: float = 0.003, opts=None,
+               extra=()) -> Starts:
     """Optimise ``n`` jittered starts around ``guess`` in one vmapped call on the thinned
-    trace; returns :class:`Starts` (the best optimum is the caller's next start)."""
-    P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0)
+    trace; returns :class:`Starts` (the best optimum is the caller's next start).
+
+    ``opts``: the integrating model's options (static; None for the ansatz); ``extra``:
+    further starts (TraceParams) put in place of the last jittered ones (the ansatz's optimum
+    for the reference model)."""
+    P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0, w0_spread=w0_spread)
+    for j, p in enumerate(extra):
+        P[n - 1 - j] = np.asarray(p, dtype=float)
     tp, xp, wt, stride = thin(np.asarray(t), np.asarray(x), omega)
     p0s = as_arrays(TraceParams(*(jnp.asarray(P[:, i]) for i in range(P.shape[1]))))
     static = dict(model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
-                  rtol=rtol, atol=atol, opts=None)
+                  rtol=rtol, atol=atol, opts=opts)
     # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
     out = call_cached_tree("fit-starts", sorted(static.items()),
                            functools.partial(_batch, **static), jnp.asarray(tp),
