@@ -1,25 +1,43 @@
-"""A posterior of the damping constants by NUTS (blackjax), with AR(1) noise (issue 11, item 5).
+"""A posterior of a trace fit by NUTS (blackjax), with AR(1) noise (issues 11 and 25).
 
-Model: the ansatz x(t) = offset + A f(t - t0) cos(w0 (t - t0) + phi) (``_core``, eqs. 11, 20-23)
-in its coordinates (mu, b, D, w0, offset, x0, y = A sin(phi)), plus AR(1) noise on the
-residuals r = x - model: r_1 ~ N(0, sigma^2 / (1 - phi_n^2)), r_t - phi_n r_(t-1) ~ N(0,
-sigma^2) (the exact likelihood of a stationary AR(1)); sigma and phi_n are sampled too.
+Model: the fit model's curve (``_core.FIT_MODELS``): "ansatz", x(t) = offset + A f(t - t0)
+cos(w0 (t - t0) + phi) (eqs. 11, 20-23) in its coordinates (mu, b, D, w0, offset, x0,
+y = A sin(phi)), or "reference", eq. 3 integrated by DOP853 with exact stick-slip from
+(x0, v0), plus AR(1) noise on the residuals r = x - model: r_1 ~ N(0, sigma^2 / (1 - phi_n^2)),
+r_t - phi_n r_(t-1) ~ N(0, sigma^2) (the exact likelihood of a stationary AR(1)); sigma and
+phi_n are sampled too.
+
+Structure (so that other residuals, e.g. a joint fit of several traces, plug in): the log
+density is built from a residual function ``residual(p, args) -> r`` of a physical parameter
+vector ``p`` whose entries a :class:`Layout` names (and says which are sampled as logarithms),
+plus the two noise parameters; :func:`sample` runs the mode search, the Laplace
+preconditioning and NUTS for any such residual. :func:`posterior` builds the residual of one
+trace (:class:`TraceResidual`) from a least-squares fit.
 
 Parameters sampled (unconstrained): log of every free damping constant, w0 (when fitted), the
-offset (when fitted), the cubic stiffness k3 itself (when free: it has either sign), x0, y, log
-sigma and atanh phi_n; with k3 the model is the ansatz with the amplitude-dependent phase of
-docs/cubic_stiffness.md. Weakly informative priors, documented in :data:`PRIORS`: log c ~ N(log
-c_guess, 3) around the turning-point guess of the constant (a factor 20 per sigma), w0 ~
-N(w_turn, 0.05 w_turn) around the turning points' frequency, offset ~ N(offset_fit, A), x0 and y
-~ N(their least-squares values, 2 A), log sigma ~ N(log rms, 2), atanh phi_n ~ N(0, 2), k3
-A^2/(m w0^2) ~ N(0, 0.5). The sampler runs on u with theta = theta_map + L u, L the Cholesky
-factor of the Laplace covariance at the posterior mode (found by L-BFGS from the least-squares
-fit), so the chains see a nearly isotropic target. One compiled program (blackjax's NUTS kernel,
-vmapped over the chains inside a scan) serves the warm-up, in chunks of 25 steps that move the
-step size towards an acceptance rate of 0.8 and then set a diagonal mass matrix from the warm-up
-draws, and the sampling. The likelihood uses every s-th sample of the window (at most
-:data:`MAX_SAMPLES`): with AR(1) noise the information of neighbouring samples overlaps, and the
-thinned residuals follow an AR(1) with coefficient phi^s.
+offset (when fitted), the cubic stiffness k3 itself (when free: it has either sign), x0, y
+(ansatz) or v0 (reference), log sigma and atanh phi_n. Weakly informative priors, documented
+in :data:`PRIORS`: log c ~ N(log c_guess, 3) around the turning-point guess of the constant (a
+factor 20 per sigma), w0 ~ N(w_turn, 0.05 w_turn) around the turning points' frequency,
+offset ~ N(offset_fit, A), x0 and y ~ N(their least-squares values, 2 A) (v0: 2 A w0), log
+sigma ~ N(log rms, 2), atanh phi_n ~ N(0, 2), k3 A^2/(m w0^2) ~ N(0, 0.5). The sampler runs on
+u with theta = theta_map + L u, L the Cholesky factor of the Laplace covariance at the
+posterior mode (found by L-BFGS from the least-squares fit), so the chains see a nearly
+isotropic target. Warm-up: blackjax's window adaptation (step size by dual averaging towards an
+acceptance rate of 0.8, a diagonal mass matrix from growing windows), each chain its own,
+vmapped over the chains together with the sampling in one compiled program. The likelihood
+uses every s-th sample of the window (at most :data:`MAX_SAMPLES`): with AR(1) noise the
+information of neighbouring samples overlaps, and the thinned residuals follow an AR(1) with
+coefficient phi^s.
+
+Gradients: the ansatz is differentiated in reverse mode; the reference integrator in forward
+mode (its plain ``lax`` loop, ``adjoint="forward"``): the log density's gradient is one
+``jacfwd`` over the few parameters, wrapped as a custom JVP so that NUTS's ``value_and_grad``
+goes through it (:data:`GRADIENTS`).
+
+The result writes an ArviZ InferenceData file (``Posterior.to_netcdf``: groups posterior,
+sample_stats, observed_data; ``_mcmc.write_inference_data``) and reports rank-normalised split
+R-hat and bulk and tail ESS as ArviZ computes them (``_mcmc``).
 """
 
 from __future__ import annotations
@@ -27,32 +45,324 @@ from __future__ import annotations
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._core import _ansatz_curve
+from ._core import FIT_MODELS, ReferenceOptions
 from ._params import DAMPING, Constants, TraceCoords, ansatz_v0, unit_of
 
 #: the posterior uses every s-th sample of the fit window, at most this many (the AR(1) noise
 #: model holds for the thinned residuals too, with coefficient phi^s)
 MAX_SAMPLES = 4096
+#: the most doublings of a NUTS trajectory (2^7 = 128 leapfrog steps)
+MAX_DOUBLINGS = 7
+#: the acceptance rate the window adaptation aims at
+TARGET_ACCEPT = 0.8
+#: tolerances of the reference integrator inside the posterior (well below any noise level)
+REFERENCE_RTOL, REFERENCE_ATOL = 1e-9, 1e-12
+#: how each fit model's log density is differentiated ("reverse": jax.grad; "forward": one
+#: jacfwd over the parameters, as a custom JVP)
+GRADIENTS = {"ansatz": "reverse", "reference": "forward"}
 
 #: the priors, for the docs and the report
 PRIORS = {
     "damping constant c (free)": "log c ~ Normal(log c_guess, 3), c_guess from the turning points",
     "w0": "Normal(w_turn, 0.05 w_turn), w_turn the turning points' frequency",
     "offset": "Normal(offset of the least-squares fit, A)",
-    "x0, y = A sin(phi)": "Normal(least-squares value, 2 A)",
+    "x0, y = A sin(phi) (ansatz) or v0 (reference)":
+        "Normal(least-squares value, 2 A) (v0: 2 A w0)",
     "sigma (AR(1) innovation sd)": "log sigma ~ Normal(log rms of the fit, 2)",
     "phi_n (AR(1) coefficient)": "atanh phi_n ~ Normal(0, 2)",
     "k3 (free)": "k3 A^2/(m w0^2) ~ Normal(0, 0.5) (|k3| A^2/(m w0^2) ~ 1 is far beyond the "
                  "harmonic balance of docs/cubic_stiffness.md)",
 }
+#: the variables of the sample_stats group (ArviZ's names)
+SAMPLE_STATS = ("lp", "diverging", "energy", "step_size", "tree_depth", "acceptance_rate",
+                "n_steps")
+
+
+# ----------------------------------------------------------------------------------------------
+# the log density of any residual function
+
+
+class Layout(NamedTuple):
+    """The entries of the physical parameter vector p of a residual function (static).
+
+    Attributes:
+        names: the name of each entry, in order.
+        log: per entry, whether it is sampled as its logarithm (a positive constant).
+    """
+
+    names: tuple
+    log: tuple
+
+
+class _Data(NamedTuple):
+    """What the log posterior needs besides theta (traced: one compilation per shape)."""
+
+    args: Any  # the residual's arguments (a pytree)
+    centre: jax.Array  # prior centres and widths of theta (the layout's entries, then noise)
+    width: jax.Array
+    theta_map: jax.Array
+    L: jax.Array
+
+
+def ar1_loglik(r, sigma, phi):
+    """Exact log likelihood of a stationary AR(1) series r (along the last axis; rows of a
+    2-D r are independent series with the same sigma and phi).
+
+    Arguments:
+        r: residuals, shape (n,) or (rows, n).
+        sigma: innovation standard deviation.
+        phi: lag-1 coefficient, |phi| < 1.
+
+    Returns:
+        sum_rows [-1/2 sum_t e_t^2 / sigma^2 - r_1^2 (1 - phi^2) / (2 sigma^2) - n log sigma
+        + 1/2 log(1 - phi^2)] with e_t = r_t - phi r_(t-1) (the constant -n/2 log 2 pi left
+        out).
+    """
+    r = jnp.atleast_2d(r)
+    e = r[:, 1:] - phi * r[:, :-1]
+    n = r.shape[-1]
+    per_row = (-0.5 * jnp.sum(e * e, axis=-1) / sigma ** 2
+               - 0.5 * r[:, 0] ** 2 * (1 - phi ** 2) / sigma ** 2
+               - n * jnp.log(sigma) + 0.5 * jnp.log1p(-phi ** 2))
+    return jnp.sum(per_row)
+
+
+def physical(theta, layout: Layout):
+    """p of the layout from the unconstrained theta (exp of the log entries), then sigma and
+    phi_n from the last two entries."""
+    n = len(layout.names)
+    p = jnp.stack([jnp.exp(theta[i]) if lg else theta[i] for i, lg in enumerate(layout.log)])
+    return p, jnp.exp(theta[n]), jnp.tanh(theta[n + 1])
+
+
+def _logpost(theta, data: _Data, residual: Callable, layout: Layout):
+    """log prior (independent normals on theta) + AR(1) log likelihood of residual(p)."""
+    p, sigma, phi = physical(theta, layout)
+    out = ar1_loglik(residual(p, data.args), sigma, phi) \
+        - 0.5 * jnp.sum(((theta - data.centre) / data.width) ** 2)
+    return jnp.where(jnp.isfinite(out), out, -jnp.inf)
+
+
+def _density(residual: Callable, layout: Layout, mode: str):
+    """The log posterior f(theta, data), differentiated in ``mode`` ("reverse" or
+    "forward": the gradient by jacfwd inside a custom JVP, for models whose loops have no
+    reverse mode)."""
+    f = functools.partial(_logpost, residual=residual, layout=layout)
+    if mode == "reverse":
+        return f
+    if mode != "forward":
+        raise ValueError(f"mode must be 'reverse' or 'forward', got {mode!r}")
+
+    @jax.custom_jvp
+    def g(theta, data):
+        return f(theta, data)
+
+    @g.defjvp
+    def g_jvp(primals, tangents):
+        theta, data = primals
+        grad, value = jax.jacfwd(lambda th: (f(th, data),) * 2, has_aux=True)(theta)
+        return value, grad @ tangents[0]
+
+    return g
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode"))
+def _neg_value_and_grad(theta, data, residual, layout, mode):
+    f = _density(residual, layout, mode)
+    return jax.value_and_grad(lambda th: -f(th, data))(theta)
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode"))
+def _neg_hessian(theta, data, residual, layout, mode):
+    f = _density(residual, layout, mode)
+    return jax.jacfwd(jax.grad(lambda th: -f(th, data)))(theta)
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode", "num_warmup",
+                                             "num_samples"))
+def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
+    """Window adaptation then NUTS sampling of every chain, vmapped over the chains (keys,
+    u0: one row per chain); returns the draws of u and the sample stats."""
+    import blackjax
+    from blackjax.adaptation.base import get_filter_adapt_info_fn
+
+    f = _density(residual, layout, mode)
+
+    def logdensity(u):
+        return f(data.theta_map + data.L @ u, data)
+
+    def one_chain(key, u):
+        k_warm, k_draw = jax.random.split(key)
+        warmup = blackjax.window_adaptation(
+            blackjax.nuts, logdensity, target_acceptance_rate=TARGET_ACCEPT,
+            adaptation_info_fn=get_filter_adapt_info_fn(), max_num_doublings=MAX_DOUBLINGS)
+        (state, params), _ = warmup.run(k_warm, u, num_warmup)
+        step = blackjax.nuts(logdensity, step_size=params["step_size"],
+                             inverse_mass_matrix=params["inverse_mass_matrix"],
+                             max_num_doublings=MAX_DOUBLINGS).step
+
+        def draw(st, k):
+            st, info = step(k, st)
+            return st, (st.position, {
+                "lp": st.logdensity, "diverging": info.is_divergent, "energy": info.energy,
+                "tree_depth": info.num_trajectory_expansions,
+                "acceptance_rate": info.acceptance_rate,
+                "n_steps": info.num_integration_steps})
+
+        _, (pos, stats) = jax.lax.scan(draw, state, jax.random.split(k_draw, num_samples))
+        stats["step_size"] = jnp.broadcast_to(params["step_size"], (num_samples,))
+        return pos, stats
+
+    return jax.vmap(one_chain)(keys, u0)
+
+
+class Draws(NamedTuple):
+    """What :func:`sample` returns: theta (chain, draw, dim), the sample stats (each (chain,
+    draw)), the mode and the Laplace factor, and the seconds of the mode search and of the
+    compiled chains."""
+
+    theta: np.ndarray
+    stats: dict
+    theta_map: np.ndarray
+    L: np.ndarray
+    seconds_mode: float
+    seconds_chains: float
+
+
+def sample(residual: Callable, args, layout: Layout, centre, width, theta0, *,
+           mode: str = "reverse", num_samples: int = 1000, num_chains: int = 4,
+           num_warmup: int = 500, seed: int = 0) -> Draws:
+    """NUTS draws of theta = (the layout's entries, log sigma, atanh phi_n) for any residual.
+
+    The posterior: independent normal priors N(centre, width) on theta, AR(1) noise on
+    ``residual(p, args)`` (:func:`ar1_loglik`), p = :func:`physical` (theta). Mode by L-BFGS
+    from theta0, Laplace preconditioning, window adaptation and sampling vmapped over chains.
+
+    Arguments:
+        residual: ``residual(p, args) -> r`` (data minus model, shape (n,) or (rows, n)),
+            hashable (a frozen dataclass: it is a static argument of the compiled programs).
+        args: its arrays (a pytree; traced).
+        layout: the names of p and which are sampled as logarithms.
+        centre, width, theta0: prior centres, widths and the start, len(layout.names) + 2.
+        mode: "reverse" or "forward" differentiation of the log density.
+        num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
+        seed: random seed.
+
+    Returns:
+        :class:`Draws`.
+    """
+    from scipy.optimize import minimize
+
+    dim = len(layout.names) + 2
+    for name, v in (("centre", centre), ("width", width), ("theta0", theta0)):
+        if np.shape(v) != (dim,):
+            raise ValueError(f"{name} must have {dim} entries (the layout's and 2 for the "
+                             f"noise), got shape {np.shape(v)}")
+    began = time.perf_counter()
+    data = _Data(args=args, centre=jnp.asarray(centre, dtype=float),
+                 width=jnp.asarray(width, dtype=float), theta_map=jnp.zeros(dim),
+                 L=jnp.eye(dim))
+    static = dict(residual=residual, layout=layout, mode=mode)
+
+    def fun(th):
+        v, gr = _neg_value_and_grad(jnp.asarray(th), data, **static)
+        v = float(v)
+        return (v, np.asarray(gr, dtype=float)) if math.isfinite(v) else (1e300, np.zeros_like(th))
+
+    opt = minimize(fun, np.asarray(theta0, dtype=float), jac=True, method="L-BFGS-B",
+                   options={"maxiter": 500})
+    theta_map = np.asarray(opt.x, dtype=float)
+    H = np.asarray(_neg_hessian(jnp.asarray(theta_map), data, **static), dtype=float)
+    H = 0.5 * (H + H.T)
+    if not np.all(np.isfinite(H)):
+        H = np.diag(1.0 / np.asarray(width, dtype=float) ** 2)
+    ev, V = np.linalg.eigh(H)
+    ev = np.clip(ev, max(ev.max(), 1e-300) * 1e-12, None)
+    L = np.linalg.cholesky((V / ev) @ V.T + 1e-300 * np.eye(dim))
+    data = data._replace(theta_map=jnp.asarray(theta_map), L=jnp.asarray(L))
+    mid = time.perf_counter()
+    k_init, k_chains = jax.random.split(jax.random.PRNGKey(int(seed)))
+    nch = int(num_chains)
+    u0 = 0.5 * jax.random.normal(k_init, (nch, dim))
+    U, stats = _chains(jax.random.split(k_chains, nch), u0, data, num_warmup=int(num_warmup),
+                       num_samples=int(num_samples), **static)
+    U = np.asarray(U)  # (chain, draw, dim)
+    stats = {k: np.asarray(v) for k, v in stats.items()}
+    done = time.perf_counter()
+    theta = theta_map[None, None, :] + U @ L.T
+    return Draws(theta=theta, stats=stats, theta_map=theta_map, L=L,
+                 seconds_mode=mid - began, seconds_chains=done - mid)
+
+
+# ----------------------------------------------------------------------------------------------
+# one trace
+
+
+class TraceArgs(NamedTuple):
+    """The arrays of :class:`TraceResidual`: the (thinned) window, the fit's values of the
+    parameters that are not sampled, the constants and the window's span."""
+
+    t: jax.Array
+    x: jax.Array
+    base: TraceCoords
+    consts: Constants
+    span: jax.Array
+
+
+@dataclass(frozen=True)
+class TraceResidual:
+    """Residuals x - model(t; p) of one trace for a fit model (static, hashable).
+
+    Attributes:
+        model: "ansatz" or "reference".
+        names: the names of p: among mu, b, D, k3, w0, offset, then x0 and y (ansatz:
+            A sin(phi)) or v0 (reference).
+        opts: the reference integrator's budget and tolerances (None for the ansatz).
+        adjoint: the reference integrator's adjoint ("forward" or "recursive").
+    """
+
+    model: str
+    names: tuple
+    opts: ReferenceOptions | None = None
+    adjoint: str = "forward"
+
+    def __call__(self, p, args: TraceArgs):
+        vals = dict(zip(self.names, (p[i] for i in range(len(self.names))), strict=True))
+        vals.setdefault("y", vals.get("v0"))
+        q = TraceCoords(**{f: vals[f] if f in vals else getattr(args.base, f)
+                           for f in TraceCoords._fields})
+        consts = args.consts._replace(k3=vals["k3"]) if "k3" in vals else args.consts
+        tau = args.t - args.t[0]
+        if self.model == "reference":
+            return args.x - _reference_curve(tau, q, consts, args.span, self.opts, self.adjoint)
+        return args.x - FIT_MODELS[self.model].curve(tau, q, consts, args.span, self.opts)
+
+
+def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions,
+                     adjoint: str):
+    """``_core._reference_curve`` with a choice of adjoint; invalid solutions give NaN."""
+    from .._oscillator import Oscillator
+    from .._solve import solve
+
+    m = consts.m
+    k3 = 0.0 if consts.k3 is None else consts.k3
+    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3)
+    sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
+                rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint=adjoint)
+    return jnp.where(sol.valid, q.offset + sol.x(tau), jnp.nan)
+
+
+# ----------------------------------------------------------------------------------------------
+# the result
 
 
 @dataclass
@@ -60,31 +370,55 @@ class Posterior:
     """Posterior draws of a trace fit (:func:`posterior`).
 
     Attributes:
-        draws: xarray Dataset, one variable per parameter (the free damping constants, k3
-            when free, w0, offset, x0, v0, sigma, phi_noise), dims (chain, draw): the ArviZ
-            layout.
+        draws: xarray Dataset, one variable per sampled parameter (the free damping constants,
+            k3 when free, w0 and offset when fitted, x0, v0, sigma, phi_noise), dims (chain,
+            draw): the ``posterior`` group of ArviZ; the fixed parameters are its attributes
+            ``fixed_<name>``.
+        sample_stats: xarray Dataset of the sampler's statistics per draw (:data:`SAMPLE_STATS`:
+            lp, diverging, energy, step_size, tree_depth, acceptance_rate, n_steps).
+        observed_data: xarray Dataset of the fit window: x over the coordinate t.
         free: the sampled constants (the damping constants, then k3 when free).
         fit: the least-squares :class:`FitResult` it started from.
+        model: the fit model sampled ("ansatz" or "reference").
         units, per_mass: as the fit's.
-        accept_rate, divergences, step_size, seconds: sampler diagnostics.
+        accept_rate, divergences, step_size: sampler diagnostics (means over chains and
+            draws; the step size averaged over the chains).
+        seconds: wall time of :func:`posterior` (the start fit included when it ran).
+        seconds_chains: wall time of the warm-up and sampling program (compilation included
+            on its first call for a shape).
+        stride: the likelihood uses 1 sample in ``stride`` of the window.
     """
 
     draws: object
     free: tuple
     fit: object
+    sample_stats: object = None
+    observed_data: object = None
+    model: str = "ansatz"
     units: str = "m"
     per_mass: bool = False
     accept_rate: float = math.nan
     divergences: int = 0
     step_size: float = math.nan
     seconds: float = math.nan
+    seconds_chains: float = math.nan
     stride: int = 1
     priors: dict = field(default_factory=lambda: dict(PRIORS))
 
     def summary(self, level: float = 0.95) -> dict:
-        """{name: {"mean", "lo", "hi", "r_hat", "ess"}}: the posterior mean, the central
-        ``level`` interval, split R-hat and the effective sample size (blackjax.diagnostics)."""
-        from blackjax.diagnostics import effective_sample_size, potential_scale_reduction
+        """Posterior summary per sampled parameter.
+
+        Arguments:
+            level: the two-sided level of the central interval.
+
+        Returns:
+            {name: {"mean", "sd", "lo", "hi", "r_hat", "ess_bulk", "ess_tail", "ess"}}: the
+            mean, standard deviation, the central ``level`` interval, the rank-normalised
+            split R-hat and the bulk and tail effective sample sizes, as ``arviz.rhat`` and
+            ``arviz.ess`` compute them (``_mcmc``; Vehtari et al. 2021); "ess" is the bulk
+            ESS. R-hat is NaN for one chain.
+        """
+        from ._mcmc import ess_bulk, ess_tail, rhat
 
         if not 0.0 < level < 1.0:
             raise ValueError(f"level must be in (0, 1), got {level!r}")
@@ -92,40 +426,45 @@ class Posterior:
         for name in self.draws.data_vars:
             a = np.asarray(self.draws[name].values, dtype=float)
             q = np.quantile(a, [0.5 - 0.5 * level, 0.5 + 0.5 * level])
-            rhat = float(potential_scale_reduction(jnp.asarray(a))) if a.shape[0] > 1 \
-                else math.nan
-            ess = float(effective_sample_size(jnp.asarray(a)))
-            out[name] = {"mean": float(a.mean()), "lo": float(q[0]), "hi": float(q[1]),
-                         "r_hat": rhat, "ess": ess}
+            bulk = ess_bulk(a)
+            out[name] = {"mean": float(a.mean()), "sd": float(a.std(ddof=1)),
+                         "lo": float(q[0]), "hi": float(q[1]), "r_hat": rhat(a),
+                         "ess_bulk": bulk, "ess_tail": ess_tail(a), "ess": bulk}
         return out
 
     def report(self, level: float = 0.95) -> str:
-        """The summary as text, with the sampler's diagnostics and the priors."""
+        """The summary as text, with the sampler's diagnostics."""
         s = self.summary(level)
         nc, nd = self.draws.sizes["chain"], self.draws.sizes["draw"]
-        lines = [f"[[Posterior]] NUTS (blackjax), {nc} chains x {nd} draws, AR(1) noise; "
-                 f"accept rate {self.accept_rate:.2f}, {self.divergences} divergences, "
+        lines = [f"[[Posterior]] NUTS (blackjax, window adaptation), {self.model} model, "
+                 f"{nc} chains x {nd} draws, AR(1) noise; accept rate "
+                 f"{self.accept_rate:.2f}, {self.divergences} divergences, "
                  f"{self.seconds:.1f} s"
                  + (f"; 1 sample in {self.stride}" if self.stride > 1 else ""),
                  f"    {'':<10} {'mean':>12} {f'{100 * level:g} % interval':>28} "
-                 f"{'r_hat':>6} {'ess':>7}"]
+                 f"{'r_hat':>6} {'ess_bulk':>8} {'ess_tail':>8}"]
         for name, row in s.items():
             unit = unit_of(name, self.units, self.per_mass) if name in DAMPING or name in (
-                "w0", "offset", "x0", "v0") else ("" if name == "phi_noise" else self.units)
+                "w0", "offset", "x0", "v0", "k3") else ("" if name == "phi_noise"
+                                                        else self.units)
             lines.append(f"    {name + ':':<10} {row['mean']:>12.6g} [{row['lo']:>12.6g}, "
-                         f"{row['hi']:>12.6g}] {row['r_hat']:>6.3f} {row['ess']:>7.0f} {unit}"
-                         .rstrip())
-        bad = [n for n, row in s.items() if not row["r_hat"] < 1.05]
+                         f"{row['hi']:>12.6g}] {row['r_hat']:>6.3f} {row['ess_bulk']:>8.0f} "
+                         f"{row['ess_tail']:>8.0f} {unit}".rstrip())
+        bad = [n for n, row in s.items() if not row["r_hat"] < 1.01] if nc > 1 else []
         if bad:
-            lines.append(f"    warning: r_hat >= 1.05 for {', '.join(bad)}: the chains disagree")
+            lines.append(f"    warning: r_hat >= 1.01 for {', '.join(bad)}: the chains "
+                         "disagree (more warm-up or draws)")
         return "\n".join(lines)
 
     def to_netcdf(self, path) -> Path:
-        """Write the draws as netCDF (scipy backend, no _FillValue on the coordinates chain
-        and draw, as CF asks); returns the path."""
-        from .._io import write_netcdf
+        """Write an ArviZ InferenceData file: groups posterior (:attr:`draws`), sample_stats
+        and observed_data (netCDF-4, ``arviz.from_netcdf`` opens it; ArviZ is not needed to
+        write it). Returns the path."""
+        from ._mcmc import write_inference_data
 
-        return write_netcdf(self.draws, path)
+        return write_inference_data({"posterior": self.draws,
+                                     "sample_stats": self.sample_stats,
+                                     "observed_data": self.observed_data}, path)
 
     def corner(self, path, *, names=None) -> Path:
         """Save a corner plot (pairwise scatter and histograms) of the damping constants (or
@@ -137,107 +476,63 @@ class Posterior:
                            units={n: unit_of(n, self.units, self.per_mass) for n in names})
 
 
-class _Cfg(NamedTuple):
-    """Static layout of theta: the free constants and which of w0, offset are sampled."""
-
-    free: tuple  # the sampled damping constants (k3 is vary_k3)
-    vary_w0: bool
-    vary_off: bool
-    vary_k3: bool = False
+# ----------------------------------------------------------------------------------------------
+# the public function
 
 
-class _Data(NamedTuple):
-    """What the log posterior needs besides theta (traced: one compilation per shape)."""
+def _trace_setup(res, stride: int, vary_k3: bool):
+    """(residual, args, layout, centre, width, theta0) of the trace fit ``res``."""
+    model = res.model
+    t = jnp.asarray(res.t[::stride])
+    xd = jnp.asarray(res.x[::stride])
+    span = float(res.t[-1] - res.t[0])
+    m, g = float(res.fixed["m"]), float(res.fixed["g"])
+    p = res.params
+    free = tuple(c for c in res.free if c != "k3")
+    A = float(res.derived["A"])
+    if model == "reference":
+        x0_hat, y_hat, y_name, y_width = p["x0"], p["v0"], "v0", 2 * A * p["w0"]
+    else:
+        x0_hat = A * math.cos(res.derived["phi"])
+        y_hat, y_name, y_width = A * math.sin(res.derived["phi"]), "y", 2 * A
+    r = np.asarray(res.residuals)[::stride]
+    phi_hat = float(np.clip(np.corrcoef(r[:-1], r[1:])[0, 1], -0.9, 0.995))
+    sig_hat = float(np.std(r[1:] - phi_hat * r[:-1])) or 1e-12
+    w_turn = p["w0"] / (1.0 + float(res.diagnostics.get("w0/turning - 1", 0.0)))
+    names, log, centre, width, theta0 = [], [], [], [], []
 
-    t: jax.Array
-    x: jax.Array
-    fixed: jax.Array  # mu, b, D, w0, offset of the fit (the values of what is not sampled)
-    consts: Constants
-    span: jax.Array
-    centre: jax.Array
-    width: jax.Array
-    theta_map: jax.Array
-    L: jax.Array
+    def add(name, is_log, c, w, start):
+        names.append(name)
+        log.append(is_log)
+        centre.append(c)
+        width.append(w)
+        theta0.append(start)
 
-
-#: chunk length of the warm-up and the sampling scans (one compiled program for both)
-CHUNK = 25
-
-
-def _unpack(theta, data: _Data, cfg: _Cfg):
-    vals = {c: data.fixed[i] for i, c in enumerate(DAMPING)}
-    for i, c in enumerate(cfg.free):
-        vals[c] = jnp.exp(theta[i])
-    j = len(cfg.free)
-    w0 = theta[j] if cfg.vary_w0 else data.fixed[3]
-    j += int(cfg.vary_w0)
-    off = theta[j] if cfg.vary_off else data.fixed[4]
-    j += int(cfg.vary_off)
-    k3 = theta[j] if cfg.vary_k3 else None  # None: the linear spring's curve, as without k3
-    j += int(cfg.vary_k3)
-    q = TraceCoords(mu=vals["mu"], b=vals["b"], D=vals["D"], w0=w0, offset=off,
-                    x0=theta[j], y=theta[j + 1])
-    return q, jnp.exp(theta[j + 2]), jnp.tanh(theta[j + 3]), k3
-
-
-def _logpost(theta, data: _Data, cfg: _Cfg):
-    """log prior + exact stationary AR(1) log likelihood of the residuals."""
-    q, sigma, phi, k3 = _unpack(theta, data, cfg)
-    consts = data.consts._replace(k3=k3) if cfg.vary_k3 else data.consts
-    rr = data.x - _ansatz_curve(data.t - data.t[0], q, consts, data.span, None)
-    e = rr[1:] - phi * rr[:-1]
-    n = rr.shape[0]
-    ll = (-0.5 * jnp.sum(e * e) / sigma ** 2 - 0.5 * rr[0] ** 2 * (1 - phi ** 2) / sigma ** 2
-          - n * jnp.log(sigma) + 0.5 * jnp.log1p(-phi ** 2))
-    lp = -0.5 * jnp.sum(((theta - data.centre) / data.width) ** 2)
-    out = ll + lp
-    return jnp.where(jnp.isfinite(out), out, -jnp.inf)
-
-
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _neg_value_and_grad(theta, data, cfg):
-    return jax.value_and_grad(lambda th: -_logpost(th, data, cfg))(theta)
-
-
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def _neg_hessian(theta, data, cfg):
-    return jax.hessian(lambda th: -_logpost(th, data, cfg))(theta)
-
-
-def _logdensity(u, data, cfg):
-    return _logpost(data.theta_map + data.L @ u, data, cfg)
-
-
-@functools.partial(jax.jit, static_argnames=("cfg", "nch"))
-def _chunk(states, keys, step_size, imm, data, cfg, nch):
-    """CHUNK NUTS steps of every chain (vmapped) in one scan: the warm-up and the sampling
-    share this program (step size and the diagonal inverse mass matrix are arguments)."""
-    import blackjax
-
-    kernel = blackjax.nuts.build_kernel()
-
-    def logdensity(u):
-        return _logdensity(u, data, cfg)
-
-    def one(st, k):
-        ks = jax.random.split(k, nch)
-        st, info = jax.vmap(lambda kk, ss: kernel(kk, ss, logdensity, step_size, imm,
-                                                  max_num_doublings=6))(ks, st)
-        return st, (st.position, info.acceptance_rate, info.is_divergent)
-
-    return jax.lax.scan(one, states, keys)
-
-
-def _layout(free, cfg: _Cfg):
-    """Names of the entries of theta, in order."""
-    names = [f"log_{c}" for c in free]
-    if cfg.vary_w0:
-        names.append("w0")
-    if cfg.vary_off:
-        names.append("offset")
-    if cfg.vary_k3:
-        names.append("k3")
-    return names + ["x0", "y", "log_sigma", "atanh_phi"]
+    for c in free:
+        guess = max(float(res.init.get(c, p[c])), 1e-30)
+        add(c, True, math.log(guess), 3.0, math.log(max(p[c], guess * 1e-6)))
+    if vary_k3:  # k3 A^2/(m w0^2) ~ N(0, 0.5), started at the profiled fit's k3
+        add("k3", False, 0.0, 0.5 * m * p["w0"] ** 2 / A ** 2, p["k3"])
+    if "w0" in res.varied:
+        add("w0", False, w_turn, 0.05 * w_turn, p["w0"])
+    if "offset" in res.varied:
+        add("offset", False, p["offset"], A, p["offset"])
+    add("x0", False, x0_hat, 2 * A, x0_hat)
+    add(y_name, False, y_hat, y_width, y_hat)
+    centre += [math.log(float(np.sqrt(np.mean(r * r))) or 1e-12), 0.0]
+    width += [2.0, 2.0]
+    theta0 += [math.log(sig_hat), math.atanh(phi_hat)]
+    opts = None
+    if model == "reference":
+        opts = ReferenceOptions(int(1.2 * span * p["w0"] / math.pi) + 8, REFERENCE_RTOL,
+                                REFERENCE_ATOL)
+    residual = TraceResidual(model=model, names=tuple(names), opts=opts)
+    base = TraceCoords(**{f: jnp.asarray(float(p[f] if f in p else 0.0))
+                          for f in TraceCoords._fields})
+    args = TraceArgs(t=t, x=xd, base=base, consts=Constants(m=jnp.asarray(m),
+                                                            g=jnp.asarray(g)),
+                     span=jnp.asarray(span))
+    return residual, args, Layout(tuple(names), tuple(log)), centre, width, theta0
 
 
 def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
@@ -246,34 +541,34 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
               seed: int = 0, units: str | None = None, start_fit=None,
               progress: bool = False) -> Posterior:
     """Sample the posterior of the free damping constants (and the nuisance parameters) with
-    NUTS from blackjax, on log-parameters, with AR(1) noise (see the module doc for the model
-    and the priors).
+    NUTS from blackjax, on log-parameters, with AR(1) noise (see the module doc for the model,
+    the priors and the sampler).
 
     Arguments:
         trace_or_t, x, oscillator, free, fit_omega0, offset, start, end, units: as in
             :func:`~dampax.fit` (no oscillator: per unit mass, w0 sampled). ``free`` may
             include "k3" (the cubic stiffness, sampled on its own scale; the start fit then
             profiles it, as ``dp.fit(free=(..., "k3"))`` does).
-        model: "ansatz" (the only model sampled).
-        num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
+        model: "ansatz" (closed form, eqs. 11, 20-23) or "reference" (eq. 3 integrated with
+            exact stick-slip; slower, forward-mode gradients).
+        num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps (blackjax
+            window adaptation, per chain).
         seed: random seed.
-        start_fit: a :class:`FitResult` of the same data and options to start from (default:
-            ``fit(...)`` is run).
-        progress: show a tqdm bar over the sampling (stderr).
+        start_fit: a :class:`FitResult` of the same data, options and model to start from
+            (default: ``fit(...)`` is run).
+        progress: show a tqdm bar over the stages (start fit, mode, chains) on stderr.
 
     Returns:
         A :class:`Posterior`.
     """
-    import blackjax
     import xarray as xr
-    from scipy.optimize import minimize
     from tqdm import tqdm
 
     from ._api import fit
-    from ._params import FREE, check_free
+    from ._core import MODELS
+    from ._params import FREE, check_choice, check_free
 
-    if model != "ansatz":
-        raise ValueError(f"model must be 'ansatz' for the posterior, got {model!r}")
+    check_choice("model", model, MODELS)
     for name, value, low in (("num_samples", num_samples, 10), ("num_chains", num_chains, 1),
                              ("num_warmup", num_warmup, 10)):
         if isinstance(value, bool) or int(value) != value or value < low:
@@ -284,139 +579,69 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     if not free:
         raise ValueError("free: name at least one damping constant")
     began = time.perf_counter()
+    bar = tqdm(total=3, desc="posterior", unit="stage", disable=not progress)
     res = start_fit if start_fit is not None else fit(
-        trace_or_t, x, oscillator=oscillator, free=free + ("k3",) * vary_k3,
-        fit_omega0=fit_omega0, offset=offset,
-        start=start, end=end, units=units, seed=seed)
-    if tuple(res.free) != free + ("k3",) * vary_k3 or res.model != "ansatz":
-        raise ValueError("start_fit must be an ansatz fit with the same free constants")
+        trace_or_t, x, oscillator=oscillator, free=names_in, model=model,
+        fit_omega0=fit_omega0, offset=offset, start=start, end=end, units=units, seed=seed)
+    bar.update()
+    if tuple(res.free) != names_in or res.model != model:
+        raise ValueError(f"start_fit must be a {model!r} fit with free={names_in!r}, got a "
+                         f"{res.model!r} fit with free={tuple(res.free)!r}")
     stride = max(1, math.ceil(len(res.t) / MAX_SAMPLES))
-    t = jnp.asarray(res.t[::stride])
-    xd = jnp.asarray(res.x[::stride])
-    t0 = float(res.t[0])
-    span = float(res.t[-1] - t0)
-    m, g = res.fixed["m"], res.fixed["g"]
-    vary_w0 = "w0" in res.varied
-    vary_off = "offset" in res.varied
-
-    cfg = _Cfg(free=tuple(free), vary_w0=vary_w0, vary_off=vary_off, vary_k3=vary_k3)
-    names = _layout(free, cfg)
-    p = res.params
-    A = res.derived["A"]
-    y_hat = A * math.sin(res.derived["phi"])
-    x0_hat = A * math.cos(res.derived["phi"])
-    r = np.asarray(res.residuals)[::stride]
-    phi_hat = float(np.clip(np.corrcoef(r[:-1], r[1:])[0, 1], -0.9, 0.995))
-    sig_hat = float(np.std(r[1:] - phi_hat * r[:-1])) or 1e-12
-    w_cross = p["w0"] / (1.0 + float(res.diagnostics.get("w0/turning - 1", 0.0)))
-    # prior centres and widths, and the start (theta at the least-squares fit)
-    centre, width, theta0 = [], [], []
-    for c in free:
-        guess = max(float(res.init.get(c, p[c])), 1e-30)
-        centre.append(math.log(guess))
-        width.append(3.0)
-        theta0.append(math.log(max(p[c], guess * 1e-6)))
-    if vary_w0:
-        centre.append(w_cross)
-        width.append(0.05 * w_cross)
-        theta0.append(p["w0"])
-    if vary_off:
-        centre.append(p["offset"])
-        width.append(A)
-        theta0.append(p["offset"])
-    if vary_k3:  # k3 A^2/(m w0^2) ~ N(0, 0.5), started at the profiled fit's k3
-        centre.append(0.0)
-        width.append(0.5 * float(m) * p["w0"] ** 2 / A ** 2)
-        theta0.append(p["k3"])
-    centre += [x0_hat, y_hat, math.log(float(np.sqrt(np.mean(r * r))) or 1e-12), 0.0]
-    width += [2 * A, 2 * A, 2.0, 2.0]
-    theta0 += [x0_hat, y_hat, math.log(sig_hat), math.atanh(phi_hat)]
-    dim = len(names)
-    data = _Data(t=t, x=xd, fixed=jnp.asarray([p[c] for c in (*DAMPING, "w0", "offset")]),
-                 consts=Constants(m=jnp.asarray(float(m)), g=jnp.asarray(float(g))),
-                 span=jnp.asarray(span), centre=jnp.asarray(centre),
-                 width=jnp.asarray(width), theta_map=jnp.zeros(dim), L=jnp.eye(dim))
-
-    def f(th):
-        v, gr = _neg_value_and_grad(jnp.asarray(th), data, cfg)
-        v = float(v)
-        return (v, np.asarray(gr, dtype=float)) if math.isfinite(v) else (1e300, np.zeros_like(th))
-
-    opt = minimize(f, np.asarray(theta0, dtype=float), jac=True, method="L-BFGS-B",
-                   options={"maxiter": 500})
-    theta_map = jnp.asarray(opt.x)
-    H = np.asarray(_neg_hessian(theta_map, data, cfg), dtype=float)
-    H = 0.5 * (H + H.T)
-    ev, V = np.linalg.eigh(H)
-    ev = np.clip(ev, max(ev.max(), 1e-300) * 1e-12, None)
-    cov = (V / ev) @ V.T
-    L = np.linalg.cholesky(cov + 1e-300 * np.eye(dim))
-    data = data._replace(theta_map=theta_map, L=jnp.asarray(L))
-
-    key = jax.random.PRNGKey(int(seed))
-    k_warm, k_init, k_sample = jax.random.split(key, 3)
-    nch = int(num_chains)
-
-    def logdensity(u):
-        return _logdensity(u, data, cfg)
-
-    starts = 0.5 * jax.random.normal(k_init, (nch, dim))
-    states = jax.vmap(lambda u: blackjax.nuts.init(u, logdensity))(starts)
-    # warm-up in chunks: the step size moves towards an acceptance rate of 0.8, and after the
-    # first half the diagonal mass matrix is the variance of the draws of u (nearly 1 when the
-    # Laplace preconditioning is good)
-    step, imm = 0.8, jnp.ones(dim)
-    n_w = max(math.ceil(int(num_warmup) / CHUNK), 2)
-    n_s = math.ceil(int(num_samples) / CHUNK)
-    bar = tqdm(total=n_w + n_s, desc="posterior", unit="chunk", disable=not progress)
-    warm_keys = jax.random.split(k_warm, n_w * CHUNK).reshape(n_w, CHUNK, -1)
-    warm_pos = []
-    for i in range(n_w):
-        states, (pp, aa, _) = _chunk(states, warm_keys[i], step, imm, data, cfg, nch)
-        acc_w = float(np.mean(np.asarray(aa)))
-        step = float(np.clip(step * math.exp(2.0 * (acc_w - 0.8)), 1e-4, 2.0))
-        if i >= n_w // 2:
-            warm_pos.append(np.asarray(pp).reshape(-1, dim))
-        if i == (3 * n_w) // 4 and warm_pos:
-            var = np.var(np.concatenate(warm_pos), axis=0)
-            imm = jnp.asarray(np.clip(var, 1e-4, 1e4))
-        bar.update()
-    keys = jax.random.split(k_sample, n_s * CHUNK).reshape(n_s, CHUNK, -1)
-    pos, acc, div = [], [], []
-    for i in range(n_s):
-        states, (pp, aa, dd) = _chunk(states, keys[i], step, imm, data, cfg, nch)
-        pos.append(np.asarray(pp))
-        acc.append(np.asarray(aa))
-        div.append(np.asarray(dd))
-        bar.update()
+    residual, args, layout, centre, width, theta0 = _trace_setup(res, stride, vary_k3)
+    out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
+                 num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup,
+                 seed=seed)
+    bar.update(2)
     bar.close()
-    ns = int(num_samples)
-    U = np.concatenate(pos, axis=0)[:ns]  # (draw, chain, dim)
-    theta = np.asarray(theta_map)[None, None, :] + U @ np.asarray(L).T
-    theta = np.transpose(theta, (1, 0, 2))  # (chain, draw, dim)
-    draws = {}
-    flat = theta.reshape(-1, dim)
-    q, sigma, phi_n, k3s = jax.vmap(lambda th: _unpack(th, data, cfg))(jnp.asarray(flat))
-    shape = theta.shape[:2]
-    for c in free:
-        draws[c] = np.asarray(getattr(q, c)).reshape(shape)
-    if vary_k3:
-        draws["k3"] = np.asarray(k3s).reshape(shape)
-    draws["w0"] = np.broadcast_to(np.asarray(q.w0), (flat.shape[0],)).reshape(shape)
-    draws["offset"] = np.broadcast_to(np.asarray(q.offset), (flat.shape[0],)).reshape(shape)
-    draws["x0"] = np.asarray(q.x0).reshape(shape)
-    v0 = ansatz_v0(q.x0, q.y, q.mu, q.b, q.D, q.w0, m, g)
-    draws["v0"] = np.asarray(v0).reshape(shape)
-    draws["sigma"] = np.asarray(sigma).reshape(shape)
-    draws["phi_noise"] = np.asarray(phi_n).reshape(shape)
-    ds = xr.Dataset({k: (("chain", "draw"), np.array(v, dtype=float)) for k, v in draws.items()},
-                    coords={"chain": np.arange(shape[0]), "draw": np.arange(shape[1])},
-                    attrs={"model": "ansatz + AR(1) noise", "sampler": "blackjax NUTS",
-                           "units": res.units, "per_mass": int(res.per_mass),
-                           "free": ",".join(names_in), "t_start": t0,
-                           "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items())})
-    return Posterior(draws=ds, free=names_in, fit=res, units=res.units,
-                     per_mass=res.per_mass, accept_rate=float(np.mean(np.concatenate(acc))),
-                     divergences=int(np.sum(np.concatenate(div))),
-                     step_size=step,
-                     seconds=time.perf_counter() - began, stride=stride)
+    # the posterior group: the sampled parameters in physical units, v0 for y
+    nch, nd, dim = out.theta.shape
+    flat = jnp.asarray(out.theta.reshape(-1, dim))
+    P, sigma, phi_n = jax.vmap(lambda th: physical(th, layout))(flat)
+    P = np.asarray(P)
+    vals = {n: P[:, i] for i, n in enumerate(layout.names)}
+    if model == "ansatz":
+        full = {f: vals.get(f, float(res.params[f])) for f in ("mu", "b", "D", "w0")}
+        vals["v0"] = np.asarray(ansatz_v0(vals["x0"], vals.pop("y"), full["mu"], full["b"],
+                                          full["D"], full["w0"], float(res.fixed["m"]),
+                                          float(res.fixed["g"])))
+    vals["sigma"] = np.asarray(sigma)
+    vals["phi_noise"] = np.asarray(phi_n)
+    order = [*free, *(("k3",) if vary_k3 else ()),
+             *(n for n in ("w0", "offset") if n in layout.names), "x0", "v0", "sigma",
+             "phi_noise"]
+    coords = {"chain": np.arange(nch), "draw": np.arange(nd)}
+    sampled = set(order)
+    fixed = {f"fixed_{n}": float(res.params[n]) for n in (*DAMPING, "w0", "offset")
+             if n not in sampled}
+    fixed.update(fixed_m=float(res.fixed["m"]), fixed_g=float(res.fixed["g"]))
+    attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
+             "model": f"{model} + AR(1) noise", "units": res.units,
+             "per_mass": int(res.per_mass), "free": ",".join(names_in), "t_start": float(res.t[0]),
+             "stride": stride, "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items()),
+             **fixed}
+    draws = xr.Dataset({n: (("chain", "draw"), np.asarray(vals[n], dtype=float).reshape(nch, nd))
+                        for n in order}, coords=coords, attrs=attrs)
+    st = out.stats
+    stats = xr.Dataset(
+        {"lp": (("chain", "draw"), st["lp"].astype(float)),
+         "diverging": (("chain", "draw"), st["diverging"].astype(bool)),
+         "energy": (("chain", "draw"), st["energy"].astype(float)),
+         "step_size": (("chain", "draw"), st["step_size"].astype(float)),
+         "tree_depth": (("chain", "draw"), st["tree_depth"].astype(np.int64)),
+         "acceptance_rate": (("chain", "draw"), st["acceptance_rate"].astype(float)),
+         "n_steps": (("chain", "draw"), st["n_steps"].astype(np.int64))},
+        coords=coords, attrs={"inference_library": "blackjax",
+                              "max_tree_depth": MAX_DOUBLINGS,
+                              "sampling_time": out.seconds_chains})
+    observed = xr.Dataset({"x": (("t",), np.asarray(res.x, dtype=float))},
+                          coords={"t": np.asarray(res.t, dtype=float)},
+                          attrs={"units": res.units, "source": str(res.source),
+                                 "stride": stride})
+    return Posterior(draws=draws, free=names_in, fit=res, sample_stats=stats,
+                     observed_data=observed, model=model, units=res.units,
+                     per_mass=res.per_mass, accept_rate=float(np.mean(st["acceptance_rate"])),
+                     divergences=int(np.sum(st["diverging"])),
+                     step_size=float(np.mean(st["step_size"][:, 0])),
+                     seconds=time.perf_counter() - began, seconds_chains=out.seconds_chains,
+                     stride=stride)
