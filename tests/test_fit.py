@@ -539,46 +539,6 @@ def test_torsion_releases_reach_their_best_optimum():
             assert res.report().startswith("FIT FAILED: the model stops moving")
 
 
-@pytest.mark.slow
-def test_posterior_and_cli_posterior(tmp_path, capsys, monkeypatch):
-    """NUTS with AR(1) noise on a short synthetic trace: the draws in the ArviZ layout, the
-    summary's intervals contain the truth, the chains agree; --posterior writes posterior.nc
-    and corner.png."""
-    import xarray as xr
-
-    from dampax import _cli
-
-    t, x = ansatz_trace(2048)
-    post = dp.posterior(t, x, free=("mu", "D"), start="data", num_samples=200, num_chains=2,
-                        num_warmup=150, seed=1)
-    assert post.draws["D"].dims == ("chain", "draw") and post.draws["D"].shape == (2, 200)
-    s = post.summary(0.95)
-    assert set(s) >= {"mu", "D", "w0", "offset", "x0", "v0", "sigma", "phi_noise"}
-    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"] / M}  # per unit mass
-    for name, value in truth.items():
-        assert s[name]["lo"] < value < s[name]["hi"], (name, s[name])
-        assert s[name]["r_hat"] < 1.05 and s[name]["ess"] > 100, (name, s[name])
-    assert s["sigma"]["lo"] < NOISE < s["sigma"]["hi"]
-    assert "[[Posterior]] NUTS" in post.report() and post.divergences < 10
-    path = post.to_netcdf(tmp_path / "p.nc")
-    assert xr.open_dataset(path, engine="scipy")["D"].shape == (2, 200)
-    assert post.corner(tmp_path / "c.png").read_bytes()[:4] == b"\x89PNG"
-    with pytest.raises(ValueError, match="num_samples"):
-        dp.posterior(t, x, num_samples=1)
-    # the command line
-    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
-    csv = tmp_path / "trace.csv"
-    csv.write_text("time;position\n" + "".join(f"{a:.4f};{b:.6f}\n"
-                                               for a, b in zip(t, x, strict=True)))
-    out = tmp_path / "out"
-    assert _cli.main(["fit", str(csv), "--start", "data", "--no-compare", "--posterior",
-                      "--draws", "200", "--chains", "2", "--out", str(out)]) == 0
-    assert "[[Posterior]]" in capsys.readouterr().out
-    assert (out / "posterior.nc").is_file() and (out / "corner.png").is_file()
-    summary = json.loads((out / "fit.json").read_text())
-    assert summary["posterior"]["D"]["lo"] < TRUTH["D"] / M < summary["posterior"]["D"]["hi"]
-
-
 def test_inadequate_model_is_named_and_exits_with_status_4(tmp_path, capsys, monkeypatch):
     """A decay whose frequency rises 1.5 % over the window (as the torsion releases'): the fit
     converges, but its residuals are 40 times the noise and 18 % of the amplitude (a phase

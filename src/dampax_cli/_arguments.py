@@ -289,12 +289,16 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                      help="two-sided level of --intervals and of the posterior summary "
                           "(default: %(default)s)")
     unc.add_argument("--posterior", action="store_true",
-                     help="also sample the posterior with NUTS (blackjax, AR(1) noise) and "
-                          "write posterior.nc and corner.png")
+                     help="also sample the posterior with NUTS (blackjax, AR(1) noise) of "
+                          "--model and write posterior.nc (ArviZ InferenceData: "
+                          "arviz.from_netcdf opens it) and corner.png")
     unc.add_argument("--draws", type=int, default=1000,
                      help="--posterior: draws per chain (default: %(default)s)")
     unc.add_argument("--chains", type=int, default=4,
                      help="--posterior: chains (default: %(default)s)")
+    unc.add_argument("--warmup", type=int, default=500,
+                     help="--posterior: warm-up steps per chain (blackjax window adaptation; "
+                          "default: %(default)s)")
     out = parser.add_argument_group("output")
     out.add_argument("--out", metavar="DIR", default="fit",
                      help="folder for fit.json and fit.png (default: %(default)s)")

@@ -107,9 +107,10 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
     if not 0.0 < args.level < 1.0:
         raise ValueError(f"--level must be in (0, 1), got {args.level}")
-    if args.posterior and (args.envelope or args.draws < 10 or args.chains < 1):
-        raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10 and "
-                         "--chains >= 1")
+    if args.posterior and (args.envelope or args.draws < 10 or args.chains < 1
+                           or args.warmup < 10):
+        raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10, "
+                         "--chains >= 1 and --warmup >= 10")
     start = _parse_start(args.start)
     truth = None
     units = args.units
@@ -148,9 +149,10 @@ def run(args: argparse.Namespace) -> int:
             if args.posterior:
                 from .._fit import posterior
 
-                post = posterior(trace, oscillator=osc, free=free, fit_omega0=fit_omega0,
-                                 offset=not args.no_offset, start=start, end=args.end,
-                                 num_samples=args.draws, num_chains=args.chains,
+                post = posterior(trace, oscillator=osc, free=free, model=args.model,
+                                 fit_omega0=fit_omega0, offset=not args.no_offset,
+                                 start=start, end=args.end, num_samples=args.draws,
+                                 num_chains=args.chains, num_warmup=args.warmup,
                                  seed=args.seed, units=units, start_fit=result)
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
