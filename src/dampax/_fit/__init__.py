@@ -4,8 +4,9 @@ Modules: ``_params`` (names, named parameter pytrees, internal coordinates, eq. 
 ``_core`` (the fit models, residuals, optimisers, covariance: pure and vmappable), ``_guess``
 (initial guesses from a trace, numpy), ``_starts`` (global starts in one vmapped batch),
 ``_checks`` (degenerate input, named failures, adequacy), ``_intervals`` (intervals that allow
-for correlated residuals), ``_posterior`` (NUTS with AR(1) noise), ``_result`` (FitResult,
-ModelComparison, ArrayFit) and ``_api`` (the public functions). The command ``dampax fit``
+for correlated residuals), ``_posterior`` (NUTS with AR(1) noise), ``_mcmc`` (R-hat, ESS and
+the InferenceData file), ``_result`` (FitResult, ModelComparison, ArrayFit) and ``_api`` (the
+public functions). The command ``dampax fit``
 lives in ``dampax._cli.fit``.
 """
 
