@@ -67,7 +67,10 @@ TARGET_ACCEPT = 0.8
 #: tolerances of the reference integrator inside the posterior (well below any noise level)
 REFERENCE_RTOL, REFERENCE_ATOL = 1e-9, 1e-12
 #: how each fit model's log density is differentiated ("reverse": jax.grad; "forward": one
-#: jacfwd over the parameters, as a custom JVP)
+#: jacfwd over the parameters, as a custom JVP). For the reference, forward mode through the
+#: plain loop took 1.8 ms per value and gradient (2 chains, 750 samples, 7 parameters) against
+#: 8.6 ms in reverse mode through the checkpointed loop (adjoint="recursive"), and compiled in
+#: half the time
 GRADIENTS = {"ansatz": "reverse", "reference": "forward"}
 
 #: the priors, for the docs and the report
