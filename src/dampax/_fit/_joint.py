@@ -69,7 +69,7 @@ from ._params import (
     unit_of,
     vary_mask,
 )
-from ._result import FitContext, FitResult, build_result
+from ._result import FitContext, build_result
 
 #: what ``shared`` may name: the damping constants, the angular frequency and the cubic
 #: stiffness (in this order in the joint parameter vector)
@@ -311,7 +311,8 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
 
         sol = optx.least_squares(scaled, solver, jnp.zeros_like(theta), args=a,
                                  max_steps=per_round, throw=False)
-        th = jnp.where(is_log, jnp.maximum(theta + scale * sol.value, lo), theta + scale * sol.value)
+        th = theta + scale * sol.value
+        th = jnp.where(is_log, jnp.maximum(th, lo), th)
         return th, sol.stats["num_steps"], _result_code(sol.result)
 
     def one(carry, _):
@@ -437,7 +438,7 @@ class JointResult:
         stderr: delta-method standard errors (dict).
         covariance: the HAC covariance over ``names`` (what :meth:`conf_interval` uses).
         shared: the shared parameter names; ``params`` their values.
-        runs: one :class:`FitResult` per run at the joint optimum (its window, residuals,
+        runs: one ``FitResult`` per run at the joint optimum (its window, residuals,
             checks; its own ``conf_interval`` uses that run's data alone).
         singles: the single fits of the runs (the starts), for comparison.
         success, converged, reason: the joint fit can be trusted: the optimizer converged,
@@ -814,7 +815,7 @@ def _arrays(singles, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *
         ref, lo = [], []
         for name in COORDS:
             v = float(getattr(q, name))
-            if name in DAMPING:
+            if name in DAMPING and (name in lay.shared or name in lay.local):
                 fl = float(getattr(floors, name))
                 v = max(v, fl)
                 lo.append(math.log(1e-6 * fl / v))
@@ -866,7 +867,7 @@ def _restart(a: JointArrays, out: JointCore, lay: Layout, spec, consts) -> Joint
         q = spec.to_coords(TraceParams(*(jnp.asarray(v) for v in P[j])), c)
         for i, name in enumerate(COORDS):
             v = float(getattr(q, name))
-            if name in DAMPING:
+            if name in DAMPING and math.isfinite(lo[j, i]):
                 fl = ref[j, i] * math.exp(lo[j, i]) * 1e6
                 v = max(v, fl)
                 lo[j, i] = math.log(1e-6 * fl / v)
