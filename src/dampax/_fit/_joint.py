@@ -521,8 +521,8 @@ class JointResult:
             lines.append(f"  {n:<6} {self.values[n]:.6g} +/- {hac[n]:.3g}  "
                          f"{round(100 * level)} % [{ci[n][0]:.6g}, {ci[n][1]:.6g}] {unit}".rstrip())
         for j, r in enumerate(self.runs):
-            lines.append(f"  run {j}: rms {r.rms:.4g} {self.units}, noise "
-                         f"{self.sigma[j]:.4g}, {r.ndata} samples from t = {r.t_start:.4g} s"
+            lines.append(f"  run {j}: rms {r.rms:.4g} {self.units}, "
+                         f"{r.ndata} samples from t = {r.t_start:.4g} s"
                          f"{'' if r.success else '  (checks: ' + r.reason + ')'}"
                          f"  {r.source}".rstrip())
         return "\n".join(lines)
@@ -548,12 +548,12 @@ class JointResult:
         lines += ["    each run has its own window, start (x0, v0), offset"
                   + ("" if "w0" in self.shared or not self.fit_omega0 else ", w0")
                   + "".join(f", {n}" for n in self.free if n not in self.shared)
-                  + "; residuals weighted by 1/noise of each run",
+                  + "; residuals weighted by 1/(rms of the run's single fit)",
                   "[[Fit Statistics]]",
                   f"    # iterations       = {self.n_iterations}",
                   f"    # data points      = {self.ndata}",
                   f"    # variables        = {self.nvarys}",
-                  f"    chi-square (1/noise weighted) = {self.chisqr:.6g}",
+                  f"    weighted chi-square = {self.chisqr:.6g}",
                   f"    success            = {self.success} ({self.message})",
                   f"[[Shared]] value +/- HAC sd, {round(100 * level)} % interval "
                   "(HAC sandwich, AR(1)-prewhitened, summed over the runs); single fits beside"]
@@ -571,7 +571,7 @@ class JointResult:
             own = ", ".join(f"{n} = {r.params[n]:.5g}" for n in r.varied if n not in self.shared)
             lines.append(f"    run {j}: {r.source or '(arrays)'}")
             lines.append(f"      window {r.t_start:.5g}-{r.t[-1]:.5g} s ({r.ndata} samples), "
-                         f"rms {r.rms:.4g} (noise {self.sigma[j]:.4g}), "
+                         f"rms {r.rms:.4g} (weight 1/{self.sigma[j]:.4g}), "
                          f"checks {'pass' if r.success else 'FAIL: ' + r.reason}")
             lines.append(f"      {own}")
         for note in self.warnings:
@@ -596,7 +596,7 @@ class JointResult:
             "reason": self.reason, "adequate": bool(self.adequate), "message": self.message,
             "statistics": {"chisqr": num(self.chisqr), "ndata": self.ndata,
                            "nvarys": self.nvarys, "n_iterations": self.n_iterations},
-            "runs": [{"source": r.source, "rms": num(r.rms), "noise": num(s),
+            "runs": [{"source": r.source, "rms": num(r.rms), "sigma": num(s),
                       "t_start": num(r.t_start), "ndata": r.ndata, "success": bool(r.success),
                       "reason": r.reason, "params": {k: num(v) for k, v in r.params.items()}}
                      for r, s in zip(self.runs, self.sigma, strict=True)],
