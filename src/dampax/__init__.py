@@ -15,6 +15,8 @@ _enable_compilation_cache()
 
 from ._fit import ArrayFit as ArrayFit  # noqa: E402
 from ._fit import FitResult as FitResult  # noqa: E402
+from ._fit import JointProblem as JointProblem  # noqa: E402
+from ._fit import JointResult as JointResult  # noqa: E402
 from ._fit import ModelComparison as ModelComparison  # noqa: E402
 from ._fit import Posterior as Posterior  # noqa: E402
 from ._fit import compare_envelope_models as compare_envelope_models  # noqa: E402
@@ -23,6 +25,7 @@ from ._fit import example_trace as example_trace  # noqa: E402
 from ._fit import fit as fit  # noqa: E402
 from ._fit import fit_arrays as fit_arrays  # noqa: E402
 from ._fit import fit_envelope as fit_envelope  # noqa: E402
+from ._fit import fit_joint as fit_joint  # noqa: E402
 from ._fit import initial_guess as initial_guess  # noqa: E402
 from ._fit import posterior as posterior  # noqa: E402
 from ._fit import residual_function as residual_function  # noqa: E402

@@ -214,8 +214,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
         "  4  the fit converged but the model does not describe the data\n"
         "The results are written in every case but 2.")
     parser.formatter_class = argparse.RawDescriptionHelpFormatter
-    parser.add_argument("path", nargs="?", help="text file with the trace (time and position "
-                        "columns), or with a table of maxima for --envelope")
+    parser.add_argument("path", nargs="*", help="text file with the trace (time and position "
+                        "columns), or with a table of maxima for --envelope; several files: "
+                        "a joint fit of runs of one apparatus (see --shared)")
     parser.add_argument("--example", action="store_true",
                         help="fit a synthetic trace with known constants (m = 0.2 kg, "
                              "k = 15 N/m, mu = 0.002, D = 0.02 kg/m, noise 0.2 mm)")
@@ -249,6 +250,10 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     model.add_argument("--free", default="mu,D",
                        help="constants to fit, comma list of mu, b, D and k3 (the cubic "
                             "stiffness, profiled; trace fits only) (default: %(default)s)")
+    model.add_argument("--shared", default=None, metavar="LIST",
+                       help="several files: the parameters common to all runs, comma list of "
+                            "mu, b, D, w0 and k3 (default: the --free constants); each run "
+                            "keeps its own start, offset and window")
     model.add_argument("--model", default="ansatz", choices=tuple(FIT_MODELS),
                        help="; ".join(f"{name}: {FIT_MODELS[name]}"
                                       for name in FIT_MODELS) + " (default: %(default)s)")

@@ -98,8 +98,14 @@ def run(args: argparse.Namespace) -> int:
     free = check_free(split_names(args.free), allowed=FREE)
     if not free:
         raise ValueError("--free: name at least one of mu, b, D")
-    if args.example == bool(args.path):
+    paths = [args.path] if isinstance(args.path, str) else list(args.path or [])
+    if args.example == bool(paths):
         raise ValueError("give a PATH or --example (one of them)")
+    if len(paths) > 1:
+        return _run_joint(args, paths, free)
+    if args.shared is not None:
+        raise ValueError("--shared needs two or more trace files (a joint fit of several runs)")
+    args.path = paths[0] if paths else None
     out_dir = prepare_out_dir(args.out)
     if args.starts < 1:
         raise ValueError(f"--starts must be >= 1, got {args.starts}")
@@ -207,6 +213,57 @@ def run(args: argparse.Namespace) -> int:
     if not result.adequate:
         error(f"{PROG}: the model does not describe the data: "
               f"{_cli_words('; '.join(result.inadequacy))}")
+        return EXIT_INADEQUATE
+    return 0
+
+
+def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
+    """``dampax fit run1.csv run2.csv --shared b,D``: a joint fit of several runs (the constants
+    of ``--shared`` common to all, each run with its own start, offset and window); prints the
+    report, writes fit.json and fit.png. Exit status as for one trace."""
+    if args.example or args.envelope or args.posterior:
+        raise ValueError("several files are a joint fit of traces: not with --example, "
+                         "--envelope or --posterior")
+    if args.loss != "linear" or args.optimizer != "lm":
+        raise ValueError("a joint fit is least squares: --loss linear, --optimizer lm")
+    out_dir = prepare_out_dir(args.out)
+    traces = [load_trace(p, time=args.time, position=args.position, rate=_parse_rate(args.rate),
+                         delimiter=args.delimiter, scale=args.scale) for p in paths]
+    osc, fit_omega0 = _oscillator(args)
+    for tr in traces:
+        print(f"{PROG} fit: {tr!r}")
+    began = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fit(traces, shared=split_names(args.shared) if args.shared else None,
+                     free=free, oscillator=osc, fit_omega0=fit_omega0,
+                     offset=not args.no_offset, start=_parse_start(args.start), end=args.end,
+                     model=args.model, max_steps=args.max_steps, units=args.units,
+                     starts=args.starts, seed=args.seed)
+    for w in {str(w.message) for w in caught}:
+        print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
+    elapsed = time.perf_counter() - began
+    print()
+    print(_cli_words(result.report(args.level)))
+    if args.intervals:
+        print()
+        print(f"  confidence intervals at {args.level:g} (allowing for correlated residuals):")
+        for name, (lo, hi) in result.conf_interval(args.level, runs=True).items():
+            print(f"    {name:<10} [{fmt(lo, 6)}, {fmt(hi, 6)}]   value "
+                  f"{fmt(result.values[name], 6)}")
+    summary = {"fit": result.to_dict(args.level),
+               "traces": [{"source": tr.source, "n": len(tr), "n_dropped": tr.n_dropped,
+                           "rate": tr.rate} for tr in traces]}
+    write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
+    result.plot(out_dir / "fit.png")
+    print()
+    print(f"  {elapsed:.1f} s (compilation included); written: {out_dir / 'fit.json'}, "
+          f"{out_dir / 'fit.png'}")
+    if not result.success:
+        error(f"{PROG}: joint fit failed: {_cli_words(result.reason)}")
+        return EXIT_FAILED
+    if not result.adequate:
+        error(f"{PROG}: the model does not describe every run")
         return EXIT_INADEQUATE
     return 0
 

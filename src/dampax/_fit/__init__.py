@@ -3,6 +3,7 @@
 Modules: ``_params`` (names, named parameter pytrees, internal coordinates, eq. 21),
 ``_core`` (the fit models, residuals, optimisers, covariance: pure and vmappable), ``_guess``
 (initial guesses from a trace, numpy), ``_starts`` (global starts in one vmapped batch),
+``_joint`` (joint fits of several runs with shared constants),
 ``_checks`` (degenerate input, named failures, adequacy), ``_intervals`` (intervals that allow
 for correlated residuals), ``_posterior`` (NUTS with AR(1) noise), ``_mcmc`` (R-hat, ESS and
 the InferenceData file), ``_result`` (FitResult, ModelComparison, ArrayFit) and ``_api`` (the
@@ -24,6 +25,10 @@ from ._core import MODELS as MODELS
 from ._core import OPTIMIZERS as OPTIMIZERS
 from ._core import FitModel as FitModel
 from ._guess import initial_guess as initial_guess
+from ._joint import SHARED as SHARED
+from ._joint import JointProblem as JointProblem
+from ._joint import JointResult as JointResult
+from ._joint import fit_joint as fit_joint
 from ._params import CANDIDATES as CANDIDATES
 from ._params import DAMPING as DAMPING
 from ._params import ENVELOPE_PARAMS as ENVELOPE_PARAMS
@@ -44,5 +49,6 @@ __all__ = [
     "compare_models", "compare_envelope_models", "initial_guess", "example_trace",
     "residual_function", "PARAMS", "ENVELOPE_PARAMS", "CANDIDATES", "DAMPING", "FREE", "MODELS",
     "LOSSES", "OPTIMIZERS", "METHOD_NAMES", "FIT_MODELS", "FitModel", "TraceParams",
-    "EnvelopeParams", "EXAMPLE", "check_free", "posterior", "Posterior",
+    "EnvelopeParams", "EXAMPLE", "check_free", "posterior", "Posterior", "fit_joint",
+    "JointResult", "JointProblem", "SHARED",
 ]

@@ -176,8 +176,13 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
         units: str | None = None, starts: int = 32, seed: int = 0,
-        k3: float | None = None, _inner: bool = False) -> FitResult:
+        k3: float | None = None, shared=None, _inner: bool = False) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
+
+    A list of traces is a joint fit of several runs of one apparatus
+    (:func:`~dampax._fit._joint.fit_joint`: the constants named in ``shared`` are common to
+    all runs, each run has its own start, offset and window) and returns a
+    :class:`~dampax._fit._joint.JointResult`.
 
     From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
     offset) are identifiable. Without an ``oscillator`` the fit is per unit mass: w0 is
@@ -240,15 +245,30 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             position column's name of a Trace ("Angle(deg)"), else "m".
         starts: number of global starts (1: the turning-point guess alone).
         seed: seed of the jitter of the starts.
+        shared: joint fits only (a list of traces): the parameters common to all runs, among
+            "mu", "b", "D", "w0", "k3" (default: the free damping constants).
 
     Returns:
-        A :class:`FitResult`.
+        A :class:`FitResult` (a :class:`~dampax._fit._joint.JointResult` for a list of traces).
 
     Raises:
         ValueError: bad arguments, a trace without a free decay in it, or a window that fixes
             the combined decay of some damping terms but not their split ("mu and D are not
             separately identifiable ...: fix all but one of them"); the reason named.
     """
+    if isinstance(trace_or_t, (list, tuple)) and x is None:
+        from ._joint import fit_joint
+
+        if p0 is not None:
+            raise ValueError("p0: not supported by a joint fit of several runs")
+        return fit_joint(list(trace_or_t), shared=shared, free=free, oscillator=oscillator,
+                         model=model, fit_omega0=fit_omega0, offset=offset, start=start,
+                         end=end, loss=loss, optimizer=optimizer, max_steps=max_steps,
+                         rtol=rtol, atol=atol, max_swings=max_swings, units=units,
+                         starts=starts, seed=seed, k3=k3)
+    if shared is not None:
+        raise ValueError("shared: names constants common to several runs; it needs a list of "
+                         "two or more traces, not a single trace")
     check_choice("model", model, MODELS)
     check_choice("loss", loss, LOSSES)
     check_choice("optimizer", optimizer, OPTIMIZERS)
