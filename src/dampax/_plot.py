@@ -19,12 +19,40 @@ from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._summary import ModelRun, damping_ratios
 
 
+def _legend_rows(n_labels: int, ncols: int = 4) -> int:
+    """Rows of a figure legend of ``n_labels`` entries in ``ncols`` columns."""
+    return max(1, math.ceil(n_labels / ncols))
+
+
+def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bottom: float,
+           top: float, wspace: float = 0.0, hspace: float = 0.0) -> None:
+    """Place the subplot grid with fixed margins and gaps given in inches.
+
+    The figures are drawn without matplotlib's constrained layout, which measures every text
+    of a figure before placing the panels (about half the time of a heat-map figure, issue 26);
+    the margins here leave room for tick labels, axis labels, titles and legends of the sizes
+    this module uses.
+
+    Arguments:
+        fig: the figure (its size is fixed).
+        nrows, ncols: the subplot grid.
+        left, right, bottom, top: margins [in] between the figure's edges and the grid.
+        wspace, hspace: gaps [in] between columns and between rows.
+    """
+    width, height = fig.get_size_inches()
+    panel_w = max((width - left - right - (ncols - 1) * wspace) / ncols, 0.1)
+    panel_h = max((height - top - bottom - (nrows - 1) * hspace) / nrows, 0.1)
+    fig.subplots_adjust(left=left / width, right=1.0 - right / width, bottom=bottom / height,
+                        top=1.0 - top / height, wspace=wspace / panel_w,
+                        hspace=hspace / panel_h)
+
+
 def _finish(fig, handles, labels, path, *, title, dpi):
     """Legend below the panels, optional title, the file written whole; returns ``path``."""
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
-               fontsize=9, frameon=False)
+    fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncols=min(len(labels), 4), fontsize=9, frameon=False)
     if title:
-        fig.suptitle(title, fontsize=11)
+        fig.suptitle(title, fontsize=11, y=1.0 - 0.06 / fig.get_figheight(), va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
@@ -206,9 +234,12 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
         shown = worst
 
     n_rows, n_cols = d1.size, len(models)
-    fig = Figure(figsize=(3.6 * n_cols + 1.4, 3.3 * n_rows + 1.5), layout="constrained")
+    fig = Figure(figsize=(3.6 * n_cols + 1.4, 3.3 * n_rows + 1.5))
     axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False, sharex=True,
                                       sharey=True))
+    title_in = 0.42 if n_rows > 1 else 0.25  # the panels' titles: one or two lines
+    _place(fig, nrows=n_rows, ncols=n_cols, left=0.75, right=1.25, bottom=0.95,
+           top=0.6 + title_in, wspace=0.15, hspace=title_in + 0.15)
     cmap = colormaps["viridis"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
     xe, ye = _edges(d2), _edges(d0)
     mesh = None
@@ -252,8 +283,11 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
                 ax.set_ylabel(r"$d_0/(\omega_0 A_0)$ (Coulomb)")
     # log scale: values below the bottom (e.g. an exact model) are drawn in its colour; the
     # triangle at the foot of the bar says so
-    bar = fig.colorbar(mesh, ax=axes, shrink=0.9, pad=0.01,
-                       extend="min" if spec["log"] else "neither")
+    width, height = fig.get_size_inches()
+    grid = fig.subplotpars
+    cax = fig.add_axes((grid.right + 0.15 / width, grid.bottom, 0.14 / width,
+                        grid.top - grid.bottom))
+    bar = fig.colorbar(mesh, cax=cax, extend="min" if spec["log"] else "neither")
     bar.set_label(spec["label"] + (" (log scale)"
                                    if spec["log"] else ""))
     handles = [Patch(facecolor="0.82", edgecolor="0.5",
@@ -266,14 +300,15 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
         handles.append(Line2D([], [], color=color, linewidth=1.8, label=f"{text} contour",
                               path_effects=[patheffects.withStroke(linewidth=3.2,
                                                                    foreground="black")]))
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8.5,
-               frameon=False)
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncol=len(handles), fontsize=8.5, frameon=False)
     ref = ds.attrs.get("reference", "?")
     ref_text = (f"DOP853 reference (rtol {ds.attrs.get('reference_rtol', 0):g})"
                 if ref == "reference" else "exact half-swings")
     fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
                  f"against the {ref_text}, up to its halt or at most "
-                 f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11)
+                 f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11,
+                 y=1.0 - 0.08 / height, va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
