@@ -47,6 +47,13 @@ def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bo
                         hspace=hspace / panel_h)
 
 
+def _title_in(title: str | None, fontsize: float = 11.0) -> float:
+    """Height [in] of a figure title of that many lines (0 without one), with its padding."""
+    if not title:
+        return 0.0
+    return 0.1 + (title.count("\n") + 1) * 1.25 * fontsize / 72.0
+
+
 def _finish(fig, handles, labels, path, *, title, dpi):
     """Legend below the panels, optional title, the file written whole; returns ``path``."""
     fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 0.0),
@@ -87,8 +94,9 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
     t = _grid(osc, run.t_end, n_points)
     curves = run.curves(t)
 
-    fig = Figure(figsize=(12.0, 4.8), layout="constrained")
+    fig = Figure(figsize=(12.0, 4.8))
     ax_x, ax_e = fig.subplots(1, 2)
+    _place(fig, ncols=2, left=0.85, right=0.2, bottom=0.55, top=1.0, wspace=0.85)
     for k in MODELS:
         if k not in curves:
             continue
@@ -116,7 +124,7 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
         rf"$d_2 A_0/\omega_0$ = {r2:.4g}" "\n"
         rf"m = {as_float(osc.m):g} kg, k = {as_float(osc.k):g} N/m, $\mu$ = {as_float(osc.mu):g}, "
         rf"b = {as_float(osc.b):g} kg/s, D = {as_float(osc.D):g} kg/m, "
-        rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11)
+        rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11, y=1.0 - 0.06 / 4.8, va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
@@ -370,9 +378,12 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
     n = len(names)
     ncols = 1 if n <= 3 else 2
     nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2),
-                 layout="constrained")
+    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2))
     axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
+    n_labels = len(results) + 1  # the models and "halt time"
+    _place(fig, nrows=nrows, ncols=ncols, left=1.0, right=0.25,
+           bottom=0.6 + 0.22 * _legend_rows(n_labels), top=0.35 + _title_in(title),
+           wspace=1.0, hspace=0.4 + (0.45 if n % ncols else 0.0))
     styles, n_other = {}, 0
     for key in results:
         styles[key] = _style(key, n_other)
@@ -436,8 +447,11 @@ def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = 
     names: list[str] = []
     for r in results.values():
         names += [n for n in r.wrt if n not in names]
-    fig = Figure(figsize=(10.0, 2.6 * len(names) + 1.2), layout="constrained")
+    fig = Figure(figsize=(10.0, 2.6 * len(names) + 1.2))
     axes = fig.subplots(len(names), 2, squeeze=False)
+    _place(fig, nrows=len(names), ncols=2, left=0.9, right=0.2,
+           bottom=0.6 + 0.22 * _legend_rows(len(results) + 2), top=0.15 + _title_in(title),
+           wspace=0.9, hspace=0.6)
     styles, n_other = {}, 0
     for key in results:
         styles[key] = _style(key, n_other)
@@ -505,8 +519,10 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
         names += [str(n) for n in ds["parameter"].values if str(n) not in names]
     n_sets = len(results)
     width = 0.8 / (2 * n_sets)
-    fig = Figure(figsize=(max(5.5, 1.6 + 1.4 * len(names) * n_sets), 4.2), layout="constrained")
+    fig = Figure(figsize=(max(5.5, 1.6 + 1.4 * len(names) * n_sets), 4.2))
     ax = fig.subplots()
+    _place(fig, left=0.8, right=0.2, bottom=0.45,
+           top=0.2 + _title_in(title if title is not None else "two\nlines", 10.0))
     x = np.arange(len(names))
     n_other = 0
     for s, (key, ds) in enumerate(results.items()):
@@ -565,9 +581,11 @@ def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int =
     units = dict(units or {})
     values = {n: np.asarray(draws[n]).reshape(-1) for n in names}
     k = len(names)
-    fig = Figure(figsize=(2.4 * k + 0.8, 2.4 * k + 0.6), layout="constrained")
+    fig = Figure(figsize=(2.4 * k + 0.8, 2.4 * k + 0.6))
     FigureCanvasAgg(fig)
     axes = np.atleast_2d(fig.subplots(k, k, squeeze=False))
+    _place(fig, nrows=k, ncols=k, left=0.75, right=0.2, bottom=0.6, top=0.4, wspace=0.5,
+           hspace=0.35)
     for i, ni in enumerate(names):
         for j, nj in enumerate(names):
             ax = axes[i, j]
@@ -586,7 +604,8 @@ def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int =
                 unit = units.get(ni, "")
                 ax.set_ylabel(f"{ni} [{unit}]" if unit else ni, fontsize=8)
             ax.tick_params(labelsize=7)
-    fig.suptitle("posterior draws (NUTS)", fontsize=10)
+    fig.suptitle("posterior draws (NUTS)", fontsize=10, y=1.0 - 0.06 / fig.get_figheight(),
+                 va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return Path(path)
