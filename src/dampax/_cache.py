@@ -19,7 +19,10 @@ calls of the commands' numeric work (a solve, a fit's core and batch of starts, 
 run through :func:`call_cached` / :func:`call_cached_tree`: the program is kept as a
 ``.jaxcall`` file, a ``jax.export`` program with its output's treedef beside it, so any pytree
 (equinox modules included) comes back whole and a repeated command neither traces nor
-compiles.
+compiles. The executables of both kinds, when compiled in this process (not read from JAX's
+cache), are also kept whole (``.jaxexe``, :func:`_keep_executable`): a repeated command then
+neither lowers the kept program nor hashes it for JAX's cache (a few tenths of a second per
+program).
 """
 
 from __future__ import annotations
