@@ -185,9 +185,10 @@ def compile_cached(name: str, key, fn, *specs):
             os.replace(tmp, path)  # atomic: a concurrent process never reads half a file
         except (OSError, ImportError):  # read-only cache, or no flatbuffers: not kept
             pass
+    lowered = jax.jit(exported.call).lower(*specs)
     with _fresh_compilation() as fresh:
-        compiled = jax.jit(exported.call).lower(*specs).compile()
-    _keep_executable(exe_path if fresh() else None, compiled)
+        compiled = lowered.compile()
+    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, compiled)
     return compiled
 
 
@@ -233,14 +234,49 @@ def _load_executable(path: Path | None, devices=None):
     try:
         from jax.experimental import serialize_executable
 
+        _prepare_loading()
         data = path.read_bytes()
         size = int.from_bytes(data[:8], "little")
         in_tree, out_tree, extra = _load_tree(data[8:8 + size])
         executable = serialize_executable.deserialize_and_load(
             data[8 + size:], in_tree, out_tree, execution_devices=devices)
-    except Exception:  # noqa: BLE001 - a damaged or foreign file: the kept program instead
+    except Exception:  # noqa: BLE001 - a damaged file: the kept program instead
+        with contextlib.suppress(OSError):
+            path.unlink()  # written again when the program is next compiled here
         return None
     return executable, extra
+
+
+#: custom calls an executable may make and still be kept: XLA's sharding markers, and LAPACK
+#: (its function pointers are set by :func:`_prepare_loading` before a kept executable loads)
+_SAFE_CUSTOM_CALLS = ("Sharding", "SPMDFullToShardShape", "SPMDShardToFullShape")
+
+
+def _keepable(lowered) -> bool:
+    """Whether the executable of ``lowered`` may be kept: only when every custom call it makes
+    is one of :data:`_SAFE_CUSTOM_CALLS` or LAPACK's. Not a Python callback (equinox's run-time
+    checks, ``jax.pure_callback``): its address is baked into the machine code and another
+    process would jump into nothing (JAX's own cache does not keep these either); nor any other
+    kernel that jaxlib sets up only when it lowers a program, which a kept executable skips."""
+    import re
+
+    try:
+        if getattr(lowered._lowering, "compile_args", {}).get("host_callbacks"):
+            return False
+        targets = set(re.findall(r"custom_call\s*@([\w.]+)", lowered.as_text()))
+    except Exception:  # noqa: BLE001 - in doubt, not kept
+        return False
+    return all(t in _SAFE_CUSTOM_CALLS or t.startswith("lapack_") for t in targets)
+
+
+@functools.lru_cache(maxsize=1)
+def _prepare_loading() -> None:
+    """Set up what a kept executable may call that jaxlib otherwise sets up while lowering:
+    LAPACK's function pointers (taken from scipy; a kept fit or linear solve would call null
+    pointers without them)."""
+    from jax._src.lax import linalg
+
+    linalg.initialize_lapack()
 
 
 @contextlib.contextmanager
@@ -406,9 +442,11 @@ def _compile_tree(name: str, key, fn, specs):
     def call(*args):  # the outputs' weak types, lost in serialization, restored (no-op)
         return [_weak(a) if w else a for a, w in zip(exported.call(*args), weak, strict=True)]
 
+    lowered = jax.jit(call).lower(*specs)
     with _fresh_compilation() as fresh:
-        executable = jax.jit(call).lower(*specs).compile()
-    _keep_executable(exe_path if fresh() else None, executable, (treedef, static))
+        executable = lowered.compile()
+    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, executable,
+                     (treedef, static))
     return executable, treedef, static
 
 
