@@ -312,7 +312,7 @@ def test_help_and_version_do_not_import_jax():
 def test_launcher_names_are_the_librarys():
     """The option definitions of dampax_cli copy a few names of dampax's registries (it must
     not import dampax): they are the library's."""
-    from dampax import _fit, _global, _maps, _models, _sensitivity
+    from dampax import _fit, _global, _maps, _models, _plot, _sensitivity
     from dampax._fit import _core
     from dampax_cli import _arguments as a
 
@@ -322,6 +322,8 @@ def test_launcher_names_are_the_librarys():
     assert a.FIT_MODELS == {name: _core.FIT_MODELS[name].description for name in _fit.MODELS}
     assert (a.OPTIMIZERS, a.METHOD_NAMES, a.LOSSES) == (
         _fit.OPTIMIZERS, _fit.METHOD_NAMES, _fit.LOSSES)
+    assert a.ERRORMAP_PLOTS["all"] == tuple(_plot.ERROR_MAP_METRICS)
+    assert set(a.ERRORMAP_PLOTS["summary"]) <= set(_plot.ERROR_MAP_METRICS)
 
 
 def test_launcher_runs_the_command_quietly(monkeypatch, capsys):
@@ -402,3 +404,25 @@ def test_progress_bars_only_on_a_terminal(monkeypatch, tmp_path, capsys):
             assert seen.pop() is expected, (command, terminal, extra)
     assert seen == []
     assert capsys.readouterr().err.count("dampax: error: stop here") == 8
+
+
+def test_errormap_plots_option(tmp_path, capsys):
+    """``errormap --plots``: summary (the default) writes max_error.png beside errormap.nc,
+    none no figure; an unknown choice is a syntax error. (``--plots all``, every metric's
+    heat map: tests/test_maps.py::test_cli_quick.)"""
+    # the grid and settings of tests/test_results.py::test_one_spelling_in_every_command
+    grid = ["--models", "matched_tail", "--reference", "coulomb_exact", "--d0", "0.05",
+            "--d2", "0", "--phi0", "0", "--periods", "3", "--samples-per-period", "16",
+            "--no-progress"]
+    for extra, figures in (([], ["max_error.png"]), (["--plots", "none"], [])):
+        out = tmp_path / (extra[-1] if extra else "default")
+        assert main(["errormap", *grid, "--out", str(out), *extra]) == 0
+        assert sorted(p.name for p in out.iterdir()) == sorted(["errormap.nc", *figures])
+        for name in figures:
+            assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        written = capsys.readouterr().out
+        assert ("max_error.png" in written) == bool(figures), written
+    with pytest.raises(SystemExit) as exc:
+        main(["errormap", "--plots", "some", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    assert "--plots" in capsys.readouterr().err

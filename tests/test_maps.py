@@ -223,7 +223,8 @@ def test_bad_grid_input_names_the_argument(change, name):
 def test_cli_quick(quick_map, tmp_path, capsys):
     out_dir = tmp_path / "maps"
     before = trace_count()
-    assert main(["errormap", "--quick", "--out", str(out_dir), "--no-progress"]) == 0
+    assert main(["errormap", "--quick", "--out", str(out_dir), "--no-progress",
+                 "--plots", "all"]) == 0
     assert trace_count() == before  # the same settings as quick_map: compiled once
     captured = capsys.readouterr()
     ds = xr.load_dataset(out_dir / "errormap.nc", engine="scipy")

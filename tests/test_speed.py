@@ -160,11 +160,13 @@ def test_traced_error_map_step_is_reused_across_processes(tmp_path):
 
     first = run("a.npy")
     files = list((tmp_path / "cache" / "exported").glob("error_map-*.jaxexport"))
-    assert len(files) == 1
-    stamp = files[0].stat().st_mtime_ns
+    executables = list((tmp_path / "cache" / "exported").glob("error_map-*.jaxexe"))
+    assert len(files) == 1 and len(executables) == 1  # the program, and its executable
+    stamps = [f.stat().st_mtime_ns for f in files + executables]
     second = run("b.npy")
-    assert files[0].stat().st_mtime_ns == stamp  # read, not written again
+    assert [f.stat().st_mtime_ns for f in files + executables] == stamps  # read, not written
     files[0].write_bytes(b"not a program")
+    executables[0].write_bytes(b"not an executable")
     damaged = run("c.npy")
     plain = run("d.npy", DAMPAX_CACHE="0")
     assert np.isfinite(plain).sum() > 0

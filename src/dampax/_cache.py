@@ -19,7 +19,10 @@ calls of the commands' numeric work (a solve, a fit's core and batch of starts, 
 run through :func:`call_cached` / :func:`call_cached_tree`: the program is kept as a
 ``.jaxcall`` file, a ``jax.export`` program with its output's treedef beside it, so any pytree
 (equinox modules included) comes back whole and a repeated command neither traces nor
-compiles.
+compiles. The executables of both kinds, when compiled in this process (not read from JAX's
+cache), are also kept whole (``.jaxexe``, :func:`_keep_executable`): a repeated command then
+neither lowers the kept program nor hashes it for JAX's cache (a few tenths of a second per
+program).
 """
 
 from __future__ import annotations
@@ -158,6 +161,12 @@ def compile_cached(name: str, key, fn, *specs):
                        for s in specs], len(devices), devices[0].platform,
                  devices[0].device_kind, jax.config.jax_enable_x64, _source_digest()))
     path = folder / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}.jaxexport"
+    mesh = getattr(getattr(specs[0], "sharding", None), "mesh", None) if specs else None
+    exe_path = _executable_path(folder, name, text)
+    devices = list(mesh.devices.flat) if mesh is not None else None
+    loaded = _load_executable(exe_path, devices)
+    if loaded is not None:
+        return loaded[0]
     exported = None
     if path.exists():
         try:
@@ -176,7 +185,138 @@ def compile_cached(name: str, key, fn, *specs):
             os.replace(tmp, path)  # atomic: a concurrent process never reads half a file
         except (OSError, ImportError):  # read-only cache, or no flatbuffers: not kept
             pass
-    return jax.jit(exported.call).lower(*specs).compile()
+    lowered = jax.jit(exported.call).lower(*specs)
+    with _fresh_compilation() as fresh:
+        compiled = lowered.compile()
+    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, compiled)
+    return compiled
+
+
+# ----------------------------------------------------------------------------------------------
+# compiled executables kept whole: a repeated call neither lowers nor looks up JAX's cache
+
+
+@functools.lru_cache(maxsize=1)
+def _machine_text() -> str:
+    """What a compiled executable depends on beyond its program: the backend's version, XLA's
+    flags and the processor (XLA compiles CPU programs for the host's instruction set)."""
+    import platform
+
+    cpu = platform.processor()
+    with contextlib.suppress(OSError):  # Linux: the model and the instruction-set extensions
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as info:
+            cpu = "".join(line for line in info.read().split("\n\n")[0].splitlines(True)
+                          if line.startswith(("model name", "flags", "Features", "CPU part")))
+    client = jax.devices()[0].client
+    return repr((client.platform, client.platform_version, os.environ.get("XLA_FLAGS", ""),
+                 platform.machine(), hashlib.sha256(cpu.encode()).hexdigest()))
+
+
+def _executable_path(folder: Path, name: str, text: str) -> Path | None:
+    """The ``.jaxexe`` file of the executable of the program described by ``text`` on this
+    machine, or None in a ``jax.distributed`` run (each process's devices differ; see
+    ``dampax._distributed.compile_cached_here``)."""
+    if jax.process_count() > 1:
+        return None
+    digest = hashlib.sha256((text + _machine_text()).encode()).hexdigest()[:32]
+    return folder / f"{name}-{digest}.jaxexe"
+
+
+def _load_executable(path: Path | None, devices=None):
+    """(executable, extra) of a file written by :func:`_keep_executable`, or None.
+
+    Loading skips what a kept ``jax.export`` program still costs a repeated command: lowering
+    it (a few tenths of a second per program) and hashing it for JAX's persistent cache. Like
+    JAX's own cache the file holds machine code: the cache folder must be the user's own.
+    """
+    if path is None or not path.exists():
+        return None
+    try:
+        from jax.experimental import serialize_executable
+
+        _prepare_loading()
+        data = path.read_bytes()
+        size = int.from_bytes(data[:8], "little")
+        in_tree, out_tree, extra = _load_tree(data[8:8 + size])
+        executable = serialize_executable.deserialize_and_load(
+            data[8 + size:], in_tree, out_tree, execution_devices=devices)
+    except Exception:  # noqa: BLE001 - a damaged file: the kept program instead
+        with contextlib.suppress(OSError):
+            path.unlink()  # written again when the program is next compiled here
+        return None
+    return executable, extra
+
+
+#: custom calls an executable may make and still be kept: XLA's sharding markers, and LAPACK
+#: (its function pointers are set by :func:`_prepare_loading` before a kept executable loads)
+_SAFE_CUSTOM_CALLS = ("Sharding", "SPMDFullToShardShape", "SPMDShardToFullShape")
+
+
+def _keepable(lowered) -> bool:
+    """Whether the executable of ``lowered`` may be kept: only when every custom call it makes
+    is one of :data:`_SAFE_CUSTOM_CALLS` or LAPACK's. Not a Python callback (equinox's run-time
+    checks, ``jax.pure_callback``): its address is baked into the machine code and another
+    process would jump into nothing (JAX's own cache does not keep these either); nor any other
+    kernel that jaxlib sets up only when it lowers a program, which a kept executable skips."""
+    import re
+
+    try:
+        if getattr(lowered._lowering, "compile_args", {}).get("host_callbacks"):
+            return False
+        targets = set(re.findall(r"custom_call\s*@([\w.]+)", lowered.as_text()))
+    except Exception:  # noqa: BLE001 - in doubt, not kept
+        return False
+    return all(t in _SAFE_CUSTOM_CALLS or t.startswith("lapack_") for t in targets)
+
+
+@functools.lru_cache(maxsize=1)
+def _prepare_loading() -> None:
+    """Set up what a kept executable may call that jaxlib otherwise sets up while lowering:
+    LAPACK's function pointers (taken from scipy; a kept fit or linear solve would call null
+    pointers without them)."""
+    from jax._src.lax import linalg
+
+    linalg.initialize_lapack()
+
+
+@contextlib.contextmanager
+def _fresh_compilation():
+    """Yields a function that tells whether no program compiled in the block came from JAX's
+    persistent cache. Only an executable compiled here may be kept by :func:`_keep_executable`:
+    one read from that cache serializes without its kernels (jaxlib 0.10: "Function ... not
+    found" when the copy runs)."""
+    hits = []
+
+    def listener(event, **kwargs):
+        if event == "/jax/compilation_cache/cache_hits":
+            hits.append(event)
+
+    jax.monitoring.register_event_listener(listener)
+    try:
+        yield lambda: not hits
+    finally:
+        jax.monitoring.unregister_event_listener(listener)
+
+
+def _keep_executable(path: Path | None, executable, extra=None) -> None:
+    """Write ``executable`` (``jax.experimental.serialize_executable``) and ``extra`` (a
+    treedef and static leaves, or None) to ``path``, atomically; nothing when it cannot be
+    serialized or written (the kept program and JAX's cache still serve the next call)."""
+    if path is None:
+        return
+    try:
+        from jax.experimental import serialize_executable
+
+        payload, in_tree, out_tree = serialize_executable.serialize(executable)
+        blob = _dump_tree((in_tree, out_tree, extra))
+        if _load_tree(blob) != (in_tree, out_tree, extra):
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_bytes(len(blob).to_bytes(8, "little") + blob + payload)
+        os.replace(tmp, path)  # atomic: a concurrent process never reads half a file
+    except Exception:  # noqa: BLE001 - not serializable, or a read-only cache
+        return
 
 
 _EXECUTABLES: dict = {}  # (name, repr(key), specs) -> (compiled, treedef, static leaves)
@@ -199,9 +339,10 @@ class _TreePickler(pickle.Pickler):
         return NotImplemented
 
 
-#: globals a kept treedef may name: jax's treedef and registry, MISSING, and classes of these
+#: globals a kept treedef may name: jax's treedef and registries (a compiled call's argument
+#: tree names the registry of traced calls), MISSING, and classes of these
 _TREE_GLOBALS = {("jaxlib._jax.pytree", "PyTreeDef"), ("jax._src.tree_util", "default_registry"),
-                 ("dampax._cache", "_missing")}
+                 ("jax._src.tree_util", "tracing_registry"), ("dampax._cache", "_missing")}
 _TREE_PACKAGES = ("dampax", "equinox", "collections", "builtins")
 
 
@@ -253,6 +394,11 @@ def _compile_tree(name: str, key, fn, specs):
     text = repr((key, _spec_text(specs), len(devices), devices[0].platform,
                  devices[0].device_kind, jax.config.jax_enable_x64, _source_digest()))
     path = folder / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}.jaxcall"
+    exe_path = _executable_path(folder, name, text)
+    loaded = _load_executable(exe_path)
+    if loaded is not None:
+        executable, (treedef, static) = loaded
+        return executable, treedef, static
     exported = None
     if path.exists():
         try:
@@ -296,7 +442,12 @@ def _compile_tree(name: str, key, fn, specs):
     def call(*args):  # the outputs' weak types, lost in serialization, restored (no-op)
         return [_weak(a) if w else a for a, w in zip(exported.call(*args), weak, strict=True)]
 
-    return jax.jit(call).lower(*specs).compile(), treedef, static
+    lowered = jax.jit(call).lower(*specs)
+    with _fresh_compilation() as fresh:
+        executable = lowered.compile()
+    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, executable,
+                     (treedef, static))
+    return executable, treedef, static
 
 
 def _weak(x):

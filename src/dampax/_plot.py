@@ -19,12 +19,47 @@ from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._summary import ModelRun, damping_ratios
 
 
+def _legend_rows(n_labels: int, ncols: int = 4) -> int:
+    """Rows of a figure legend of ``n_labels`` entries in ``ncols`` columns."""
+    return max(1, math.ceil(n_labels / ncols))
+
+
+def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bottom: float,
+           top: float, wspace: float = 0.0, hspace: float = 0.0) -> None:
+    """Place the subplot grid with fixed margins and gaps given in inches.
+
+    The figures are drawn without matplotlib's constrained layout, which measures every text
+    of a figure before placing the panels (about half the time of a heat-map figure, issue 26);
+    the margins here leave room for tick labels, axis labels, titles and legends of the sizes
+    this module uses.
+
+    Arguments:
+        fig: the figure (its size is fixed).
+        nrows, ncols: the subplot grid.
+        left, right, bottom, top: margins [in] between the figure's edges and the grid.
+        wspace, hspace: gaps [in] between columns and between rows.
+    """
+    width, height = fig.get_size_inches()
+    panel_w = max((width - left - right - (ncols - 1) * wspace) / ncols, 0.1)
+    panel_h = max((height - top - bottom - (nrows - 1) * hspace) / nrows, 0.1)
+    fig.subplots_adjust(left=left / width, right=1.0 - right / width, bottom=bottom / height,
+                        top=1.0 - top / height, wspace=wspace / panel_w,
+                        hspace=hspace / panel_h)
+
+
+def _title_in(title: str | None, fontsize: float = 11.0) -> float:
+    """Height [in] of a figure title of that many lines (0 without one), with its padding."""
+    if not title:
+        return 0.0
+    return 0.1 + (title.count("\n") + 1) * 1.25 * fontsize / 72.0
+
+
 def _finish(fig, handles, labels, path, *, title, dpi):
     """Legend below the panels, optional title, the file written whole; returns ``path``."""
-    fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4),
-               fontsize=9, frameon=False)
+    fig.legend(handles, labels, loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncols=min(len(labels), 4), fontsize=9, frameon=False)
     if title:
-        fig.suptitle(title, fontsize=11)
+        fig.suptitle(title, fontsize=11, y=1.0 - 0.06 / fig.get_figheight(), va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
@@ -59,8 +94,9 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
     t = _grid(osc, run.t_end, n_points)
     curves = run.curves(t)
 
-    fig = Figure(figsize=(12.0, 4.8), layout="constrained")
+    fig = Figure(figsize=(12.0, 4.8))
     ax_x, ax_e = fig.subplots(1, 2)
+    _place(fig, ncols=2, left=0.85, right=0.2, bottom=0.55, top=1.0, wspace=0.85)
     for k in MODELS:
         if k not in curves:
             continue
@@ -88,7 +124,7 @@ def plot_results(run: ModelRun, path, *, n_points: int | None = None, dpi: int =
         rf"$d_2 A_0/\omega_0$ = {r2:.4g}" "\n"
         rf"m = {as_float(osc.m):g} kg, k = {as_float(osc.k):g} N/m, $\mu$ = {as_float(osc.mu):g}, "
         rf"b = {as_float(osc.b):g} kg/s, D = {as_float(osc.D):g} kg/m, "
-        rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11)
+        rf"$x_0$ = {x0:g} m, $v_0$ = {v0:g} m/s", fontsize=11, y=1.0 - 0.06 / 4.8, va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
@@ -206,9 +242,12 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
         shown = worst
 
     n_rows, n_cols = d1.size, len(models)
-    fig = Figure(figsize=(3.6 * n_cols + 1.4, 3.3 * n_rows + 1.5), layout="constrained")
+    fig = Figure(figsize=(3.6 * n_cols + 1.4, 3.3 * n_rows + 1.5))
     axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False, sharex=True,
                                       sharey=True))
+    title_in = 0.42 if n_rows > 1 else 0.25  # the panels' titles: one or two lines
+    _place(fig, nrows=n_rows, ncols=n_cols, left=0.75, right=1.25, bottom=0.95,
+           top=0.6 + title_in, wspace=0.15, hspace=title_in + 0.15)
     cmap = colormaps["viridis"].with_extremes(bad=(0.0, 0.0, 0.0, 0.0))
     xe, ye = _edges(d2), _edges(d0)
     mesh = None
@@ -252,8 +291,11 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
                 ax.set_ylabel(r"$d_0/(\omega_0 A_0)$ (Coulomb)")
     # log scale: values below the bottom (e.g. an exact model) are drawn in its colour; the
     # triangle at the foot of the bar says so
-    bar = fig.colorbar(mesh, ax=axes, shrink=0.9, pad=0.01,
-                       extend="min" if spec["log"] else "neither")
+    width, height = fig.get_size_inches()
+    grid = fig.subplotpars
+    cax = fig.add_axes((grid.right + 0.15 / width, grid.bottom, 0.14 / width,
+                        grid.top - grid.bottom))
+    bar = fig.colorbar(mesh, cax=cax, extend="min" if spec["log"] else "neither")
     bar.set_label(spec["label"] + (" (log scale)"
                                    if spec["log"] else ""))
     handles = [Patch(facecolor="0.82", edgecolor="0.5",
@@ -266,14 +308,15 @@ def plot_error_map(ds, metric: str, path, *, dpi: int = 110):
         handles.append(Line2D([], [], color=color, linewidth=1.8, label=f"{text} contour",
                               path_effects=[patheffects.withStroke(linewidth=3.2,
                                                                    foreground="black")]))
-    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=8.5,
-               frameon=False)
+    fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0),
+               ncol=len(handles), fontsize=8.5, frameon=False)
     ref = ds.attrs.get("reference", "?")
     ref_text = (f"DOP853 reference (rtol {ds.attrs.get('reference_rtol', 0):g})"
                 if ref == "reference" else "exact half-swings")
     fig.suptitle(f"{spec['title']},  {_phi0_text(phi0)}\n"
                  f"against the {ref_text}, up to its halt or at most "
-                 f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11)
+                 f"{float(ds.attrs.get('periods', math.nan)):g} undamped periods", fontsize=11,
+                 y=1.0 - 0.08 / height, va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return path
@@ -335,9 +378,12 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
     n = len(names)
     ncols = 1 if n <= 3 else 2
     nrows = math.ceil(n / ncols)
-    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2),
-                 layout="constrained")
+    fig = Figure(figsize=(7.0 * ncols + 2.0 * (ncols == 1), 2.5 * nrows + 1.2))
     axes = np.atleast_1d(fig.subplots(nrows, ncols, sharex=True, squeeze=False)).ravel()
+    n_labels = len(results) + 1  # the models and "halt time"
+    _place(fig, nrows=nrows, ncols=ncols, left=1.0, right=0.25,
+           bottom=0.6 + 0.22 * _legend_rows(n_labels), top=0.35 + _title_in(title),
+           wspace=1.0, hspace=0.4 + (0.45 if n % ncols else 0.0))
     styles, n_other = {}, 0
     for key in results:
         styles[key] = _style(key, n_other)
@@ -401,8 +447,11 @@ def plot_trend(results: Mapping[str, Sensitivity], path, *, title: str | None = 
     names: list[str] = []
     for r in results.values():
         names += [n for n in r.wrt if n not in names]
-    fig = Figure(figsize=(10.0, 2.6 * len(names) + 1.2), layout="constrained")
+    fig = Figure(figsize=(10.0, 2.6 * len(names) + 1.2))
     axes = fig.subplots(len(names), 2, squeeze=False)
+    _place(fig, nrows=len(names), ncols=2, left=0.9, right=0.2,
+           bottom=0.6 + 0.22 * _legend_rows(len(results) + 2), top=0.15 + _title_in(title),
+           wspace=0.9, hspace=0.6)
     styles, n_other = {}, 0
     for key in results:
         styles[key] = _style(key, n_other)
@@ -470,8 +519,10 @@ def plot_global_sensitivity(results, path, *, title: str | None = None, dpi: int
         names += [str(n) for n in ds["parameter"].values if str(n) not in names]
     n_sets = len(results)
     width = 0.8 / (2 * n_sets)
-    fig = Figure(figsize=(max(5.5, 1.6 + 1.4 * len(names) * n_sets), 4.2), layout="constrained")
+    fig = Figure(figsize=(max(5.5, 1.6 + 1.4 * len(names) * n_sets), 4.2))
     ax = fig.subplots()
+    _place(fig, left=0.8, right=0.2, bottom=0.45,
+           top=0.2 + _title_in(title if title is not None else "two\nlines", 10.0))
     x = np.arange(len(names))
     n_other = 0
     for s, (key, ds) in enumerate(results.items()):
@@ -530,9 +581,11 @@ def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int =
     units = dict(units or {})
     values = {n: np.asarray(draws[n]).reshape(-1) for n in names}
     k = len(names)
-    fig = Figure(figsize=(2.4 * k + 0.8, 2.4 * k + 0.6), layout="constrained")
+    fig = Figure(figsize=(2.4 * k + 0.8, 2.4 * k + 0.6))
     FigureCanvasAgg(fig)
     axes = np.atleast_2d(fig.subplots(k, k, squeeze=False))
+    _place(fig, nrows=k, ncols=k, left=0.75, right=0.2, bottom=0.6, top=0.4, wspace=0.5,
+           hspace=0.35)
     for i, ni in enumerate(names):
         for j, nj in enumerate(names):
             ax = axes[i, j]
@@ -551,7 +604,8 @@ def plot_corner(draws, names, path, *, units: Mapping | None = None, bins: int =
                 unit = units.get(ni, "")
                 ax.set_ylabel(f"{ni} [{unit}]" if unit else ni, fontsize=8)
             ax.tick_params(labelsize=7)
-    fig.suptitle("posterior draws (NUTS)", fontsize=10)
+    fig.suptitle("posterior draws (NUTS)", fontsize=10, y=1.0 - 0.06 / fig.get_figheight(),
+                 va="top")
     save_figure(fig, path, dpi=dpi)
     fig.clear()
     return Path(path)

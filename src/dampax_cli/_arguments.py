@@ -36,6 +36,13 @@ ERRORMAP_DEFAULTS = dict(d0="0:0.1:16", d1="0", d2="0:0.75:16", phi0="0:7*pi/8:8
 ERRORMAP_QUICK = dict(d0="0:0.1:4", d1="0", d2="0:0.75:4", phi0="0,pi/2",
                       periods=10.0, samples_per_period=32, chunk_size=32)
 
+#: ``dampax errormap --plots``: the metrics (dampax._plot.ERROR_MAP_METRICS) drawn by each
+#: choice (tests/test_cli.py::test_launcher_names_are_the_librarys)
+ERRORMAP_PLOTS = {"none": (), "summary": ("max_error",),
+                  "all": ("max_error", "rms_error", "energy_error", "halt_time_error",
+                          "halt_position_error")}
+
+
 def add_oscillator_arguments(parser: argparse.ArgumentParser, *, mu: float = 0.0,
                              D: float = 0.0,
                              start_title: str = "initial state (default: the papers' block)"):
@@ -112,6 +119,11 @@ def add_errormap_arguments(parser: argparse.ArgumentParser) -> None:
     out = parser.add_argument_group("output")
     out.add_argument("--out", default="errormap", metavar="DIR",
                      help="folder for errormap.nc and the heat maps (default: %(default)s)")
+    out.add_argument("--plots", default="summary", choices=tuple(ERRORMAP_PLOTS),
+                     help="heat maps written beside errormap.nc: summary: max_error.png, the "
+                          "metric of the summary table; all: also rms_error, energy_error, "
+                          "halt_time_error and halt_position_error (.png, about a second "
+                          "each); none: no figure (default: %(default)s)")
     out.add_argument("--no-progress", action="store_true",
                      help="no progress bar (there is none when stderr is not a terminal)")
     par = parser.add_argument_group(

@@ -9,7 +9,7 @@ import sys
 
 import numpy as np
 
-from dampax_cli._arguments import ERRORMAP_DEFAULTS, ERRORMAP_QUICK
+from dampax_cli._arguments import ERRORMAP_DEFAULTS, ERRORMAP_PLOTS, ERRORMAP_QUICK
 from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
 from .._maps import largest_ratio_below, worst_in_box
@@ -108,7 +108,6 @@ def run(args: argparse.Namespace) -> int:
     from .._distributed import DistributedError, check_processes, check_timeout, initialize
     from .._io import write_netcdf
     from .._maps import _axis, error_map, parse_axis
-    from .._plot import ERROR_MAP_METRICS, plot_error_map
 
     preset = ERRORMAP_QUICK if args.quick else ERRORMAP_DEFAULTS
 
@@ -175,8 +174,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
               "not defined there); their metrics are NaN", file=sys.stderr)
     written = [write_netcdf(ds, out / "errormap.nc")]
-    for metric in ERROR_MAP_METRICS:
-        written.append(plot_error_map(ds, metric, out / f"{metric}.png"))
+    metrics = ERRORMAP_PLOTS[args.plots]
+    if metrics:  # matplotlib is imported only here
+        from .._plot import plot_error_map
+
+        written += [plot_error_map(ds, metric, out / f"{metric}.png") for metric in metrics]
     print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "
           + ", ".join(str(p) for p in written))
     print()
