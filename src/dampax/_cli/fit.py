@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
                       start=start, end=args.end, loss=args.loss, optimizer=args.optimizer,
                       max_steps=args.max_steps, units=units, starts=args.starts,
                       seed=args.seed)
-            result = fit(trace, free=free, model=args.model, **kw)
+            result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
             # the ranking fits the candidates with the ansatz: this fit is one of them
             done = {free: result} if args.model == "ansatz" else None
             comparison = None if args.no_compare else compare_models(
