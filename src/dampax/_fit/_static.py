@@ -37,7 +37,7 @@ def _constants(options) -> tuple[float, float, float]:
     return vals["m"], vals["g"], 0.0 if k3 is None else float(k3)
 
 
-def thresholds(res, m: float, g: float, k3: float) -> tuple[np.ndarray, bool]:
+def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarray, bool]:
     """The static-friction thresholds th_j = |k x_j + k3 x_j^3| / (m g) of the fit's turning
     points with mu_s = mu (in time order, inside the window), and whether that motion halts
     inside the window (its last turning point is then the halt).
@@ -45,12 +45,15 @@ def thresholds(res, m: float, g: float, k3: float) -> tuple[np.ndarray, bool]:
     Arguments:
         res: a trace fit of the reference model.
         m, g, k3: the fit's constants.
+        mu_s: the static friction of the motion (None: mu_s = mu); with a value the list
+            ends at the halt it gives.
     """
     from .._solve import solve
 
     p = res.params
     k = m * p["w0"] ** 2
-    osc = Oscillator(m=m, k=k, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3)
+    osc = Oscillator(m=m, k=k, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
+                     mu_s=None if mu_s is None else max(float(mu_s), float(p["mu"])))
     span = float(res.t[-1] - res.t[0])
     sol = solve(osc, p["x0"], p["v0"], method="reference", t_end=span)
     ts = np.asarray(sol.swing_times, dtype=float)
@@ -125,20 +128,23 @@ def fit_mu_s(fit, trace_or_t, x, *, free, options):
                 if cost(res) < cost(best):
                     best, best_value, best_j = res, value, j
     mu_best = float(best.params["mu"])
-    th_f, halts_f = thresholds(best, m, g, k3)
-    if best_value is None:  # mu_s = mu is best: values up to the first threshold not halting
-        passed = th_f[:-1] if halts_f else th_f
-        lo, hi = mu_best, float(passed[-1]) if passed.size else math.inf
-        value = mu_best
-    else:
-        j = int(min(best_j, len(th_f) - 1))
-        lo = max(float(th_f[j]), mu_best)
-        hi = float(th_f[j - 1]) if j >= 1 else math.inf
-        value = 0.5 * (lo + hi) if math.isfinite(hi) and lo <= best_value < hi else best_value
+    used = mu_best if best_value is None else best_value
+    # the halt that the chosen fit makes (its parameters moved from the candidate's), and the
+    # values of mu_s that give the same one: [th_h, th_(h-1)), h the halt's turning point
+    th_f, halts_f = thresholds(best, m, g, k3, mu_s=best_value)
+    if halts_f and th_f.size:
+        h = th_f.size - 1
+        lo = max(float(th_f[h]), mu_best)
+        hi = float(th_f[h - 1]) if h >= 1 else math.inf
+        best_j = h
+    else:  # no halt inside the window: any value below the window's last threshold
+        lo, hi = mu_best, float(th_f[-1]) if th_f.size else math.inf
+        best_j = None
+    value = 0.5 * (lo + hi) if math.isfinite(hi) else used
     sd = (hi - lo) / math.sqrt(12.0) if math.isfinite(hi) else math.inf
     w0 = float(best.params["w0"])
     profile = {"mu_s": {"value": value, "stderr": sd, "interval": (lo, hi),
-                        "fitted_at": mu_best if best_value is None else best_value,
+                        "fitted_at": used,
                         "halt_turn": None if best_j is None else best_j + 1,
                         "evaluations": len(cache) + 1, "rms_sliding": base.rms}}
     return dataclasses.replace(
