@@ -177,7 +177,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
         units: str | None = None, starts: int = 32, seed: int = 0,
         k3: float | None = None, mu_s: float | None = None,
-        _inner: bool = False) -> FitResult:
+        _inner: bool = False, _direct: bool = False) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
 
     From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
@@ -360,7 +360,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
 
     stages = []
     fs = math.inf
-    first = spec.start_from or spec.name
+    # _direct (the fits at fixed mu_s of ``_static``, started from p0 = the optimum of a fit of
+    # the same model): no approximate model first
+    first = spec.name if _direct else (spec.start_from or spec.name)
     found = None
     start_p = guess
     if starts > 1 and not FIT_MODELS[first].integrates:
@@ -377,7 +379,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         fs = fs if fs > 0 else float(np.std(r)) or 1.0
         stages.append(f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}")
         out = run(out.params, first, fs)
-    if spec.start_from:
+    if spec.start_from and not _direct:
         # the approximate model's optimum can lie in another basin of the exact model (a
         # strongly damped trace that halts after a few swings: where the block sticks changes
         # the cost by steps): the exact model gets its own batch of starts around the
@@ -424,6 +426,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         profile=profile if loss == "linear" and not _inner else None))
     if "unidentifiable" in res.diagnostics and not _inner:
         raise ValueError(res.diagnostics["unidentifiable"])
+    if mu_s is not None and not _inner:  # the halt of the motion with static friction
+        from ._static import with_static_halt
+
+        res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
     return res
 
 

@@ -72,7 +72,8 @@ def unit_of(name: str, units: str = "m", per_mass: bool = False) -> str:
                 else f"N/{u}^3")
     return {"w0": "rad/s", "offset": u, "x0": u, "v0": f"{u}/s", "A": u, "xc": u,
             "mu_g": f"{u}/s^2", "b/m": "1/s", "D/m": f"1/{u}", "d0": f"{u}/s", "d1": "1/s",
-            "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad"}.get(name, "")
+            "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad",
+            "x_static": u}.get(name, "")
 
 
 class TraceParams(NamedTuple):
