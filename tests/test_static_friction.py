@@ -8,6 +8,8 @@ one reference program (a batch of mu_s, t_end = 6 s) shared by the tests.
 
 from __future__ import annotations
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -144,28 +146,40 @@ def test_gradients_wrt_mu_s_and_mu():
     assert fd_mus == 0.0
 
 
-@pytest.mark.parametrize("mu_s", [None, 0.2])
-def test_fit_with_free_mu_s(mu_s):
-    """The trace of issue 25's table with mu = 0.04, D = 0.5 (3 s at 500 Hz, 1 mm noise; the
-    shapes and programs of tests/test_fit.py), from scipy's exact stick-slip with static
-    friction mu_s = 0.2 (the block halts at the fourth turning point, 2.30 s, instead of
-    swinging on) and without it. With mu_s the search finds the halt: the interval of mu_s
-    holds the truth, mu and D are inside their 99 % intervals, the halt time is the data's,
-    and the rms falls to the noise from the sliding-friction fit's. Without it the fit stays
-    the sliding one (no invented halt), mu_s from mu up."""
+FIT_MU, FIT_D, FIT_MU_S = 0.04, 0.5, 0.2
+
+
+@pytest.fixture(scope="module")
+def fit_traces():
+    """The trace of issue 25's table with mu = 0.04, D = 0.5 (m = 1 kg, k = 30 N/m, x0 = 0.2 m
+    at rest, 3 s at 500 Hz, 1 mm white noise: the shapes and programs of tests/test_fit.py)
+    from scipy's exact stick-slip, without static friction and with mu_s = 0.2 (the block
+    halts at 2.30 s instead of swinging on). {mu_s: (t, x, rest)}."""
     from helpers import evaluate, scipy_stick_slip
 
-    mu, D = 0.04, 0.5
     t = np.arange(0.0, 3.0, 1.0 / 500.0)
-    segments, turning, rest = scipy_stick_slip(1.0, 30.0, mu, 0.0, D, 0.2, 0.0, 3.0,
-                                               rtol=1e-11, atol=1e-13, mu_s=mu_s)
-    x = evaluate(segments, rest, t)[0] + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
-    res = dp.fit(t, x, oscillator=dp.Oscillator(m=1, k=30), free=("mu", "D", "mu_s"),
+    out = {}
+    for mu_s in (None, FIT_MU_S):
+        segments, _, rest = scipy_stick_slip(M, K, FIT_MU, 0.0, FIT_D, X0, 0.0, 3.0,
+                                             rtol=1e-11, atol=1e-13, mu_s=mu_s)
+        noise = 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+        out[mu_s] = (t, evaluate(segments, rest, t)[0] + noise, rest)
+    return out
+
+
+@pytest.mark.parametrize("mu_s", [None, FIT_MU_S])
+def test_fit_with_free_mu_s(fit_traces, mu_s):
+    """With static friction the search finds the halt: the interval of mu_s holds the truth,
+    mu and D are inside their 99 % intervals, the halt time is the data's, and the rms falls
+    to the noise from the sliding-friction fit's. Without it the fit stays the sliding one
+    (no invented halt), mu_s from mu up. Seconds once the sliding fit is compiled."""
+    t, x, rest = fit_traces[mu_s]
+    res = dp.fit(t, x, oscillator=dp.Oscillator(m=M, k=K), free=("mu", "D", "mu_s"),
                  model="reference")
     assert res.success, res.reason
     assert res.free[-1] == "mu_s" and "mu_s" in res.report()
     ci = res.conf_interval(0.99)
-    for name, value in (("mu", mu), ("D", D)):
+    for name, value in (("mu", FIT_MU), ("D", FIT_D)):
         assert ci[name][0] < value < ci[name][1], (name, value, ci[name])
     prof = res.profiled["mu_s"]
     lo, hi = ci["mu_s"]
@@ -174,10 +188,31 @@ def test_fit_with_free_mu_s(mu_s):
     if mu_s is None:  # truth: mu_s = mu, the block moves to the window's end
         assert rest is None and prof["halt_turn"] is None and lo == res.params["mu"]
         assert res.rms == pytest.approx(prof["rms_sliding"], rel=1e-3)
-    else:
-        assert lo <= mu_s < hi and prof["halt_turn"] is not None
-        assert res.derived["halt_time"] == pytest.approx(rest[0], abs=5e-3)
-        assert res.rms < 1.2e-3 < 5e-3 < prof["rms_sliding"]
+        return
+    assert lo <= mu_s < hi and prof["halt_turn"] is not None
+    assert res.derived["halt_time"] == pytest.approx(rest[0], abs=5e-3)
+    assert res.rms < 1.2e-3 < 5e-3 < prof["rms_sliding"]
+    # a fixed mu_s (through compare_models, which passes it to fit): the same optimum
+    cmp = dp.compare_models(t, x, oscillator=dp.Oscillator(m=M, k=K), model="reference",
+                            mu_s=res.params["mu_s"], candidates=(("mu", "D"),))
+    assert cmp.best.rms == pytest.approx(res.rms, rel=1e-4)
+    assert cmp.best.derived["halt_time"] == pytest.approx(res.derived["halt_time"], abs=1e-6)
+
+
+def test_cli_fit_with_free_mu_s(fit_traces, tmp_path, capsys):
+    """``dampax fit --free mu,D,mu_s --model reference`` on the trace with static friction
+    (the programs of the test above); --posterior does not take mu_s and says so."""
+    t, x, _ = fit_traces[FIT_MU_S]
+    path = tmp_path / "stick.txt"
+    path.write_text("".join(f"{a:.4f} {b:.7f}\n" for a, b in zip(t, x, strict=True)))
+    argv = ["fit", str(path), "--m", "1", "--k", "30", "--model", "reference", "--no-compare",
+            "--free", "mu,D,mu_s", "--out", str(tmp_path / "out")]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"mu_s:\s+[0-9.]+ \+/- ", out), out
+    assert "every value gives the fitted halt" in out
+    assert main([*argv, "--posterior"]) == 2  # refused before any fit
+    assert "--posterior" in capsys.readouterr().err
 
 
 def test_cli_solve_accepts_mu_s(capsys):

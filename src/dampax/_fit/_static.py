@@ -152,7 +152,8 @@ def fit_mu_s(fit, trace_or_t, x, *, free, options):
         The :class:`FitResult` of the lowest cost, with "mu_s" in ``params``, ``stderr``,
         ``free`` and ``conf_interval`` (the interval of values that give its halt), and
         ``profiled["mu_s"]``: value, interval, the fitted value used, the halt's turning point
-        (1-based), the fits at fixed mu_s made, and the rms of the sliding-friction fit.
+        (1-based), the fits made, and the rms and the model's position at the window's end
+        of the sliding-friction fit (mu_s = mu).
     """
     m, g, k3 = _constants(options)
     # the search's fits are inner fits (no refusal, no profile of the intervals): the chosen
@@ -214,9 +215,11 @@ def fit_mu_s(fit, trace_or_t, x, *, free, options):
     w0 = float(best.params["w0"])
     profile = {"mu_s": {"value": value, "stderr": sd, "interval": (lo, hi),
                         "fitted_at": used, "halt_turn": halt, "evaluations": fits + 1,
-                        "rms_sliding": base.rms}}
+                        "rms_sliding": base.rms,
+                        "end_sliding": float(np.asarray(base.model_x)[-1])}}
     return dataclasses.replace(
         best, params={**best.params, "mu_s": value}, stderr={**best.stderr, "mu_s": sd},
+        init={**base.init},
         free=tuple(best.free) + ("mu_s",), profiled={**best.profiled, **profile},
         derived={**best.derived, "x_static": value * g / w0 ** 2,
                  "rms_mu_s_eq_mu": base.rms})
