@@ -213,6 +213,8 @@ def test_cli_fit_with_free_mu_s(fit_traces, tmp_path, capsys):
     assert "every value gives the fitted halt" in out
     assert main([*argv, "--posterior"]) == 2  # refused before any fit
     assert "--posterior" in capsys.readouterr().err
+    assert main([*argv[:-5], "--model", "ansatz", *argv[-5:]]) == 2
+    assert "need --model reference" in capsys.readouterr().err
 
 
 def test_cli_solve_accepts_mu_s(capsys):

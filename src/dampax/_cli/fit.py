@@ -110,6 +110,10 @@ def run(args: argparse.Namespace) -> int:
     if args.posterior and (args.envelope or args.draws < 10 or args.chains < 1):
         raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10 and "
                          "--chains >= 1")
+    if (args.mu_s is not None or "mu_s" in free) and (args.model != "reference"
+                                                       or args.envelope):
+        raise ValueError("--mu-s and --free ...,mu_s (static friction) need --model reference "
+                         "and a trace (the other models assume mu_s = mu)")
     if args.posterior and (args.mu_s is not None or "mu_s" in free):
         raise ValueError("--posterior does not sample the static friction mu_s (--mu-s, --free "
                          "...,mu_s): fit without --posterior")
