@@ -227,9 +227,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             (>= mu; the block sticks at a turning point where |k x + k3 x^3| <= mu_s m g).
             Default None: mu_s = mu, every number as without it. ``free=(..., "mu_s")``
             searches it instead (``_static.fit_mu_s``): x(t) depends on mu_s only through
-            the turning point where the block halts, so the fit tries the halts at the
-            turning points near the sliding-friction fit's end and reports mu_s with the
-            interval of values that give the chosen halt (``profiled["mu_s"]``).
+            the turning point where the block halts, so the fit screens every candidate halt
+            at the sliding-friction fit's optimum, fits the best ones at fixed mu_s from
+            there and reports mu_s with the interval of values that give the chosen halt
+            (``profiled["mu_s"]``; ``derived["halt_time"]`` is that motion's halt).
         model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (DOP853
             integration of eq. 3, started from the ansatz fit).
         fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
