@@ -22,11 +22,11 @@ def ratios_to_constants(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30
 
 
 def scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, *, g=9.81, rtol=1e-12, atol=1e-14,
-                     max_swings=10_000, k3=0.0):
+                     max_swings=10_000, k3=0.0, mu_s=None):
     """Integrate eq. 3 swing by swing with DOP853 and a v = 0 event.
 
     With ``k3`` the spring force is k x + k3 x^3, and the block sticks at a velocity zero where
-    |k x + k3 x^3| <= mu m g.
+    |k x + k3 x^3| <= mu_s m g (static friction ``mu_s``; None: mu_s = mu).
 
     Returns (segments, turning, rest): a list of dense-output pieces (t0, t1, sol), the turning
     points [(t, x)] and the rest state (t, x) or None.
@@ -35,7 +35,7 @@ def scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, *, g=9.81, rtol=1e-12, atol=
     segments, turning = [], []
 
     def holds(x):
-        return abs(k * x + k3 * x**3) <= mu * m * g
+        return abs(k * x + k3 * x**3) <= (mu if mu_s is None else mu_s) * m * g
 
     if v == 0.0:
         if holds(x):

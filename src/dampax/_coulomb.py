@@ -216,16 +216,41 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
     # number of whole half-swings until |x| <= xc
     e0 = jnp.abs(x1)
     L = -gamma * jnp.pi / wd
-    halts = xc > 0.0
-    xc_safe = jnp.where(halts, xc, 1.0)
-    over = (e0 - xc) / (2.0 * xc_safe)
-    L_safe = jnp.where(L == 0.0, -1.0, L)
-    j_star = jnp.where(L == 0.0, over, jnp.log1p(-jnp.expm1(L_safe) * over) / (-L_safe))
-    n_swings = jax.lax.stop_gradient(
-        jnp.where(e0 <= xc, 0.0, jnp.where(halts, jnp.ceil(j_star - 1e-9), jnp.inf)))
+    if osc.mu_s is None:
+        halts = xc > 0.0
+        xc_safe = jnp.where(halts, xc, 1.0)
+        over = (e0 - xc) / (2.0 * xc_safe)
+        L_safe = jnp.where(L == 0.0, -1.0, L)
+        j_star = jnp.where(L == 0.0, over, jnp.log1p(-jnp.expm1(L_safe) * over) / (-L_safe))
+        n_swings = jax.lax.stop_gradient(
+            jnp.where(e0 <= xc, 0.0, jnp.where(halts, jnp.ceil(j_star - 1e-9), jnp.inf)))
+    else:
+        n_swings = _static_swings(e0, xc, jnp.asarray(osc.x_static, dtype=float), L)
     return SwingSolution(t_start=t_s, x_start=x_s, v_start=v_s, t1=t1, x1=x1,
                          n_swings=n_swings, xc=xc, gamma=gamma, omega0=w0, omegad=wd,
                          osc=osc, result=result)
+
+
+def _static_swings(e0, xc, xs, L):
+    """Whole half-swings from the turning point |x| = e0 until the first one inside the static
+    band |x| <= xs (>= xc, the sliding band; mu_s of ``Oscillator``).
+
+    The turning points obey e_j - e* = rho^j (e0 - e*), e* = -xc (1 + rho)/(1 - rho),
+    rho = exp(L), so e_j <= xs from j* = log((e0 - e*)/(xs - e*)) / (-L)
+    = log1p((1 - rho) (e0 - xs)/(xs (1 - rho) + xc (1 + rho))) / (-L), (e0 - xs)/(2 xc) when
+    L = 0. Never (inf) when the denominator vanishes (no friction, or no viscous damping and
+    no sliding friction). Held fixed (``stop_gradient``): a count.
+    """
+    one_minus_rho = -jnp.expm1(L)
+    denom = xs * one_minus_rho + xc * (2.0 - one_minus_rho)
+    halts = denom > 0.0
+    denom_safe = jnp.where(halts, denom, 1.0)
+    L_safe = jnp.where(L == 0.0, -1.0, L)
+    xc_safe = jnp.where(xc > 0.0, xc, 1.0)
+    j_star = jnp.where(L == 0.0, (e0 - xs) / (2.0 * xc_safe),
+                       jnp.log1p(one_minus_rho * (e0 - xs) / denom_safe) / (-L_safe))
+    return jax.lax.stop_gradient(
+        jnp.where(e0 <= xs, 0.0, jnp.where(halts, jnp.ceil(j_star - 1e-9), jnp.inf)))
 
 
 def solve_coulomb_exact(osc: Oscillator, x0, v0) -> SwingSolution:
@@ -345,7 +370,7 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
     """
     if back < 0:
         raise ValueError(f"back must be >= 0, got {back}")
-    xc = osc.xc
+    xc = osc.x_static  # the static band (the sliding band xc when mu_s is None)
     frozen = jax.lax.stop_gradient((sol.A, sol.a, sol.bp, sol.c, sol.phi, sol.omega0, xc))
     A_, a_, bp_, c_, ph_, w0_, xc_ = frozen
     F = jnp.clip(xc_ / jnp.where(A_ > 0.0, A_, 1.0), 0.0, 1.0)
@@ -549,7 +574,7 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     x_h = jnp.where(found, xs[first], jnp.where(jnp.any(near), xs[nearest], jnp.nan))
     found = found | jnp.any(near)
     # a start at rest inside the band stays there
-    stuck = (v0 == 0.0) & (jnp.abs(x0) <= xc)
+    stuck = (v0 == 0.0) & (jnp.abs(x0) <= osc.x_static)
     t_h = jnp.where(stuck, 0.0, t_h)
     x_h = jnp.where(stuck, x0, x_h)
     t_h = jnp.where(halts | stuck, t_h, jnp.inf)

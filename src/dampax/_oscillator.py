@@ -135,7 +135,7 @@ class Oscillator(eqx.Module):
     Arguments:
         m: mass [kg], > 0.
         k: spring stiffness [N/m], > 0.
-        mu: coefficient of sliding (Coulomb) friction, >= 0 (static = kinetic).
+        mu: coefficient of sliding (Coulomb) friction, >= 0.
         b: viscous damping constant [kg/s], >= 0.
         D: quadratic drag constant [kg/m], >= 0.
         g: gravitational acceleration [m/s^2], > 0.
@@ -145,6 +145,13 @@ class Oscillator(eqx.Module):
             k3 < 0 the potential k x^2/2 + k3 x^4/4 has its maxima at |x| = sqrt(k/|k3|): a
             start beyond them, or with more energy than the barrier k^2/(4 |k3|), escapes, and
             ``solve`` reports ``RESULTS.unconfined`` (docs/cubic_stiffness.md).
+        mu_s: coefficient of static friction, >= mu, or None (the default: mu_s = mu, every
+            result and every compiled program exactly as without it; None is no pytree leaf).
+            At a turning point the block sticks for good when |k x + k3 x^3| <= mu_s m g and
+            slides on with mu otherwise; with mu_s > mu it halts earlier, up to
+            mu_s m g / k off centre. Supported by the reference, the exact half-swings and
+            the ansatz's Coulomb tail; the other analytic models (which assume mu_s = mu)
+            report ``RESULTS.static_friction``. Traced values below mu act as mu.
 
     Every field may be a JAX array (a batch); the module is a pytree, so it passes through
     ``jax.jit``, ``jax.vmap`` and ``jax.grad``. Concrete values are validated at construction
@@ -158,8 +165,9 @@ class Oscillator(eqx.Module):
     D: Array = 0.0
     g: Array = 9.81
     k3: Array = 0.0
+    mu_s: Array | None = None
 
-    def __init__(self, m=1.0, k=1.0, mu=0.0, b=0.0, D=0.0, g=9.81, k3=0.0):
+    def __init__(self, m=1.0, k=1.0, mu=0.0, b=0.0, D=0.0, g=9.81, k3=0.0, mu_s=None):
         for name, value, positive in (("m", m, True), ("k", k, True), ("mu", mu, False),
                                       ("b", b, False), ("D", D, False), ("g", g, True)):
             _check_field(name, value, positive=positive)
@@ -174,6 +182,15 @@ class Oscillator(eqx.Module):
         # analytic models see a linear spring at trace time and leave the cubic terms out
         with jax.ensure_compile_time_eval():
             self.k3 = jnp.asarray(k3, dtype=float)
+        if mu_s is None:
+            self.mu_s = None
+        else:
+            _check_field("mu_s", mu_s, positive=False)
+            if is_concrete(mu_s, mu) and np.any(np.asarray(mu_s, dtype=float)
+                                                < np.asarray(mu, dtype=float)):
+                raise ValueError(f"mu_s must be >= mu (static friction is at least the sliding "
+                                 f"friction), got mu_s={mu_s!r} and mu={mu!r}")
+            self.mu_s = jnp.asarray(mu_s, dtype=float)
 
     @property
     def omega0(self) -> Array:
@@ -184,6 +201,22 @@ class Oscillator(eqx.Module):
     def xc(self) -> Array:
         """Half-width of the sticking band, xc = mu g / w0^2 = mu m g / k."""
         return self.mu * self.g * self.m / self.k
+
+    @property
+    def x_static(self) -> Array:
+        """Half-width of the static band, mu_s m g / k (exactly :attr:`xc` when mu_s is None).
+
+        A traced mu_s below mu acts as mu (max(mu_s, mu)), so the model stays defined."""
+        if self.mu_s is None:
+            return self.xc
+        return jnp.maximum(self.mu_s, self.mu) * self.g * self.m / self.k
+
+    @property
+    def static_differs(self) -> Array:
+        """True where static friction exceeds sliding friction (mu_s > mu); False for None."""
+        if self.mu_s is None:
+            return jnp.asarray(False)
+        return self.mu_s > self.mu
 
     @property
     def gamma(self) -> Array:
@@ -205,11 +238,13 @@ class Oscillator(eqx.Module):
         return 0.5 * self.k * x**2 + 0.5 * self.m * v**2 + 0.25 * self.k3 * x**4
 
     def sticks(self, x) -> Array:
-        """True where a block at rest at x is held by static friction: |k x + k3 x^3| <= mu m g.
+        """True where a block at rest at x is held by static friction:
+        |k x + k3 x^3| <= mu_s m g (mu_s = mu when None).
 
-        Written |x (1 + (k3/k) x^2)| <= xc, which is exactly |x| <= xc when k3 = 0.
+        Written |x (1 + (k3/k) x^2)| <= x_static, which is exactly |x| <= xc when k3 = 0 and
+        mu_s is None.
         """
-        return jnp.abs(x * (1.0 + (self.k3 / self.k) * (x * x))) <= self.xc
+        return jnp.abs(x * (1.0 + (self.k3 / self.k) * (x * x))) <= self.x_static
 
     @property
     def damping_coefficients(self) -> tuple[Array, Array, Array]:
@@ -236,7 +271,8 @@ class Oscillator(eqx.Module):
     def __repr__(self) -> str:
         # k3 is shown only when it is not a concrete zero (the linear spring's repr unchanged)
         plain = is_concrete(self.k3) and not np.any(np.asarray(self.k3))
-        return _repr_fields(self, ("m", "k", "mu", "b", "D", "g") + (() if plain else ("k3",)))
+        return _repr_fields(self, ("m", "k", "mu", "b", "D", "g") + (() if plain else ("k3",))
+                            + (() if self.mu_s is None else ("mu_s",)))
 
 
 def unconfined(osc: Oscillator, x0, v0) -> Array:

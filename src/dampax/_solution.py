@@ -67,6 +67,9 @@ class RESULTS(eqx.Enumeration):
     no_cubic = (
         "k3: this model has no cubic stiffness (k3 must be 0); use method='ansatz' (matched "
         "phase, no tail) or method='reference'")
+    static_friction = (
+        "mu_s: static friction differs from sliding friction; this model assumes mu_s = mu: "
+        "use method='reference', method='coulomb_exact' or tail='coulomb'")
 
 
 def result_where(pred, a: RESULTS, b: RESULTS) -> RESULTS:
@@ -97,14 +100,14 @@ def first_failure(*checks: tuple[Array, RESULTS]) -> RESULTS:
 def constants_ok(osc) -> Array:
     """True where the oscillator's constants are in every model's domain (elementwise).
 
-    m, k and g must be finite and > 0; mu, b and D finite and >= 0; k3 finite. Works on traced
-    fields
-    (under ``jit``/``vmap``), where the Oscillator's construction checks nothing.
+    m, k and g must be finite and > 0; mu, b, D (and mu_s) finite and >= 0; k3 finite.
+    Works on traced fields (under ``jit``/``vmap``), where the Oscillator's construction
+    checks nothing.
     """
     ok = jnp.asarray(True)
     for value in (osc.m, osc.k, osc.g):
         ok = ok & jnp.isfinite(value) & (value > 0.0)
-    for value in (osc.mu, osc.b, osc.D):
+    for value in (osc.mu, osc.b, osc.D) + (() if osc.mu_s is None else (osc.mu_s,)):
         ok = ok & jnp.isfinite(value) & (value >= 0.0)
     return ok & jnp.isfinite(osc.k3)
 
@@ -127,6 +130,14 @@ def input_checks(osc, x0, v0) -> tuple[tuple[Array, RESULTS], ...]:
             (unconfined(osc, x0, v0), RESULTS.unconfined))
 
 
+def static_checks(osc, stuck) -> tuple[tuple[Array, RESULTS], ...]:
+    """The check of the models that assume mu_s = mu: ((mu_s > mu and not at rest from the
+    start, ``RESULTS.static_friction``),); no check at all when mu_s is None."""
+    if osc.mu_s is None:
+        return ()
+    return ((osc.static_differs & ~stuck, RESULTS.static_friction),)
+
+
 def cubic_checks(osc) -> tuple[tuple[Array, RESULTS], ...]:
     """The check of the models without a cubic stiffness: ((k3 != 0, ``RESULTS.no_cubic``),)."""
     return ((osc.k3 != 0.0, RESULTS.no_cubic),)
@@ -135,7 +146,7 @@ def cubic_checks(osc) -> tuple[tuple[Array, RESULTS], ...]:
 def stuck_at_start(osc, x0, v0) -> Array:
     """True where the block starts at rest inside the sticking band and never moves.
 
-    v0 = 0 and |k x0 + k3 x0^3| <= mu m g (static friction holds the spring's pull;
+    v0 = 0 and |k x0 + k3 x0^3| <= mu_s m g (static friction holds the spring's pull;
     :meth:`Oscillator.sticks`, exactly |x0| <= xc = mu m g / k when k3 = 0); only where
     the constants are in the domain (:func:`constants_ok`). Every model then gives the trivial
     answer: x(t) = x0, v = 0, halt_time 0, halt_position x0.
@@ -226,6 +237,8 @@ def solution_estimate(sol: AbstractSolution, *, bound: bool = False) -> Array:
     value = estimate(sol.model, *start, bound=bound)
     # the atlas holds the linear spring only (k3 = 0): no estimate with a cubic stiffness
     value = jnp.where(start[0].k3 != 0.0, jnp.nan, value)
+    if start[0].mu_s is not None:  # nor with static friction above the sliding friction
+        value = jnp.where(start[0].static_differs, jnp.nan, value)
     head = sol.ansatz if hasattr(sol, "ansatz") else sol
     if hasattr(head, "stuck"):  # at rest inside the band from the start: the answer is exact
         value = jnp.where(head.stuck, 0.0, value)

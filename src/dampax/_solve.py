@@ -23,7 +23,7 @@ from ._oscillator import (
 )
 from ._reference import solve_reference
 from ._reference._solve import DEFAULT_PERIODS, default_swings
-from ._solution import solution_estimate
+from ._solution import result_where, solution_estimate, static_checks, stuck_at_start
 
 #: Rizcallah's default amplitude factor (least squares)
 KAPPA = 4.0 / math.pi
@@ -200,11 +200,23 @@ def _solve_analytic(osc, x0, v0, *, method, phase, tail, back, kappa, linear):
     if method == "ansatz":
         sol = solve_ansatz(osc, x0, v0, phase=phase, linear=linear)
         if tail == "coulomb":
-            sol = with_coulomb_tail(sol, osc, x0, v0, back=back)
-        return sol
+            return with_coulomb_tail(sol, osc, x0, v0, back=back)
+        return _assumes_mu_s(sol, osc, x0, v0)
     if method == "rizcallah":
-        return solve_rizcallah(osc, x0, v0, kappa=kappa)
+        return _assumes_mu_s(solve_rizcallah(osc, x0, v0, kappa=kappa), osc, x0, v0)
     return solve_coulomb_exact(osc, x0, v0)
+
+
+def _assumes_mu_s(sol, osc, x0, v0):
+    """``sol`` of a model that assumes mu_s = mu, with ``RESULTS.static_friction`` where the
+    oscillator's mu_s exceeds mu (unchanged when mu_s is None; a start at rest inside the
+    static band is exact for every model)."""
+    checks = static_checks(osc, stuck_at_start(osc, x0, v0))
+    if not checks:
+        return sol
+    ((differs, reason),) = checks
+    return eqx.tree_at(lambda s: s.result, sol,
+                       result_where(sol.valid & differs, reason, sol.result))
 
 
 def turning_points(sol, n: int):

@@ -59,6 +59,9 @@ def add_oscillator_arguments(parser: argparse.ArgumentParser, *, mu: float = 0.0
                      help="quadratic drag [kg/m] (default: %(default)s)")
     osc.add_argument("--g", type=float, default=9.81,
                      help="gravitational acceleration [m/s^2] (default: %(default)s)")
+    osc.add_argument("--mu-s", dest="mu_s", type=float, default=None, metavar="MU_S",
+                     help="static friction coefficient (>= mu): the block sticks at a turning "
+                          "point where |k x| <= mu_s m g (default: mu_s = mu)")
     start = parser.add_argument_group(start_title)
     start.add_argument("--x0", type=float, default=0.2,
                        help="initial displacement [m] (default: %(default)s)")
@@ -260,8 +263,13 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                           "to mu (default: %(default)s)")
     model = parser.add_argument_group("model and fit")
     model.add_argument("--free", default="mu,D",
-                       help="constants to fit, comma list of mu, b, D and k3 (the cubic "
-                            "stiffness, profiled; trace fits only) (default: %(default)s)")
+                       help="constants to fit, comma list of mu, b, D, k3 (the cubic "
+                            "stiffness, profiled; trace fits only) and mu_s (static friction, "
+                            "searched by the halt it gives; --model reference) (default: "
+                            "%(default)s)")
+    model.add_argument("--mu-s", dest="mu_s", type=float, default=None, metavar="MU_S",
+                       help="hold the static friction coefficient at this value (>= mu; "
+                            "--model reference; default: mu_s = mu)")
     model.add_argument("--shared", default=None, metavar="LIST",
                        help="several files: the parameters common to all runs, comma list of "
                             "mu, b, D, w0 and k3 (default: the --free constants); each run "

@@ -94,14 +94,16 @@ def oscillator_from(args: argparse.Namespace):
     :func:`dampax_cli._arguments.add_oscillator_arguments`."""
     from .._oscillator import Oscillator
 
-    return Oscillator(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g)
+    return Oscillator(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g,
+                      mu_s=getattr(args, "mu_s", None))
 
 
 def oscillator_text(args: argparse.Namespace) -> str:
     """One line naming the oscillator and the initial state of the options."""
     return (f"m = {args.m:g} kg, k = {args.k:g} N/m, mu = {args.mu:g}, b = {args.b:g} kg/s, "
-            f"D = {args.D:g} kg/m, g = {args.g:g} m/s^2, x0 = {args.x0:g} m, "
-            f"v0 = {args.v0:g} m/s")
+            f"D = {args.D:g} kg/m, g = {args.g:g} m/s^2, "
+            + ("" if getattr(args, "mu_s", None) is None else f"mu_s = {args.mu_s:g}, ")
+            + f"x0 = {args.x0:g} m, v0 = {args.v0:g} m/s")
 
 
 def check_plot_path(path: str, flag: str = "--plot") -> None:

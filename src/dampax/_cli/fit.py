@@ -117,6 +117,13 @@ def run(args: argparse.Namespace) -> int:
                            or args.warmup < 10):
         raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10, "
                          "--chains >= 1 and --warmup >= 10")
+    if (args.mu_s is not None or "mu_s" in free) and (args.model != "reference"
+                                                       or args.envelope):
+        raise ValueError("--mu-s and --free ...,mu_s (static friction) need --model reference "
+                         "and a trace (the other models assume mu_s = mu)")
+    if args.posterior and (args.mu_s is not None or "mu_s" in free):
+        raise ValueError("--posterior does not sample the static friction mu_s (--mu-s, --free "
+                         "...,mu_s): fit without --posterior")
     start = _parse_start(args.start)
     truth = None
     units = args.units
@@ -147,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
                       start=start, end=args.end, loss=args.loss, optimizer=args.optimizer,
                       max_steps=args.max_steps, units=units, starts=args.starts,
                       seed=args.seed)
-            result = fit(trace, free=free, model=args.model, **kw)
+            result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
             # the ranking fits the candidates with the ansatz: this fit is one of them
             done = {free: result} if args.model == "ansatz" else None
             comparison = None if args.no_compare else compare_models(

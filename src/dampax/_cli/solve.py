@@ -36,6 +36,17 @@ def run(args: argparse.Namespace) -> int:
     run = run_models(osc, args.x0, args.v0, models=models, n_turning=max(args.turning, 1),
                      t_end=args.t_end)
     matched = run.results["matched"]
+    if matched.error is not None and osc.mu_s is not None:
+        # static friction above sliding friction: the matched ansatz (which assumes
+        # mu_s = mu) is listed as not available; its amplitude, phase and turning points
+        # below are those of the sliding motion, which mu_s changes only at the halt
+        sliding = type(osc)(m=osc.m, k=osc.k, mu=osc.mu, b=osc.b, D=osc.D, g=osc.g,
+                            k3=osc.k3)
+        matched = run_models(sliding, args.x0, args.v0, models=("matched",),
+                             n_turning=max(args.turning, 1), t_end=args.t_end
+                             ).results["matched"]
+        print(f"{PROG}: note: mu_s > mu: the matched ansatz's amplitude, phase and turning "
+              "points are those of mu_s = mu (before the halt)", file=sys.stderr)
     if matched.error is not None:
         raise ValueError(matched.error)
     for note in run.notes:

@@ -176,7 +176,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
         units: str | None = None, starts: int = 32, seed: int = 0,
-        k3: float | None = None, shared=None, _inner: bool = False) -> FitResult:
+        k3: float | None = None, mu_s: float | None = None, shared=None,
+        _inner: bool = False, _direct: bool = False) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
 
     A list of traces is a joint fit of several runs of one apparatus
@@ -227,6 +228,14 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
         k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
             the linear spring, every number as without k3); not with "k3" in ``free``.
+        mu_s: model "reference" only: hold the static friction coefficient at this value
+            (>= mu; the block sticks at a turning point where |k x + k3 x^3| <= mu_s m g).
+            Default None: mu_s = mu, every number as without it. ``free=(..., "mu_s")``
+            searches it instead (``_static.fit_mu_s``): x(t) depends on mu_s only through
+            the turning point where the block halts, so the fit screens every candidate halt
+            at the sliding-friction fit's optimum, fits the best ones at fixed mu_s from
+            there and reports mu_s with the interval of values that give the chosen halt
+            (``profiled["mu_s"]``; ``derived["halt_time"]`` is that motion's halt).
         model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (DOP853
             integration of eq. 3, started from the ansatz fit).
         fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
@@ -261,6 +270,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
 
         if p0 is not None:
             raise ValueError("p0: not supported by a joint fit of several runs")
+        if mu_s is not None or "mu_s" in tuple(free):
+            raise ValueError("mu_s: static friction is not supported by a joint fit of "
+                             "several runs; fit each run alone")
         return fit_joint(list(trace_or_t), shared=shared, free=free, oscillator=oscillator,
                          model=model, fit_omega0=fit_omega0, offset=offset, start=start,
                          end=end, loss=loss, optimizer=optimizer, max_steps=max_steps,
@@ -277,6 +289,29 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         raise ValueError(f"starts must be a positive integer, got {starts!r}")
     spec = FIT_MODELS[model]
     free = check_free(free, allowed=FREE)
+    if mu_s is not None or "mu_s" in free:
+        if model != "reference":
+            raise ValueError(f"mu_s: static friction needs model='reference' (the {model} "
+                             "model assumes mu_s = mu)")
+        if "k3" in free:
+            raise ValueError("mu_s: free=(..., 'mu_s') and (..., 'k3') together are not "
+                             "supported: fix k3 (k3=...) or mu_s")
+    if "mu_s" in free:
+        if mu_s is not None:
+            raise ValueError("mu_s: give either free=(..., 'mu_s') or a fixed mu_s, not both")
+        from ._static import fit_mu_s
+
+        return fit_mu_s(fit, trace_or_t, x, free=tuple(f for f in free if f != "mu_s"),
+                        options=dict(oscillator=oscillator, model=model,
+                                     fit_omega0=fit_omega0, offset=offset, start=start,
+                                     end=end, loss=loss, optimizer=optimizer, p0=p0,
+                                     max_steps=max_steps, rtol=rtol, atol=atol,
+                                     max_swings=max_swings, units=units, starts=starts,
+                                     seed=seed, k3=k3))
+    if mu_s is not None:
+        mu_s = float(mu_s)
+        if not (math.isfinite(mu_s) and mu_s >= 0.0):
+            raise ValueError(f"mu_s must be a finite number >= 0, got {mu_s!r}")
     if "k3" in free:
         if k3 is not None:
             raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
@@ -327,7 +362,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     for w in warn:
         warnings.warn(w, stacklevel=2)
     vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
-    consts = Constants(m=osc["m"], g=osc["g"], k3=k3)
+    if mu_s is not None and "mu" not in free and mu_s < osc["mu"]:
+        raise ValueError(f"mu_s must be >= mu (static friction is at least the sliding "
+                         f"friction), got mu_s={mu_s!r} and mu={osc['mu']!r}")
+    consts = Constants(m=osc["m"], g=osc["g"], k3=k3, mu_s=mu_s)
     n = len(t)
     tp, xp, wt = _pad(t, xw, _bucket(n))
     steps = int(max_steps or MAX_STEPS[optimizer])
@@ -346,7 +384,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
 
     stages = []
     fs = math.inf
-    first = spec.start_from or spec.name
+    # _direct (the fits at fixed mu_s of ``_static``, started from p0 = the optimum of a fit of
+    # the same model): no approximate model first
+    first = spec.name if _direct else (spec.start_from or spec.name)
     found = None
     start_p = guess
     if starts > 1 and not FIT_MODELS[first].integrates:
@@ -363,7 +403,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         fs = fs if fs > 0 else float(np.std(r)) or 1.0
         stages.append(f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}")
         out = run(out.params, first, fs)
-    if spec.start_from:
+    if spec.start_from and not _direct:
         # the approximate model's optimum can lie in another basin of the exact model (a
         # strongly damped trace that halts after a few swings: where the block sticks changes
         # the cost by steps): the exact model gets its own batch of starts around the
@@ -410,6 +450,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         profile=profile if loss == "linear" and not _inner else None))
     if "unidentifiable" in res.diagnostics and not _inner:
         raise ValueError(res.diagnostics["unidentifiable"])
+    if mu_s is not None and not _inner:  # the halt of the motion with static friction
+        from ._static import with_static_halt
+
+        res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
     return res
 
 

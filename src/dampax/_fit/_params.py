@@ -38,10 +38,13 @@ POWER = {"mu": 0, "b": 1, "D": 2}
 #: the candidate damping models of ``compare_models``
 CANDIDATES = (("mu",), ("D",), ("b",), ("mu", "D"), ("b", "D"), ("mu", "b"), ("mu", "b", "D"))
 LOSSES = ("linear", "soft_l1")
-UNITS = {"mu": "", "b": "kg/s", "D": "kg/m", "w0": "rad/s", "offset": "", "x0": "",
+UNITS = {"mu": "", "mu_s": "", "b": "kg/s", "D": "kg/m", "w0": "rad/s", "offset": "", "x0": "",
          "v0": "/s", "A": "", "k": "N/m", "k3": "N/m^3"}
-#: what ``free`` may name: the damping constants and the cubic stiffness (issue 14)
-FREE = DAMPING + ("k3",)
+#: what ``free`` may name: the damping constants, the cubic stiffness (issue 14) and the
+#: static friction mu_s (issue 25; both profiled outside the core, ``_api``, ``_static``)
+FREE = DAMPING + ("k3", "mu_s")
+#: the parameters that ``fit`` profiles (a search around the core's fits) instead of varying
+PROFILED = ("k3", "mu_s")
 #: position units that are lengths, in metres (b, D in kg/s, kg/m need lengths and a mass)
 LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "km": 1e3}
 MAD = 1.482602218505602  # 1 / Phi^-1(3/4): MAD -> sigma for Gaussian noise
@@ -69,7 +72,8 @@ def unit_of(name: str, units: str = "m", per_mass: bool = False) -> str:
                 else f"N/{u}^3")
     return {"w0": "rad/s", "offset": u, "x0": u, "v0": f"{u}/s", "A": u, "xc": u,
             "mu_g": f"{u}/s^2", "b/m": "1/s", "D/m": f"1/{u}", "d0": f"{u}/s", "d1": "1/s",
-            "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad"}.get(name, "")
+            "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad",
+            "x_static": u}.get(name, "")
 
 
 class TraceParams(NamedTuple):
@@ -132,12 +136,16 @@ class Constants(NamedTuple):
     """Fixed constants of a fit: mass m [kg], gravitational acceleration g [m/s^2], w0
     [rad/s] of envelope fits (trace fits fit w0 as a parameter: NaN here), and the cubic
     stiffness k3 of trace fits (None: the linear spring, the curves exactly as without k3;
-    a number: held at that value; ``fit(free=(..., "k3"))`` profiles it, see ``_api``)."""
+    a number: held at that value; ``fit(free=(..., "k3"))`` profiles it, see ``_api``), and
+    the static friction mu_s of the reference model (None: mu_s = mu, every program as
+    without it; a number: held at that value; ``fit(free=(..., "mu_s"))`` searches it, see
+    ``_static``)."""
 
     m: Any
     g: Any
     w0: Any = math.nan
     k3: Any = None
+    mu_s: Any = None
 
 
 class Setup(NamedTuple):

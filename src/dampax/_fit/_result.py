@@ -139,6 +139,9 @@ class FitResult:
 
             z = float(norm.ppf(0.5 + 0.5 * level))
             for name, pr in self.profiled.items():
+                if "interval" in pr:  # mu_s: the values that give the fitted halt
+                    out[name] = tuple(pr["interval"])
+                    continue
                 out[name] = (pr["value"] - z * pr["stderr"], pr["value"] + z * pr["stderr"])
         return out
 
@@ -205,8 +208,11 @@ class FitResult:
                              f"{init_text} {unit}".rstrip())
             elif name in self.profiled:  # k3 of fit(free=(..., "k3")): profiled
                 sd = self.profiled[name]["stderr"]
+                how = ("every value in its interval gives the same halt"
+                       if "interval" in self.profiled[name]
+                       else "sd from the curvature of S, AR(1)-inflated")
                 lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {sd:.4g} (profiled: "
-                             f"sd from the curvature of S, AR(1)-inflated) {unit}".rstrip())
+                             f"{how}) {unit}".rstrip())
             else:
                 lines.append(f"    {name + ':':<{width}} {value:.6g} (fixed) {unit}".rstrip())
         if self.derived:
@@ -231,8 +237,10 @@ class FitResult:
                                  f"{self.hac_stderr[name]:.4g})")
                 for name in self.profiled:
                     lo, hi = ci[name]
+                    how = ("every value gives the fitted halt" if "interval" in
+                           self.profiled[name] else "the others allow for its uncertainty")
                     lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
-                                 "the others allow for its uncertainty)")
+                                 f"{how})")
         pairs = []
         n = len(self.varied)
         for i in range(n):

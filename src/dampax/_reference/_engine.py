@@ -118,7 +118,7 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
                            t, t + h, x, v, x1, v1, args)
         t_sw, x_sw = jax.lax.cond(live, turning_point, lambda *a: (t, x),
                                   row, t, h, v, v1, crossed)
-        stick = crossed & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu m g
+        stick = crossed & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu_s m g (mu_s = mu: None)
         reverse = crossed & ~stick
         store = accepted
         n_rows = c["n_rows"]

@@ -10,8 +10,8 @@ first derivative (implicit function theorem on the polynomial, whose coefficient
 derivatives of the step's ends); the turning point x(t*) carries the total derivative.
 
 At the turning point the block sticks for good when the spring cannot overcome static
-friction, |k x + k3 x^3| <= mu m g (`Oscillator.sticks`); otherwise the next swing starts
-with v = 0 and s = -sgn(x).
+friction, |k x + k3 x^3| <= mu_s m g (`Oscillator.sticks`; mu_s = mu unless given);
+otherwise the next swing starts with v = 0 and s = -sgn(x), sliding with mu.
 """
 
 from __future__ import annotations

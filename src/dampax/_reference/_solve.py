@@ -108,7 +108,8 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
 
     Inside a swing sgn(v) is constant and DOP853 integrates the smooth motion; the swing ends
     at the velocity zero (located by Newton's method on re-taken steps), where the block
-    sticks for good if |k x + k3 x^3| <= mu m g, else reverses. sgn(v) is never smoothed.
+    sticks for good if |k x + k3 x^3| <= mu_s m g (``Oscillator.mu_s``; mu when None), else
+    reverses and slides with mu. sgn(v) is never smoothed.
 
     Arguments:
         osc: the Oscillator. Its fields, x0, v0 and t_end broadcast together; a non-scalar
