@@ -407,6 +407,11 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="12 traces, the reference model only")
     ap.add_argument("--models", default="reference,ansatz",
                     help="comma-separated fit models (default: reference,ansatz)")
+    ap.add_argument("--first", type=int, default=0,
+                    help="fit only the draws from this index on (the draws before are drawn, "
+                         "not fitted: to continue a run)")
+    ap.add_argument("--only", default=None,
+                    help="comma-separated indices: fit only these draws")
     ap.add_argument("--out", type=Path, default=None, help="write every record (JSON lines)")
     ap.add_argument("--verbose", action="store_true", help="one line per fit")
     ap.add_argument("--save", type=Path, default=None,
@@ -420,7 +425,10 @@ def main(argv=None):
     drawn = {}
     for model in models:
         specs, drawn[model] = traces(model, n, args.seed)
+        only = None if args.only is None else {int(k) for k in args.only.split(",")}
         for i, spec in enumerate(specs):
+            if i < args.first or (only is not None and i not in only):
+                continue
             t, x = simulate(spec)
             rec = run_case(spec, t, x, model)
             res = rec.pop("_res")

@@ -585,7 +585,11 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         # a gross mismatch whatever the noise: the model's halt and the end of the data's
         # swings above a fiftieth of the amplitude are END_PERIODS periods or a tenth of the
         # window apart
-        level = max(6.0 * noise, 0.02 * A)
+        # (the noise from the second differences misses most of correlated noise, which
+        # wanders for good: the robust scale of the residuals, 1.4826 MAD, counts it, and a
+        # mismatch over less than half the window does not move it)
+        scale = max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+        level = max(6.0 * scale, 0.02 * A)
         # (the same measure on both: where the swings fall below that level; a viscous
         # decay that fades into the noise has no halt, in the model or the data)
         gross_d = motion_end(t, x, period, level)
