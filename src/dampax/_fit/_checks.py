@@ -60,8 +60,9 @@ END_P = 1e-3
 #: amplitude end this many periods (or a tenth of the window) apart
 END_PERIODS = 4.0
 #: a fit that ran out of optimizer steps counts as converged when one more Gauss-Newton step
-#: would lower the cost by less than this many noise variances: the parameters would move by
-#: at most 0.3 standard errors, which keeps a 90 % interval's coverage above 87.7 %
+#: would move no parameter by more than sqrt(this) = 0.3 sd of its interval (for a trace; of
+#: its delta-method standard error otherwise, where the decrement in noise variances bounds
+#: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
 #: the intervals hold when, with a parameter held 2 interval sd from its value and the others
 #: refitted, the cost rises at least this multiple of what the intervals assume: a rise of c
@@ -288,6 +289,23 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
     return end_mismatch(t, r, model_end(t, c), end_d, st["phi"]) < END_P
 
 
+def _interval_sd(jac, rows, params, t):
+    """The sd of the intervals (:func:`~dampax._fit._intervals.hac_covariance`) of the
+    Jacobian's columns, or None."""
+    from ._intervals import hac_covariance
+
+    w0 = params.get("w0", math.nan)
+    if not (math.isfinite(w0) and w0 > 0) or len(t) < 2:
+        return None
+    try:
+        cov, _ = hac_covariance(jac, rows, period_samples=2.0 * math.pi / w0 / float(
+            np.median(np.diff(t))))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return sd if np.all(np.isfinite(sd)) else None
+
+
 def newton_decrement(jac, rows, values=None, names=()) -> float:
     """What one more Gauss-Newton step would take off the cost, in noise variances:
     r^T J (J^T J)^+ J^T r / s2 with s2 = r^T r / (n - p); its square root bounds how many
@@ -299,14 +317,21 @@ def newton_decrement(jac, rows, values=None, names=()) -> float:
         jac, rows: the Jacobian (physical parameters) and residuals of the data rows.
         values, names: the parameters (in the order of the columns) and their names.
     """
+    return newton_step(jac, rows, values, names)[0]
+
+
+def newton_step(jac, rows, values=None, names=()):
+    """(decrement, step) of :func:`newton_decrement`: the decrement in noise variances and
+    the Gauss-Newton step of every parameter (0 for the constants held at their bound; None
+    where the decrement is 0 or infinite)."""
     J = np.asarray(jac, dtype=float)
     r = np.asarray(rows, dtype=float)
     if J.ndim != 2 or not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
-        return math.inf
+        return math.inf, None
     n, p = J.shape
     s2 = float(r @ r) / max(n - p, 1)
     if not s2 > 0:
-        return 0.0
+        return 0.0, None
     keep = np.ones(p, dtype=bool)
     vals = np.asarray(values if values is not None else np.zeros(p), dtype=float)
     for _ in range(p):
@@ -319,11 +344,11 @@ def newton_decrement(jac, rows, values=None, names=()) -> float:
                and names[k] in ("mu", "b", "D") and vals[k] + full[k] < 0.0]
         if not out:
             g = Jk.T @ r
-            return float(-(g @ step)) / s2
+            return float(-(g @ step)) / s2, full
         keep[out] = False
         if not keep.any():
-            return 0.0
-    return 0.0
+            return 0.0, None
+    return 0.0, None
 
 
 def null_directions(jac, names) -> list:
@@ -456,14 +481,22 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
     fails, bad, diag = [], [], {}
     names = list(varied)
     if not converged and capped and jac is not None and rows is not None:
-        dec = newton_decrement(jac, rows, [params[n] for n in names], names)
+        dec, step = newton_step(jac, rows, [params[n] for n in names], names)
         diag["newton_decrement"] = dec
-        if dec <= NEWTON_TOL:
+        # how far the parameters would still move: sqrt(decrement) bounds it in delta-method
+        # standard errors; for a trace, in the sd of the intervals themselves (HAC: what
+        # conf_interval reports, and what the coverage depends on)
+        move, unit = math.sqrt(max(dec, 0.0)), "standard errors"
+        sd_move = _interval_sd(jac, rows, params, t) if kind == "trace" else None
+        if step is not None and sd_move is not None and np.all(sd_move > 0):
+            move, unit = float(np.max(np.abs(step) / sd_move)), "interval sd"
+            diag["newton_move_sd"] = move
+        if move * move <= NEWTON_TOL:
             converged = True
             diag["note_steps"] = (f"the step budget ran out on a flat valley: one more "
                                   f"Gauss-Newton step would lower the cost by {dec:.2g} noise "
                                   "variances (the parameters would move by less than "
-                                  f"{math.sqrt(max(dec, 0.0)):.2g} standard errors)")
+                                  f"{move:.2g} {unit})")
     if not converged:
         fails.append(f"the optimizer did not converge ({message})")
     if not all(math.isfinite(params.get(n, math.nan)) for n in varied):
