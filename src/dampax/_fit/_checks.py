@@ -619,9 +619,11 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         # swings above a fiftieth of the amplitude are END_PERIODS periods or a tenth of the
         # window apart
         # (the noise from the second differences misses most of correlated noise, which
-        # wanders for good: the robust scale of the residuals, 1.4826 MAD, counts it, and a
-        # mismatch over less than half the window does not move it)
-        scale = max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+        # wanders for good: where the residuals pass the test against AR(1) noise they are
+        # the noise, and their robust scale, 1.4826 MAD, counts it; structured residuals
+        # hold the model's error and say nothing about the noise)
+        scale = noise if structured else \
+            max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
         level = max(6.0 * scale, 0.02 * A)
         # (the same measure on both: where the swings fall below that level; a viscous
         # decay that fades into the noise has no halt, in the model or the data)
