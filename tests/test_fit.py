@@ -84,8 +84,11 @@ def test_synthetic_truth_within_3_stderr_and_5_percent(synthetic):
     core = fit_arrays(tp, xp, p0, free=("mu", "D"), fit_omega0=True, m=M,
                       weights=(np.arange(pad) < N).astype(float))
     assert bool(core.success)
-    np.testing.assert_allclose(np.asarray(core.params),
-                               [res.params[p] for p in PARAMS], rtol=1e-7, atol=1e-12)
+    # (v0 is near 0: compared on the scale of the swing's velocity, X0 w0)
+    ours = np.array([res.params[p] for p in PARAMS])
+    np.testing.assert_allclose(np.asarray(core.params)[:6], ours[:6], rtol=1e-7, atol=1e-12)
+    assert abs(float(core.params[6]) - ours[6]) <= 1e-9 * X0 * math.sqrt(K / M), \
+        (float(core.params[6]), ours[6])
     np.testing.assert_allclose(np.asarray(core.stderr)[[0, 2]],
                                [res.stderr["mu"], res.stderr["D"]], rtol=1e-6)
 

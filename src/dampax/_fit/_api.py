@@ -519,8 +519,25 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
     if np.all(np.isfinite(g)) and math.isfinite(sd_e):
         extra = np.outer(g, g) * sd_e * sd_e
+    # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
+    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; where it rises less
+    # than PROFILE_MIN of that (S is not quadratic over the interval: where the block sticks
+    # moves with k3 and changes the cost by steps) the interval does not hold
+    success, reason = best.success, best.reason
+    if math.isfinite(sd_e) and sd_e > 0 and best.success:
+        from ._checks import PROFILE_MIN
+
+        rises = [(cost(e_best + sgn * 2.0 * sd_e) - s0) / (4.0 * sigma2) for sgn in (-1, 1)]
+        profile["k3"]["profile"] = rises
+        low = [c for c in rises if math.isfinite(c) and c < PROFILE_MIN]
+        if low:
+            success = False
+            reason = (f"the intervals do not hold: with k3 held 2 sd from its value and the "
+                      f"rest refitted the cost rises only {min(low):.2g} times what its interval "
+                      "assumes (the cost is not quadratic in k3 over its interval)")
     return dataclasses.replace(
-        best, params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
+        best, success=success, reason=reason,
+        params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
         free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
         derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
                  "k3_z": float(norm.ppf(0.975))})

@@ -16,13 +16,20 @@ failures
     the optimizer did not converge (a fit that ran out of steps on a flat valley, where one
     more Gauss-Newton step would move the parameters by a small fraction of their standard
     errors, counts as converged: :func:`newton_decrement`); a standard error is not finite; no
-    measurable decay (every fitted damping constant within two standard errors of zero); a
+    measurable decay (the Wald test that the fitted damping constants are all zero, with the
+    intervals' covariance, does not reject at 5 %); a
     parameter ran to absurd values (d0/(w0 A), d1/w0 or d2 A/w0 above :data:`ABSURD`, or an
     amplitude far beyond the data); the motion ends of model and data differ (the residuals
     between them exceed those elsewhere, :func:`end_mismatch`, or grossly:
     :data:`END_PERIODS`); for the exact model ("reference") residuals that AR(1) noise cannot
     produce (:func:`residual_structure`: a local optimum); intervals that do not hold (the
-    profile of the cost rises less over them than they assume: :func:`profile_ratios`).
+    profile of the cost rises less over them than they assume: :func:`profile_ratios`; or a
+    damping constant whose interval excludes 0 at 1 % is not needed by the likelihood-ratio
+    test at 1 %: :func:`bound_tests`, a valley in the cost far outside the intervals).
+refusals (ValueError, the true reason)
+    the split between damping terms is not determined: they are measured together, none alone
+    (a Wald test), or the Jacobian is singular (:func:`null_directions`: over a single swing
+    Coulomb friction only moves the centre, which the offset does too).
 adequacy
     the motion ends agree, and the residuals either pass :func:`residual_structure` or stay
     below :data:`RMS_AMPLITUDE` of the amplitude. Structured residuals of an approximate model
@@ -53,8 +60,9 @@ END_P = 1e-3
 #: amplitude end this many periods (or a tenth of the window) apart
 END_PERIODS = 4.0
 #: a fit that ran out of optimizer steps counts as converged when one more Gauss-Newton step
-#: would lower the cost by less than this many noise variances: the parameters would move by
-#: at most 0.3 standard errors, which keeps a 90 % interval's coverage above 87.7 %
+#: would move no parameter by more than sqrt(this) = 0.3 sd of its interval (for a trace; of
+#: its delta-method standard error otherwise, where the decrement in noise variances bounds
+#: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
 #: the intervals hold when, with a parameter held 2 interval sd from its value and the others
 #: refitted, the cost rises at least this multiple of what the intervals assume: a rise of c
@@ -281,6 +289,23 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
     return end_mismatch(t, r, model_end(t, c), end_d, st["phi"]) < END_P
 
 
+def _interval_sd(jac, rows, params, t):
+    """The sd of the intervals (:func:`~dampax._fit._intervals.hac_covariance`) of the
+    Jacobian's columns, or None."""
+    from ._intervals import hac_covariance
+
+    w0 = params.get("w0", math.nan)
+    if not (math.isfinite(w0) and w0 > 0) or len(t) < 2:
+        return None
+    try:
+        cov, _ = hac_covariance(jac, rows, period_samples=2.0 * math.pi / w0 / float(
+            np.median(np.diff(t))))
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return sd if np.all(np.isfinite(sd)) else None
+
+
 def newton_decrement(jac, rows, values=None, names=()) -> float:
     """What one more Gauss-Newton step would take off the cost, in noise variances:
     r^T J (J^T J)^+ J^T r / s2 with s2 = r^T r / (n - p); its square root bounds how many
@@ -292,14 +317,21 @@ def newton_decrement(jac, rows, values=None, names=()) -> float:
         jac, rows: the Jacobian (physical parameters) and residuals of the data rows.
         values, names: the parameters (in the order of the columns) and their names.
     """
+    return newton_step(jac, rows, values, names)[0]
+
+
+def newton_step(jac, rows, values=None, names=()):
+    """(decrement, step) of :func:`newton_decrement`: the decrement in noise variances and
+    the Gauss-Newton step of every parameter (0 for the constants held at their bound; None
+    where the decrement is 0 or infinite)."""
     J = np.asarray(jac, dtype=float)
     r = np.asarray(rows, dtype=float)
     if J.ndim != 2 or not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
-        return math.inf
+        return math.inf, None
     n, p = J.shape
     s2 = float(r @ r) / max(n - p, 1)
     if not s2 > 0:
-        return 0.0
+        return 0.0, None
     keep = np.ones(p, dtype=bool)
     vals = np.asarray(values if values is not None else np.zeros(p), dtype=float)
     for _ in range(p):
@@ -312,11 +344,83 @@ def newton_decrement(jac, rows, values=None, names=()) -> float:
                and names[k] in ("mu", "b", "D") and vals[k] + full[k] < 0.0]
         if not out:
             g = Jk.T @ r
-            return float(-(g @ step)) / s2
+            return float(-(g @ step)) / s2, full
         keep[out] = False
         if not keep.any():
-            return 0.0
-    return 0.0
+            return 0.0, None
+    return 0.0, None
+
+
+def null_directions(jac, names) -> list:
+    """The exact degeneracies of a fit: the parameters whose effects on the trace cancel.
+
+    The columns of the Jacobian (physical parameters, data rows) are scaled to unit norm;
+    singular values below numpy's rank tolerance (largest singular value times max(n, p)
+    times the machine epsilon, as ``numpy.linalg.matrix_rank``) span directions the data
+    cannot see at all. Columns that are zero (a constant at its bound that the model does not
+    feel) are left out: they have no standard error already.
+
+    Arguments:
+        jac: the Jacobian (n x p) or None; names: the parameters of its columns.
+
+    Returns:
+        A list with, for each null direction, the names of the parameters that take part
+        in it (|component| above 0.1 of the unit vector), largest first; empty when the
+        Jacobian has full rank (or is missing or not finite).
+    """
+    if jac is None:
+        return []
+    J = np.asarray(jac, dtype=float)
+    if J.ndim != 2 or J.shape[1] != len(names) or not np.all(np.isfinite(J)):
+        return []
+    norm = np.sqrt(np.sum(J * J, axis=0))
+    live = np.flatnonzero(norm > 0)
+    if live.size < 2:
+        return []
+    Jn = J[:, live] / norm[live]
+    _, s, vt = np.linalg.svd(Jn, full_matrices=False)
+    tol = s[0] * max(Jn.shape) * np.finfo(float).eps
+    out = []
+    for k in np.flatnonzero(s <= tol):
+        v = np.abs(vt[k])
+        order = [int(i) for i in np.argsort(-v) if v[i] > 0.1]
+        out.append([names[int(live[i])] for i in order])
+    return out
+
+
+#: the Wald test of a damping constant = 0 and the likelihood-ratio test must agree at this
+#: level: z = 2.576 and chi2(1) = 6.63 (1 %)
+LR_LEVEL = 0.01
+LR_Z = 2.5758293035489004
+LR_CHI2 = LR_Z * LR_Z
+
+
+def bound_tests(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
+                s2: float) -> dict:
+    """Wald against likelihood ratio at the bound: each damping constant of ``names`` whose
+    interval excludes 0 at 1 % (value / sd > :data:`LR_Z`) is held at 0 and the others are
+    fitted again (``profile(name, 0)``); the rise of the cost, in long-run noise variances
+    (s2 (sd / stderr)^2: the intervals' own variance, which allows for correlated noise), is
+    the likelihood-ratio chi2(1) of the same hypothesis. Where the model is linear in its
+    parameters both tests agree (chi2 = z^2); a rise below chi2(1)'s 1 % point while the
+    Wald z is beyond it means a valley in the cost: the decay the constant explains is
+    explained nearly as well by the others, far outside the intervals.
+
+    Returns:
+        {name: (Wald z, likelihood-ratio chi2)} for the constants tested.
+    """
+    out = {}
+    for name in names:
+        v, s, se = params[name], sd.get(name, math.nan), stderr.get(name, math.nan)
+        if not (math.isfinite(s) and s > 0 and math.isfinite(se) and se > 0):
+            continue
+        z = v / s
+        if not z > LR_Z:
+            continue
+        c = profile(name, 0.0)
+        if math.isfinite(c):
+            out[name] = (z, (c - chisqr) / (s2 * (s / se) ** 2))
+    return out
 
 
 def profile_ratios(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
@@ -377,28 +481,50 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
     fails, bad, diag = [], [], {}
     names = list(varied)
     if not converged and capped and jac is not None and rows is not None:
-        dec = newton_decrement(jac, rows, [params[n] for n in names], names)
+        dec, step = newton_step(jac, rows, [params[n] for n in names], names)
         diag["newton_decrement"] = dec
-        if dec <= NEWTON_TOL:
+        # how far the parameters would still move: sqrt(decrement) bounds it in delta-method
+        # standard errors; for a trace, in the sd of the intervals themselves (HAC: what
+        # conf_interval reports, and what the coverage depends on)
+        move, unit = math.sqrt(max(dec, 0.0)), "standard errors"
+        sd_move = _interval_sd(jac, rows, params, t) if kind == "trace" else None
+        if step is not None and sd_move is not None and np.all(sd_move > 0):
+            move, unit = float(np.max(np.abs(step) / sd_move)), "interval sd"
+            diag["newton_move_sd"] = move
+        if move * move <= NEWTON_TOL:
             converged = True
             diag["note_steps"] = (f"the step budget ran out on a flat valley: one more "
                                   f"Gauss-Newton step would lower the cost by {dec:.2g} noise "
                                   "variances (the parameters would move by less than "
-                                  f"{math.sqrt(max(dec, 0.0)):.2g} standard errors)")
+                                  f"{move:.2g} {unit})")
     if not converged:
         fails.append(f"the optimizer did not converge ({message})")
     if not all(math.isfinite(params.get(n, math.nan)) for n in varied):
         if converged:
             fails.append("the fitted parameters are not finite")
         return fails, ["the fit produced no finite model"], diag
+    null = null_directions(jac, names)
+    if null:
+        diag["null_space"] = null
+        group = [n for n in ("mu", "b", "D", "w0") if n in null[0]]
+        if group:
+            group.append("offset" if "offset" in null[0] else
+                         next(n for n in null[0] if n not in group))
+            diag["unidentifiable"] = (
+                f"{', '.join(group[:-1])} and {group[-1]} are not separately identifiable "
+                f"from this window ({an.n_turns} turning point{'s' if an.n_turns != 1 else ''}"
+                "): the Jacobian of the fit is singular, their effects on the trace cancel "
+                "exactly (over a single swing Coulomb friction only moves its centre); fix all "
+                "but one of them (damping constants in the oscillator, the offset with "
+                "offset=False and p0={'offset': ...}) or fit a longer record")
     nonfinite = [n for n in varied if not math.isfinite(stderr.get(n, math.nan))]
     if nonfinite:
         fails.append(f"the standard error of {', '.join(nonfinite)} is not finite (the data do "
                      "not determine it)")
     damping = [n for n in ("mu", "b", "D") if n in varied]
     held = [n for n in ("mu", "b", "D") if n not in varied and params.get(n, 0.0) > 0.0]
-    if damping and not held and all(not params[n] > 2.0 * stderr.get(n, math.nan)
-                                    for n in damping):
+    if kind != "trace" and damping and not held and \
+            all(not params[n] > 2.0 * stderr.get(n, math.nan) for n in damping):
         # (a decay that held constants explain is measured by them)
         fails.append(f"no measurable decay: every fitted damping constant "
                      f"({', '.join(damping)}) is consistent with zero")
@@ -435,6 +561,22 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
             sd = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
         except (ValueError, np.linalg.LinAlgError):
             cov = None
+    # no measurable decay: the fitted damping constants together are consistent with zero
+    # (the Wald test with the intervals' covariance does not reject at 5 %; a decay that held
+    # constants explain is measured by them)
+    if damping and not held:
+        idx = [names.index(n) for n in damping]
+        v = np.array([params[n] for n in damping])
+        if cov is not None and np.all(np.isfinite(cov[np.ix_(idx, idx)])):
+            wald = float(v @ np.linalg.pinv(cov[np.ix_(idx, idx)]) @ v)
+        else:
+            se = np.array([stderr.get(n, math.nan) for n in damping])
+            wald = float(np.sum((v / se) ** 2)) if np.all(se > 0) else math.nan
+        diag["decay_wald"] = wald
+        if not wald > chi2.isf(0.05, len(damping)):
+            fails.append(f"no measurable decay: the fitted damping constants "
+                         f"({', '.join(damping)}) are together consistent with zero (Wald "
+                         f"chi2 = {wald:.3g}, {len(damping)} dof)")
     # identifiability of the split between the damping terms: the decay of a group of them
     # is measured (the Wald test that all of the group are zero rejects at 1 %) but none of
     # them on its own (each within 1.96 sd of zero): the data fix a combination only
@@ -476,16 +618,25 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         # a gross mismatch whatever the noise: the model's halt and the end of the data's
         # swings above a fiftieth of the amplitude are END_PERIODS periods or a tenth of the
         # window apart
-        level = max(6.0 * noise, 0.02 * A)
-        gross_d = end_d if an.halted else motion_end(t, x, period, level)
+        # (the noise from the second differences misses most of correlated noise, which
+        # wanders for good: where the residuals pass the test against AR(1) noise they are
+        # the noise, and their robust scale, 1.4826 MAD, counts it; structured residuals
+        # hold the model's error and say nothing about the noise)
+        scale = noise if structured else \
+            max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+        level = max(6.0 * scale, 0.02 * A)
+        # (the same measure on both: where the swings fall below that level; a viscous
+        # decay that fades into the noise has no halt, in the model or the data)
+        gross_d = motion_end(t, x, period, level)
+        gross_m = motion_end(t, curve, period, level)
         tol = max(END_PERIODS * period, 0.1 * float(t[-1] - t[0]))
-        if end_m < gross_d - tol:
-            msg = (f"the model stops moving at t = {end_m:.5g} s, well before the data "
+        if gross_m < gross_d - tol:
+            msg = (f"the model stops moving at t = {gross_m:.5g} s, well before the data "
                    f"(t = {gross_d:.5g} s)")
             fails.append(msg)
             bad.append(msg)
-        elif end_m > gross_d + tol:
-            msg = (f"the model still moves at t = {end_m:.5g} s, well after the data stop "
+        elif gross_m > gross_d + tol:
+            msg = (f"the model still moves at t = {gross_m:.5g} s, well after the data stop "
                    f"(t = {gross_d:.5g} s)")
             fails.append(msg)
             bad.append(msg)
@@ -527,4 +678,15 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
                          f"the rest refitted the cost rises only {c:.2g} times what the "
                          "intervals assume (the data pin the parameters down less than their "
                          "linearisation says)")
+        else:
+            lr = bound_tests(profile, params, stderr, sd, damping, chisqr, s2)
+            diag.update({f"lr_zero_{k}": v[1] for k, v in lr.items()})
+            weak = [(k, z, c) for k, (z, c) in lr.items() if c < LR_CHI2]
+            if weak:
+                k, z, c = min(weak, key=lambda kzc: kzc[2])
+                fails.append(f"the intervals do not hold: {k}'s interval excludes 0 by "
+                             f"{z:.2g} sd, but with {k} held at 0 and the rest refitted the "
+                             f"cost rises by a likelihood-ratio chi2 of only {c:.2g} (< "
+                             f"{LR_CHI2:.2f}, 1 %): the other terms explain the decay nearly "
+                             "as well (the split between them is not determined)")
     return fails, bad, diag
