@@ -101,29 +101,116 @@ def test_joint_fit_input_errors(runs):
         dp.fit([runs[0], (runs[1][0], np.zeros_like(runs[1][0]))], **COMMON)
 
 
-def test_cli_joint_fit(runs, tmp_path, capsys, monkeypatch):
+@pytest.fixture(scope="module")
+def cli_posterior(runs, tmp_path_factory):
+    """``dampax fit run1.csv run2.csv --shared mu,D --posterior`` (the ansatz: its joint fit
+    is the first stage of the reference one, the same compiled programs), 2 chains x 100
+    draws; returns (the output folder, stdout, the paths of the runs)."""
+    import contextlib
+    import io
+
     from dampax import _cli
     from dampax._cli.fit import add_arguments, run
 
-    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    folder = tmp_path_factory.mktemp("joint_cli")
     paths = []
     for j, (t, x) in enumerate(runs):
-        path = tmp_path / f"run{j + 1}.csv"
-        path.write_text("t,x\n" + "".join(f"{a:.4f},{b:.7f}\n" for a, b in zip(t, x,
+        path = folder / f"run{j + 1}.csv"
+        path.write_text("t,x\n" + "".join(f"{a:.4f},{b:.8f}\n" for a, b in zip(t, x,
                                                                                 strict=True)))
         paths.append(str(path))
-    out = tmp_path / "out"
-    assert _cli.main(["fit", *paths, "--shared", "mu,D", "--free", "mu,D", "--m", "1",
-                      "--k", "30", "--start", "data", "--starts", "8", "--model", "reference",
-                      "--out", str(out)]) == 0
-    text = capsys.readouterr().out
+    out = folder / "out"
+    saved = _cli.SUBCOMMANDS.get("fit")
+    _cli.SUBCOMMANDS["fit"] = (add_arguments, run)
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            code = _cli.main(["fit", *paths, "--shared", "mu,D", "--free", "mu,D", "--m", "1",
+                              "--k", "30", "--start", "data", "--starts", "8", "--posterior",
+                              "--draws", "100", "--chains", "2", "--warmup", "100",
+                              "--seed", "1", "--out", str(out)])
+    finally:
+        if saved is None:
+            _cli.SUBCOMMANDS.pop("fit", None)
+        else:
+            _cli.SUBCOMMANDS["fit"] = saved
+    assert code == 0, buf.getvalue()[-2000:]
+    return out, buf.getvalue(), paths
+
+
+def test_cli_joint_fit(cli_posterior, capsys, monkeypatch):
+    from dampax import _cli
+    from dampax._cli.fit import add_arguments, run
+
+    out, text, paths = cli_posterior
     assert "[[Shared]]" in text and "run1.csv" in text
     summary = json.loads((out / "fit.json").read_text())
     assert summary["fit"]["shared"] == ["mu", "D"]
     assert len(summary["fit"]["runs"]) == 2
     assert (out / "fit.png").read_bytes()[:4] == b"\x89PNG"
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
     assert _cli.main(["fit", paths[0], "--shared", "mu,D"]) == 2
     assert "--shared needs two or more" in capsys.readouterr().err
+
+
+def test_joint_posterior_covers_the_truth_and_arviz_reads_it(cli_posterior):
+    """The posterior of the joint fit (``dp.posterior`` of the runs, started from their joint
+    fit; here through the CLI): posterior.nc is InferenceData with the shared parameters
+    (chain, draw) and each run's own (chain, draw, run), noise per run; the 95 % intervals of
+    the shared constants hold the truth of the exact stick-slip integration, each run's start
+    and noise level are recovered, R-hat and ESS as ArviZ computes them."""
+    az = pytest.importorskip("arviz")
+    from dampax._fit._mcmc import GROUPS
+
+    out, text, _ = cli_posterior
+    assert "joint ansatz fit of 2 runs" in text and "x0[1]" in text
+    idata = az.from_netcdf(out / "posterior.nc")
+    assert set(idata.groups()) == set(GROUPS)
+    post = idata.posterior
+    assert set(post.data_vars) == {"mu", "D", "offset", "x0", "v0", "sigma", "phi_noise"}
+    assert post["mu"].dims == ("chain", "draw") and post["mu"].shape == (2, 100)
+    assert post["x0"].dims == ("chain", "draw", "run") and post["x0"].shape == (2, 100, 2)
+    assert post.attrs["shared"] == "mu,D" and post.attrs["fixed_b"] == 0.0
+    assert idata.observed_data["x"].shape[0] == 2
+    assert not np.any(idata.sample_stats["diverging"].values)
+    s = json.loads((out / "fit.json").read_text())["posterior"]
+    for name, value in (("mu", MU), ("D", D)):
+        assert s[name]["lo"] < value < s[name]["hi"], (name, s[name])
+        assert s[name]["r_hat"] == pytest.approx(float(az.rhat(post[name].values)), abs=1e-8)
+        assert s[name]["r_hat"] < 1.05 and s[name]["ess_bulk"] > 100, (name, s[name])
+    for j, (x0, _v0, _, noise, off) in enumerate(RUNS):
+        assert abs(s[f"x0[{j}]"]["mean"] - x0) < 5 * noise
+        assert abs(s[f"offset[{j}]"]["mean"] - off) < noise
+        assert s[f"sigma[{j}]"]["mean"] == pytest.approx(noise, rel=0.2)
+        x0_draws = post["x0"].sel(run=j).values
+        assert s[f"x0[{j}]"]["ess_bulk"] == pytest.approx(float(az.ess(x0_draws)), rel=1e-8)
+
+
+def test_ar1_likelihood_masks_the_padding():
+    """The joint posterior's likelihood: rows of different lengths, padded with junk and
+    masked, give the exact Gaussian log density of each row's own AR(1) series (scipy's
+    multivariate normal with the stationary AR(1) covariance), one sigma and phi per row."""
+    from scipy.linalg import toeplitz
+    from scipy.stats import multivariate_normal
+
+    from dampax._fit._posterior import ar1_loglik
+
+    rng = np.random.default_rng(3)
+    lengths, sigma, phi = (7, 4), np.array([0.3, 1.7]), np.array([0.6, -0.2])
+    r = np.full((2, 9), 5.0)
+    mask = np.zeros((2, 9), dtype=bool)
+    exact = 0.0
+    for j, n in enumerate(lengths):
+        r[j, :n] = rng.standard_normal(n)
+        mask[j, :n] = True
+        cov = sigma[j] ** 2 / (1 - phi[j] ** 2) * toeplitz(phi[j] ** np.arange(n))
+        exact += multivariate_normal(np.zeros(n), cov).logpdf(r[j, :n]) \
+            + 0.5 * n * np.log(2 * np.pi)
+    assert float(ar1_loglik(r, sigma, phi, mask)) == pytest.approx(exact, rel=1e-12)
+    # one series, no mask: the same as before
+    one = multivariate_normal(np.zeros(7), 0.09 / 0.64 * toeplitz(0.6 ** np.arange(7)))
+    assert float(ar1_loglik(r[0, :7], 0.3, 0.6)) == pytest.approx(
+        one.logpdf(r[0, :7]) + 3.5 * np.log(2 * np.pi), rel=1e-12)
 
 
 def test_joint_generated_family_sample():

@@ -416,6 +416,9 @@ class JointProblem(NamedTuple):
         t, x: each run's window (padded), absolute times.
         sigma: each run's noise level (the rms of its single fit).
         nonneg: the names that are >= 0 (damping constants).
+        residual, args: the same residuals as a hashable callable ``residual(p, args)`` (a
+            :class:`JointResidual`, data - model) and its arrays (a :class:`JointArrays`),
+            for compiled samplers that take the function as a static argument.
     """
 
     names: list
@@ -426,6 +429,26 @@ class JointProblem(NamedTuple):
     x: np.ndarray
     sigma: np.ndarray
     nonneg: tuple
+    residual: Any = None
+    args: Any = None
+
+
+@dataclass(frozen=True)
+class JointResidual:
+    """data - model of every run, (n_runs, n_pad), 0 on the padding, of the joint physical
+    vector p (layout :meth:`Layout.names`): :func:`physical_residuals` with the sign of the
+    posterior's residuals; static and hashable (the joint layout and the reference options).
+
+    Attributes:
+        layout: the joint :class:`Layout`.
+        opts: the reference integrator's budget and tolerances (None for the ansatz).
+    """
+
+    layout: Layout
+    opts: Any = None
+
+    def __call__(self, p, args: JointArrays):
+        return -physical_residuals(p, args, self.layout, self.opts)
 
 
 @dataclass
@@ -980,7 +1003,8 @@ def _result(out: JointCore, a: JointArrays, lay: Layout, singles, sigma, *, free
 
     problem = JointProblem(names=names, p0=p, residuals=residuals, mask=mask, t=t_abs,
                            x=np.asarray(a.x), sigma=np.asarray(sigma),
-                           nonneg=tuple(nm for nm in names if nm.split("[")[0] in DAMPING))
+                           nonneg=tuple(nm for nm in names if nm.split("[")[0] in DAMPING),
+                           residual=JointResidual(lay, opts), args=arrays)
     return JointResult(
         names=names, values=values, stderr=stderr, covariance=hac, delta_covariance=delta,
         shared=lay.shared, free=free, runs=runs, singles=singles,
