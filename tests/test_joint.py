@@ -3,7 +3,8 @@
 Truth from an independent integrator (scipy DOP853 with exact stick-slip, tests/helpers.py and
 benchmarks/joint_calibration.py). The tests share one layout (2 runs, shared mu and D, the
 oscillator given, padded length 4096, 8 global starts, a swing budget of 64) so that the
-compiled programs are shared.
+compiled programs are shared; the command line fits the same runs with the ansatz (the first
+stage of the reference fit: the same programs) and samples their joint posterior.
 """
 
 import json
@@ -86,7 +87,13 @@ def test_joint_problem_and_report(joint):
     json.dumps(joint.to_dict())
 
 
-def test_joint_fit_input_errors(runs):
+def test_joint_fit_input_errors(runs, joint):
+    with pytest.raises(ValueError, match="start_fit must be a 'ansatz' joint fit"):
+        dp.posterior(runs, oscillator=OSC, model="ansatz", start_fit=joint)
+    with pytest.raises(ValueError, match="start_fit: its shared parameters"):
+        dp.posterior(runs, oscillator=OSC, model="reference", shared=("D",), start_fit=joint)
+    with pytest.raises(ValueError, match="shared: names constants common to several runs"):
+        dp.posterior(*runs[0], oscillator=OSC, shared=("D",))
     with pytest.raises(ValueError, match="shared"):
         dp.fit(*runs[0], oscillator=OSC, shared=("mu", "D"))
     with pytest.raises(ValueError, match="traces"):
@@ -214,8 +221,9 @@ def test_ar1_likelihood_masks_the_padding():
 
 
 def test_joint_generated_family_sample():
-    """Two sets of benchmarks/joint_calibration.py (2 runs each, the oscillator given, mu and
-    D present): the truth inside the 99 % intervals of a successful joint fit."""
+    """A set of benchmarks/joint_calibration.py (2 runs, the oscillator given, mu and D
+    present; the layout of the other tests): the truth inside the 99 % intervals of a
+    successful joint fit."""
     import importlib.util
 
     path = Path(__file__).resolve().parents[1] / "benchmarks" / "joint_calibration.py"
@@ -224,7 +232,7 @@ def test_joint_generated_family_sample():
     spec.loader.exec_module(cal)
     rng = np.random.default_rng(7)
     picked = []
-    while len(picked) < 2:
+    while len(picked) < 1:
         s = cal.draw(rng, n_runs=2, free=("mu", "D"))
         if s["given"]:
             picked.append(s)

@@ -13,10 +13,17 @@ is vmapped over them: one compiled program per number of runs, padded length and
 layout, whatever the lengths of the runs.
 
 Starts: each run is first fitted alone by :func:`~dampax._fit._api.fit` (its window, guesses,
-global starts: the single-fit machinery), the shared constants start at the median of the
-single fits. The optimizer is optimistix Levenberg-Marquardt in the internal coordinates of
-``_params`` (log coordinates for the damping constants, natural scales for the rest; the model's
-own velocity coordinate y), in rounds that rescale the log coordinates (as the single fit).
+global starts: the single-fit machinery). The shared constants start from a batch of
+n_runs + 1 candidates, the median of the single fits and each single fit's own values (with few
+runs one poor single fit spoils the median), optimised together in one vmapped call of the
+approximate model; the lowest converged cost goes on to the exact model. From each start, each
+run's own coordinates are first fitted with the shared ones held (a run whose single fit was
+poor gets a start consistent with the shared constants). The optimizer is optimistix
+Levenberg-Marquardt in the internal coordinates of ``_params`` (log coordinates for the damping
+constants, natural scales for the rest; the model's own velocity coordinate y), in rounds that
+rescale the log coordinates (as the single fit); a round that ends non-finite or with a higher
+cost is not taken, and an exact-model fit whose step budget ran out continues from where it
+stopped (:data:`CONTINUATIONS`).
 
 Intervals: the AR(1)-prewhitened HAC sandwich of ``_intervals`` (cov = H^-1 S H^-1 with
 H = J^T J of the joint Jacobian in the physical parameters and S the sum over runs of each run's
@@ -44,6 +51,7 @@ import optimistix as optx
 
 from .._cache import call_cached_tree
 from .._oscillator import is_concrete
+from .._solution import result_where
 from .._trace import Trace
 from . import _intervals
 from ._core import (
@@ -78,6 +86,8 @@ SHARED = DAMPING + ("w0", "k3")
 COORDS = TraceCoords._fields
 #: Levenberg-Marquardt rounds (rescaling the log coordinates between them)
 ROUNDS = 3
+#: restarts of the exact model's joint fit from where its step budget ran out
+CONTINUATIONS = 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,6 +315,10 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
     is_log, dref, lo = _log_info(lay, a)
     per_round = max(int(max_steps) // ROUNDS, 1)
 
+    def cost(theta):
+        r = fn(theta, a)
+        return jnp.sum(r * r)
+
     def solve(theta, scale):
         def scaled(u, args):
             return fn(theta + scale * u, args)
@@ -313,7 +327,16 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
                                  max_steps=per_round, throw=False)
         th = theta + scale * sol.value
         th = jnp.where(is_log, jnp.maximum(th, lo), th)
-        return th, sol.stats["num_steps"], _result_code(sol.result)
+        # a round that ends non-finite or above its start is not taken (its code says so)
+        c0, c1 = cost(theta), cost(th)
+        keep = jnp.all(jnp.isfinite(th)) & jnp.isfinite(c1) & ~(c1 > c0)
+        code = result_where(keep, _result_code(sol.result), FIT_RESULTS.failed)
+        return jnp.where(keep, th, theta), sol.stats["num_steps"], code
+
+    # first each run's own coordinates with the shared ones held at the start: a run whose
+    # single fit was poor gets a start consistent with the shared constants
+    local_only = jnp.concatenate([jnp.zeros(len(lay.shared)), jnp.ones(size - len(lay.shared))])
+    theta0, steps0, _ = solve(jnp.zeros(size), local_only)
 
     def one(carry, _):
         theta, scale, steps, code, redo = carry
@@ -336,7 +359,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
         redo = jnp.any(snap) | jnp.any((ratio > 10.0) | (ratio < 0.1))
         return (theta, new, steps + n_steps, code, redo), None
 
-    init = (jnp.zeros(size), jnp.ones(size), jnp.array(0), FIT_RESULTS.successful,
+    init = (theta0, jnp.ones(size), jnp.asarray(steps0), FIT_RESULTS.successful,
             jnp.array(True))
     (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=ROUNDS)
     P, k3 = params_of(theta, lay, a)
@@ -360,6 +383,28 @@ def run_joint_core(a: JointArrays, **static) -> JointCore:
         return call_cached_tree("fit-joint", sorted(static.items()),
                                 functools.partial(joint_core, **static), a)
     return joint_core(a, **static)
+
+
+def run_joint_batch(batch: JointArrays, **static) -> JointCore:
+    """:func:`joint_core` vmapped over a batch of starts (every leaf of ``batch`` with a
+    leading batch axis), through a kept program when eager."""
+    batch = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), batch)
+    fn = jax.vmap(functools.partial(joint_core, **static))
+    if is_concrete(batch):
+        return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
+    return fn(batch)
+
+
+def best_start(out: JointCore) -> int:
+    """Index of the best start of a batch: the lowest weighted cost among the converged
+    ones with finite values (else among the finite ones; else the first)."""
+    cost = np.sum(np.asarray(out.resid, dtype=float) ** 2, axis=1).sum(axis=1)
+    finite = np.isfinite(cost) & np.all(np.isfinite(np.asarray(out.p)), axis=1)
+    ok = finite & (np.asarray(out.code._value) == FIT_RESULTS.successful._value)
+    for pick in (ok, finite):
+        if pick.any():
+            return int(np.argmin(np.where(pick, cost, np.inf)))
+    return 0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -797,9 +842,13 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     k3_start = 0.0 if k3 is None else float(k3)
     k3_scale = float(osc["m"] * np.median(w0s) ** 2 / np.median(amp) ** 2)
     consts = Constants(m=osc["m"], g=osc["g"], k3=None if k3_mode == "none" else k3_start)
-    arrays = _arrays(singles, FIT_MODELS[first], lay, consts, start_vals, sigma, amp, n_pad,
-                     osc=osc, k3_start=k3_start, k3_scale=k3_scale)
-    spans = np.asarray(arrays.span)
+    # the starts of the shared constants: the median of the single fits and each single
+    # fit's own values (a poor single fit spoils the median of few runs); all optimised in
+    # one vmapped batch with the approximate model, the best one goes on
+    candidates = [start_vals] + [{n: float(s.params[n]) for n in start_vals} for s in singles]
+    batch = [_arrays(singles, FIT_MODELS[first], lay, consts, sv, sigma, amp, n_pad, osc=osc,
+                     k3_start=k3_start, k3_scale=k3_scale) for sv in candidates]
+    spans = np.asarray(batch[0].span)
     opts = None
     if spec.integrates:
         longest = int(np.argmax(spans))
@@ -807,14 +856,32 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
                                                max(w0s)), 1e-8, 1e-10)
     steps = int(max_steps or MAX_STEPS["lm"])
     stages = []
+    approx = Layout(model=first, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
+    outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch), lay=approx,
+                           opts=None if spec.start_from else opts, max_steps=steps,
+                           rtol=float(rtol), atol=float(atol))
+    best = best_start(outs)
+    arrays = batch[best]
+    out0 = jax.tree_util.tree_map(lambda v: v[best], outs)
+    which = "the median of the single fits" if best == 0 else f"run {best - 1}'s single fit"
+    stages.append(f"{len(batch)} starts of the shared constants, the best from {which}")
     if spec.start_from:  # the approximate model's joint optimum first
-        approx = Layout(model=first, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
-        out0 = run_joint_core(arrays, lay=approx, opts=None, max_steps=steps,
-                              rtol=float(rtol), atol=float(atol))
         arrays = _restart(arrays, out0, lay, spec, consts)
         stages.append(f"started from the joint {first} fit ({int(out0.steps)} steps)")
-    out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps, rtol=float(rtol),
-                         atol=float(atol))
+        out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps, rtol=float(rtol),
+                             atol=float(atol))
+        # a budget ran out on the way (the approximate optimum far from the exact one):
+        # continue from where it stopped, with the same compiled program
+        for _ in range(CONTINUATIONS):
+            if out.code != FIT_RESULTS.max_steps_reached:
+                break
+            arrays = _restart(arrays, out, lay, spec, consts)
+            done = int(out.steps)
+            out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps,
+                                 rtol=float(rtol), atol=float(atol))
+            stages.append(f"continued after {done} steps")
+    else:
+        out = out0
     return _result(out, arrays, lay, singles, sigma, free=free, model=model, unit=unit,
                    per_mass=per_mass, fit_omega0=bool(fit_omega0), opts=opts, stages=stages,
                    notes=notes, osc=osc)
