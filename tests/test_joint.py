@@ -1,10 +1,11 @@
 """Joint fits of several runs (dampax._fit._joint, issue 25 item 2): shared damping constants.
 
-Truth from an independent integrator (scipy DOP853 with exact stick-slip, tests/helpers.py and
-benchmarks/joint_calibration.py). The tests share one layout (2 runs, shared mu and D, the
-oscillator given, padded length 4096, 8 global starts, a swing budget of 64) so that the
-compiled programs are shared; the command line fits the same runs with the ansatz (the first
-stage of the reference fit: the same programs) and samples their joint posterior.
+Truth from an independent integrator (scipy DOP853 with events at v = 0, tests/helpers.py and
+benchmarks/joint_calibration.py). The tests share one layout (2 runs, shared b and D, the
+oscillator given and each run's w0 fitted, padded length 4096, 8 global starts, a swing budget
+of 64: the layout of the spring runs' joint fit) so that the compiled programs are shared;
+the command line fits the same runs with the ansatz (the first stage of the reference fit: the
+same programs) and samples their joint posterior.
 """
 
 import json
@@ -23,10 +24,10 @@ needs_data = pytest.mark.skipif(
                               "beside the checkout); skipping the real-data fits")
 
 OSC = dp.Oscillator(m=1.0, k=30.0)
-MU, D = 0.01, 0.5
+B, D = 0.05, 0.5
 RUNS = ((0.2, 0.0, 6.0, 1e-3, 0.003), (0.12, 0.5, 4.0, 2e-3, -0.002))  # x0, v0, T, noise, off
-COMMON = dict(oscillator=OSC, free=("mu", "D"), shared=("mu", "D"), start="data", starts=8,
-              max_swings=64)
+COMMON = dict(oscillator=OSC, free=("b", "D"), shared=("b", "D"), fit_omega0=True,
+              start="data", starts=8, max_swings=64)
 
 
 def _runs():
@@ -34,7 +35,7 @@ def _runs():
     out = []
     for x0, v0, T, noise, off in RUNS:
         t = np.arange(0.0, T, 1 / 200)
-        seg, _, rest = scipy_stick_slip(1.0, 30.0, MU, 0.0, D, x0, v0, T, rtol=1e-11,
+        seg, _, rest = scipy_stick_slip(1.0, 30.0, 0.0, B, D, x0, v0, T, rtol=1e-11,
                                         atol=1e-13)
         out.append((t, evaluate(seg, rest, t)[0] + off + noise * rng.standard_normal(t.size)))
     return out
@@ -54,7 +55,7 @@ def test_joint_reference_fit_holds_the_truth(joint, runs):
     assert isinstance(joint, dp.JointResult)
     assert joint.success, joint.reason
     ci = joint.conf_interval(0.99)
-    for name, value in (("mu", MU), ("D", D)):
+    for name, value in (("b", B), ("D", D)):
         assert ci[name][0] < value < ci[name][1], (name, ci[name])
     # each run's own residuals at its noise level, offsets and starts recovered
     for res, (x0, _v0, _, noise, off) in zip(joint.runs, RUNS, strict=True):
@@ -64,7 +65,7 @@ def test_joint_reference_fit_holds_the_truth(joint, runs):
     # one joint problem: the intervals are narrower than each run's single fit
     for s in joint.singles:
         assert joint.hac_stderr["D"] < s.hac_stderr["D"]
-    assert joint.names[:2] == ["mu", "D"] and "x0[1]" in joint.names
+    assert joint.names[:2] == ["b", "D"] and "x0[1]" in joint.names
     assert set(joint.conf_interval(0.9, runs=True)) == set(joint.names)
 
 
@@ -72,7 +73,7 @@ def test_joint_problem_and_report(joint):
     """The joint problem for other samplers: the residual function of the physical vector
     reproduces the fit's residuals; the report and summary read the shared values."""
     pr = joint.problem()
-    assert pr.names == joint.names and pr.nonneg == ("mu", "D")
+    assert pr.names == joint.names and pr.nonneg == ("b", "D")
     r = np.asarray(pr.residuals(pr.p0))
     for j, res in enumerate(joint.runs):
         n = res.ndata
@@ -82,16 +83,17 @@ def test_joint_problem_and_report(joint):
     text = joint.report()
     assert "[[Shared]]" in text and "single fits" in text and "run 1:" in text
     summary = joint.summary()
-    assert summary.splitlines()[0].startswith("joint fit of 2 runs (reference), shared: mu, D")
+    assert summary.splitlines()[0].startswith("joint fit of 2 runs (reference), shared: b, D")
     assert "rms" in summary
     json.dumps(joint.to_dict())
 
 
 def test_joint_fit_input_errors(runs, joint):
     with pytest.raises(ValueError, match="start_fit must be a 'ansatz' joint fit"):
-        dp.posterior(runs, oscillator=OSC, model="ansatz", start_fit=joint)
+        dp.posterior(runs, oscillator=OSC, free=("b", "D"), model="ansatz", start_fit=joint)
     with pytest.raises(ValueError, match="start_fit: its shared parameters"):
-        dp.posterior(runs, oscillator=OSC, model="reference", shared=("D",), start_fit=joint)
+        dp.posterior(runs, oscillator=OSC, free=("b", "D"), model="reference", shared=("D",),
+                     start_fit=joint)
     with pytest.raises(ValueError, match="shared: names constants common to several runs"):
         dp.posterior(*runs[0], oscillator=OSC, shared=("D",))
     with pytest.raises(ValueError, match="shared"):
@@ -110,7 +112,7 @@ def test_joint_fit_input_errors(runs, joint):
 
 @pytest.fixture(scope="module")
 def cli_posterior(runs, tmp_path_factory):
-    """``dampax fit run1.csv run2.csv --shared mu,D --posterior`` (the ansatz: its joint fit
+    """``dampax fit run1.csv run2.csv --shared b,D --posterior`` (the ansatz: its joint fit
     is the first stage of the reference one, the same compiled programs), 2 chains x 100
     draws; returns (the output folder, stdout, the paths of the runs)."""
     import contextlib
@@ -132,8 +134,9 @@ def cli_posterior(runs, tmp_path_factory):
     buf = io.StringIO()
     try:
         with contextlib.redirect_stdout(buf):
-            code = _cli.main(["fit", *paths, "--shared", "mu,D", "--free", "mu,D", "--m", "1",
-                              "--k", "30", "--start", "data", "--starts", "8", "--posterior",
+            code = _cli.main(["fit", *paths, "--shared", "b,D", "--free", "b,D", "--m", "1",
+                              "--k", "30", "--fit-omega0", "--start", "data", "--starts", "8",
+                              "--posterior",
                               "--draws", "100", "--chains", "2", "--warmup", "100",
                               "--seed", "1", "--out", str(out)])
     finally:
@@ -152,11 +155,11 @@ def test_cli_joint_fit(cli_posterior, capsys, monkeypatch):
     out, text, paths = cli_posterior
     assert "[[Shared]]" in text and "run1.csv" in text
     summary = json.loads((out / "fit.json").read_text())
-    assert summary["fit"]["shared"] == ["mu", "D"]
+    assert summary["fit"]["shared"] == ["b", "D"]
     assert len(summary["fit"]["runs"]) == 2
     assert (out / "fit.png").read_bytes()[:4] == b"\x89PNG"
     monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
-    assert _cli.main(["fit", paths[0], "--shared", "mu,D"]) == 2
+    assert _cli.main(["fit", paths[0], "--shared", "b,D"]) == 2
     assert "--shared needs two or more" in capsys.readouterr().err
 
 
@@ -164,7 +167,7 @@ def test_joint_posterior_covers_the_truth_and_arviz_reads_it(cli_posterior):
     """The posterior of the joint fit (``dp.posterior`` of the runs, started from their joint
     fit; here through the CLI): posterior.nc is InferenceData with the shared parameters
     (chain, draw) and each run's own (chain, draw, run), noise per run; the 95 % intervals of
-    the shared constants hold the truth of the exact stick-slip integration, each run's start
+    the shared constants hold the truth of the independent integration, each run's start
     and noise level are recovered, R-hat and ESS as ArviZ computes them."""
     az = pytest.importorskip("arviz")
     from dampax._fit._mcmc import GROUPS
@@ -174,14 +177,14 @@ def test_joint_posterior_covers_the_truth_and_arviz_reads_it(cli_posterior):
     idata = az.from_netcdf(out / "posterior.nc")
     assert set(idata.groups()) == set(GROUPS)
     post = idata.posterior
-    assert set(post.data_vars) == {"mu", "D", "offset", "x0", "v0", "sigma", "phi_noise"}
-    assert post["mu"].dims == ("chain", "draw") and post["mu"].shape == (2, 100)
+    assert set(post.data_vars) == {"b", "D", "w0", "offset", "x0", "v0", "sigma", "phi_noise"}
+    assert post["b"].dims == ("chain", "draw") and post["b"].shape == (2, 100)
     assert post["x0"].dims == ("chain", "draw", "run") and post["x0"].shape == (2, 100, 2)
-    assert post.attrs["shared"] == "mu,D" and post.attrs["fixed_b"] == 0.0
+    assert post.attrs["shared"] == "b,D" and post.attrs["fixed_mu"] == 0.0
     assert idata.observed_data["x"].shape[0] == 2
     assert not np.any(idata.sample_stats["diverging"].values)
     s = json.loads((out / "fit.json").read_text())["posterior"]
-    for name, value in (("mu", MU), ("D", D)):
+    for name, value in (("b", B), ("D", D)):
         assert s[name]["lo"] < value < s[name]["hi"], (name, s[name])
         assert s[name]["r_hat"] == pytest.approx(float(az.rhat(post[name].values)), abs=1e-8)
         assert s[name]["r_hat"] < 1.05 and s[name]["ess_bulk"] > 100, (name, s[name])
@@ -221,7 +224,7 @@ def test_ar1_likelihood_masks_the_padding():
 
 
 def test_joint_generated_family_sample():
-    """A set of benchmarks/joint_calibration.py (2 runs, the oscillator given, mu and D
+    """A set of benchmarks/joint_calibration.py (2 runs, the oscillator given, b and D
     present; the layout of the other tests): the truth inside the 99 % intervals of a
     successful joint fit."""
     import importlib.util
@@ -233,7 +236,7 @@ def test_joint_generated_family_sample():
     rng = np.random.default_rng(7)
     picked = []
     while len(picked) < 1:
-        s = cal.draw(rng, n_runs=2, free=("mu", "D"))
+        s = cal.draw(rng, n_runs=2, free=("b", "D"))
         if s["given"]:
             picked.append(s)
     for s in picked:

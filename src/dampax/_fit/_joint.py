@@ -835,7 +835,7 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     lay = Layout(model=model, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
     n_max = max(s.t.size for s in singles)
     n_pad = _bucket(n_max)
-    sigma = np.array([max(s.rms, 1e-12 * max(np.ptp(s.x), 1e-300)) for s in singles])
+    sigma = np.array([_noise_level(s) for s in singles])
     w0s = [start_vals.get("w0", s.params["w0"]) for s in singles]
     amp = np.array([math.hypot(s.params["x0"], s.params["v0"] / w) for s, w in
                     zip(singles, w0s, strict=True)])
@@ -886,6 +886,16 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
                    per_mass=per_mass, fit_omega0=bool(fit_omega0), opts=opts, stages=stages,
                    notes=notes, osc=osc)
 
+
+
+def _noise_level(single) -> float:
+    """A run's weight 1/sigma: the rms of its single fit; where that is not a positive finite
+    number (a failed single fit), the noise of the data's first differences (rms / sqrt 2)."""
+    floor = 1e-12 * max(float(np.ptp(single.x)), 1e-300)
+    rms = float(single.rms)
+    if not (math.isfinite(rms) and rms > 0.0):
+        rms = float(np.std(np.diff(np.asarray(single.x, dtype=float)))) / math.sqrt(2.0)
+    return max(rms, floor) if math.isfinite(rms) else 1.0
 
 
 def _arrays(singles, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
