@@ -825,9 +825,10 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
             singles.append(res)
     notes = sorted({str(w.message) for w in caught})
     unit = _units_of(inputs[0], units)
+    # each run's start: its single fit (where that is not finite, a start from its data)
+    own, usable = _start_params(singles, osc)
     # the common start of the shared constants: the median of the single fits
-    start_vals = {n: float(np.median([s.params[n] for s in singles]))
-                  for n in shared if n != "k3"}
+    start_vals = {n: float(np.median([p[n] for p in own])) for n in shared if n != "k3"}
     lay_local = tuple(c for c in COORDS if c not in shared and (
         (c in DAMPING and c in free) or (c == "w0" and fit_omega0)
         or (c == "offset" and offset) or c in ("x0", "y")))
@@ -836,18 +837,18 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     n_max = max(s.t.size for s in singles)
     n_pad = _bucket(n_max)
     sigma = np.array([_noise_level(s) for s in singles])
-    w0s = [start_vals.get("w0", s.params["w0"]) for s in singles]
-    amp = np.array([math.hypot(s.params["x0"], s.params["v0"] / w) for s, w in
-                    zip(singles, w0s, strict=True)])
+    w0s = [start_vals.get("w0", p["w0"]) for p in own]
+    amp = np.array([math.hypot(p["x0"], p["v0"] / w) for p, w in zip(own, w0s, strict=True)])
     k3_start = 0.0 if k3 is None else float(k3)
     k3_scale = float(osc["m"] * np.median(w0s) ** 2 / np.median(amp) ** 2)
     consts = Constants(m=osc["m"], g=osc["g"], k3=None if k3_mode == "none" else k3_start)
     # the starts of the shared constants: the median of the single fits and each single
     # fit's own values (a poor single fit spoils the median of few runs); all optimised in
     # one vmapped batch with the approximate model, the best one goes on
-    candidates = [start_vals] + [{n: float(s.params[n]) for n in start_vals} for s in singles]
-    batch = [_arrays(singles, FIT_MODELS[first], lay, consts, sv, sigma, amp, n_pad, osc=osc,
-                     k3_start=k3_start, k3_scale=k3_scale) for sv in candidates]
+    candidates = [start_vals] + [{n: float(p[n]) for n in start_vals} if ok else start_vals
+                                 for p, ok in zip(own, usable, strict=True)]
+    batch = [_arrays(singles, own, FIT_MODELS[first], lay, consts, sv, sigma, amp, n_pad,
+                     osc=osc, k3_start=k3_start, k3_scale=k3_scale) for sv in candidates]
     spans = np.asarray(batch[0].span)
     opts = None
     if spec.integrates:
@@ -898,16 +899,46 @@ def _noise_level(single) -> float:
     return max(rms, floor) if math.isfinite(rms) else 1.0
 
 
-def _arrays(singles, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
+def _start_params(singles, osc) -> tuple[list, list]:
+    """Each run's start (dicts of the :data:`~dampax._fit._params.PARAMS`) and whether it is
+    its single fit's optimum: where that has a non-finite value, the run starts from its
+    data (offset the median, x0 the first sample about it, v0 the slope of the first samples)
+    with w0 and the damping constants at the median of the finite single fits."""
+    fields = TraceParams._fields
+    usable = [all(math.isfinite(float(s.params[n])) for n in fields) for s in singles]
+    pool = [s.params for s, ok in zip(singles, usable, strict=True) if ok]
+    med = {n: (float(np.median([p[n] for p in pool])) if pool else
+               (float(osc["w0"]) if n == "w0" and osc.get("w0") else 0.0)) for n in fields}
+    if not pool and not med["w0"] > 0:
+        med["w0"] = 1.0
+    out = []
+    for s, ok in zip(singles, usable, strict=True):
+        if ok:
+            out.append({n: float(s.params[n]) for n in fields})
+            continue
+        t, x = np.asarray(s.t, dtype=float), np.asarray(s.x, dtype=float)
+        p = {n: (float(s.params[n]) if math.isfinite(float(s.params[n])) else med[n])
+             for n in fields}
+        if not p["w0"] > 0:
+            p["w0"] = med["w0"]
+        off = float(np.median(x))
+        k = max(2, min(x.size, int(0.1 * 2 * math.pi / p["w0"] / max(t[1] - t[0], 1e-300))))
+        p.update(offset=off, x0=float(x[0] - off),
+                 v0=float(np.polyfit(t[:k] - t[0], x[:k], 1)[0]))
+        out.append(p)
+    return out, usable
+
+
+def _arrays(singles, own, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
             k3_start, k3_scale) -> JointArrays:
-    """The arrays of a joint fit started from the single fits (the shared parameters at
-    ``start_vals``), in the coordinates of the fit model ``spec``."""
+    """The arrays of a joint fit started from each run's start ``own`` (the shared parameters
+    at ``start_vals``), in the coordinates of the fit model ``spec``."""
     from ._api import _pad
 
     rows = {k: [] for k in ("tau", "x", "weight", "span", "ref", "scale", "lo", "start")}
     for j, s in enumerate(singles):
         tp, xp, wt = _pad(s.t, s.x, n_pad)
-        p = TraceParams(**{n: start_vals.get(n, s.params[n]) for n in TraceParams._fields})
+        p = TraceParams(**{n: start_vals.get(n, own[j][n]) for n in TraceParams._fields})
         sx = amp[j] if amp[j] > 0 else 1.0
         span = max(float(s.t[-1] - s.t[0]), 1e-12)
         q = spec.to_coords(jax.tree_util.tree_map(jnp.asarray, p), consts)
