@@ -440,6 +440,8 @@ def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.
 
 
 def _inverse(H):
+    if not np.all(np.isfinite(H)):  # a Jacobian with NaN in it: no intervals (named failure)
+        return np.full_like(H, np.nan)
     d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
     return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
 
@@ -1041,7 +1043,11 @@ def _result(out: JointCore, a: JointArrays, lay: Layout, singles, sigma, *, free
         w0 = float(out.P[j, 3])
         dt = float(np.median(np.diff(singles[j].t)))
         period = 2 * math.pi / w0 / dt if math.isfinite(w0) and w0 > 0 else 8.0
-        S += score_covariance(J[j, :ns[j]], r[j, :ns[j]], period)
+        Jj, rj = J[j, :ns[j]], r[j, :ns[j]]
+        if ns[j] < 3 or not (np.all(np.isfinite(Jj)) and np.all(np.isfinite(rj))):
+            S += np.nan
+            continue
+        S += score_covariance(Jj, rj, period)
     hac = Hinv @ S @ Hinv
     hac = 0.5 * (hac + hac.T)
     active = np.diag(H) > 0
