@@ -147,6 +147,9 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=30, help="number of sets")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--first", type=int, default=0,
+                        help="fit the sets from this index on (the earlier ones are drawn and "
+                             "skipped: a run cut short resumes with the same sets)")
     parser.add_argument("--model", default="reference")
     parser.add_argument("--json", default=None, help="write the records here")
     args = parser.parse_args(argv)
@@ -155,6 +158,8 @@ def main(argv=None):
     began = time.perf_counter()
     for i in range(args.n):
         spec = draw(rng)
+        if i < args.first:
+            continue
         runs = simulate(spec)
         truth = truth_of(spec)
         t0 = time.perf_counter()
@@ -169,9 +174,9 @@ def main(argv=None):
         print(json.dumps({k: v for k, v in rec.items() if k != "ratios"}), flush=True)
     fitted = [r for r in records if r["status"] == "fitted"]
     ok = [r for r in fitted if r["success"]]
-    print(f"\n{args.n} sets of 2-3 runs, model {args.model}, seed {args.seed}: "
+    print(f"\n{len(records)} sets of 2-3 runs, model {args.model}, seed {args.seed}: "
           f"{len(fitted)} fitted, {len(ok)} with success, "
-          f"{args.n - len(fitted)} refused; {time.perf_counter() - began:.0f} s")
+          f"{len(records) - len(fitted)} refused; {time.perf_counter() - began:.0f} s")
     names = ("mu", "b", "D", "w0")
     print("| parameter | sets | 90 % coverage | truth inside 99 % |")
     print("|---|---|---|---|")

@@ -316,7 +316,8 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
     unc.add_argument("--posterior", action="store_true",
                      help="also sample the posterior with NUTS (blackjax, AR(1) noise) of "
                           "--model and write posterior.nc (ArviZ InferenceData: "
-                          "arviz.from_netcdf opens it) and corner.png")
+                          "arviz.from_netcdf opens it) and corner.png; with several files, "
+                          "of the joint fit (shared and per-run parameters, noise per run)")
     unc.add_argument("--draws", type=int, default=1000,
                      help="--posterior: draws per chain (default: %(default)s)")
     unc.add_argument("--chains", type=int, default=4,

@@ -228,9 +228,11 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     """``dampax fit run1.csv run2.csv --shared b,D``: a joint fit of several runs (the constants
     of ``--shared`` common to all, each run with its own start, offset and window); prints the
     report, writes fit.json and fit.png. Exit status as for one trace."""
-    if args.example or args.envelope or args.posterior:
-        raise ValueError("several files are a joint fit of traces: not with --example, "
-                         "--envelope or --posterior")
+    if args.example or args.envelope:
+        raise ValueError("several files are a joint fit of traces: not with --example or "
+                         "--envelope")
+    if args.posterior and (args.draws < 10 or args.chains < 1 or args.warmup < 10):
+        raise ValueError("--posterior needs --draws >= 10, --chains >= 1 and --warmup >= 10")
     if args.loss != "linear" or args.optimizer != "lm":
         raise ValueError("a joint fit is least squares: --loss linear, --optimizer lm")
     out_dir = prepare_out_dir(args.out)
@@ -247,6 +249,13 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
                      offset=not args.no_offset, start=_parse_start(args.start), end=args.end,
                      model=args.model, max_steps=args.max_steps, units=args.units,
                      starts=args.starts, seed=args.seed)
+        post = None
+        if args.posterior:  # the joint fit's posterior, started from it
+            from .._fit import posterior
+
+            post = posterior(traces, free=free, model=args.model, num_samples=args.draws,
+                             num_chains=args.chains, num_warmup=args.warmup, seed=args.seed,
+                             start_fit=result)
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
     elapsed = time.perf_counter() - began
@@ -261,11 +270,18 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     summary = {"fit": result.to_dict(args.level),
                "traces": [{"source": tr.source, "n": len(tr), "n_dropped": tr.n_dropped,
                            "rate": tr.rate} for tr in traces]}
+    written = [out_dir / "fit.json", out_dir / "fit.png"]
+    if post is not None:
+        print()
+        print(post.report(args.level))
+        summary["posterior"] = post.summary(args.level)
+        written += [post.to_netcdf(out_dir / "posterior.nc"),
+                    post.corner(out_dir / "corner.png")]
     write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
     result.plot(out_dir / "fit.png")
     print()
-    print(f"  {elapsed:.1f} s (compilation included); written: {out_dir / 'fit.json'}, "
-          f"{out_dir / 'fit.png'}")
+    print(f"  {elapsed:.1f} s (compilation included); written: "
+          f"{', '.join(str(p) for p in written)}")
     if not result.success:
         error(f"{PROG}: joint fit failed: {_cli_words(result.reason)}")
         return EXIT_FAILED

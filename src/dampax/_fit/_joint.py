@@ -13,10 +13,17 @@ is vmapped over them: one compiled program per number of runs, padded length and
 layout, whatever the lengths of the runs.
 
 Starts: each run is first fitted alone by :func:`~dampax._fit._api.fit` (its window, guesses,
-global starts: the single-fit machinery), the shared constants start at the median of the
-single fits. The optimizer is optimistix Levenberg-Marquardt in the internal coordinates of
-``_params`` (log coordinates for the damping constants, natural scales for the rest; the model's
-own velocity coordinate y), in rounds that rescale the log coordinates (as the single fit).
+global starts: the single-fit machinery). The shared constants start from a batch of
+n_runs + 1 candidates, the median of the single fits and each single fit's own values (with few
+runs one poor single fit spoils the median), optimised together in one vmapped call of the
+approximate model; the lowest converged cost goes on to the exact model. From each start, each
+run's own coordinates are first fitted with the shared ones held (a run whose single fit was
+poor gets a start consistent with the shared constants). The optimizer is optimistix
+Levenberg-Marquardt in the internal coordinates of ``_params`` (log coordinates for the damping
+constants, natural scales for the rest; the model's own velocity coordinate y), in rounds that
+rescale the log coordinates (as the single fit); a round that ends non-finite or with a higher
+cost is not taken, and an exact-model fit whose step budget ran out continues from where it
+stopped (:data:`CONTINUATIONS`).
 
 Intervals: the AR(1)-prewhitened HAC sandwich of ``_intervals`` (cov = H^-1 S H^-1 with
 H = J^T J of the joint Jacobian in the physical parameters and S the sum over runs of each run's
@@ -44,6 +51,7 @@ import optimistix as optx
 
 from .._cache import call_cached_tree
 from .._oscillator import is_concrete
+from .._solution import result_where
 from .._trace import Trace
 from . import _intervals
 from ._core import (
@@ -78,6 +86,8 @@ SHARED = DAMPING + ("w0", "k3")
 COORDS = TraceCoords._fields
 #: Levenberg-Marquardt rounds (rescaling the log coordinates between them)
 ROUNDS = 3
+#: restarts of the exact model's joint fit from where its step budget ran out
+CONTINUATIONS = 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -305,6 +315,10 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
     is_log, dref, lo = _log_info(lay, a)
     per_round = max(int(max_steps) // ROUNDS, 1)
 
+    def cost(theta):
+        r = fn(theta, a)
+        return jnp.sum(r * r)
+
     def solve(theta, scale):
         def scaled(u, args):
             return fn(theta + scale * u, args)
@@ -313,7 +327,16 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
                                  max_steps=per_round, throw=False)
         th = theta + scale * sol.value
         th = jnp.where(is_log, jnp.maximum(th, lo), th)
-        return th, sol.stats["num_steps"], _result_code(sol.result)
+        # a round that ends non-finite or above its start is not taken (its code says so)
+        c0, c1 = cost(theta), cost(th)
+        keep = jnp.all(jnp.isfinite(th)) & jnp.isfinite(c1) & ~(c1 > c0)
+        code = result_where(keep, _result_code(sol.result), FIT_RESULTS.failed)
+        return jnp.where(keep, th, theta), sol.stats["num_steps"], code
+
+    # first each run's own coordinates with the shared ones held at the start: a run whose
+    # single fit was poor gets a start consistent with the shared constants
+    local_only = jnp.concatenate([jnp.zeros(len(lay.shared)), jnp.ones(size - len(lay.shared))])
+    theta0, steps0, _ = solve(jnp.zeros(size), local_only)
 
     def one(carry, _):
         theta, scale, steps, code, redo = carry
@@ -336,7 +359,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
         redo = jnp.any(snap) | jnp.any((ratio > 10.0) | (ratio < 0.1))
         return (theta, new, steps + n_steps, code, redo), None
 
-    init = (jnp.zeros(size), jnp.ones(size), jnp.array(0), FIT_RESULTS.successful,
+    init = (theta0, jnp.ones(size), jnp.asarray(steps0), FIT_RESULTS.successful,
             jnp.array(True))
     (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=ROUNDS)
     P, k3 = params_of(theta, lay, a)
@@ -360,6 +383,28 @@ def run_joint_core(a: JointArrays, **static) -> JointCore:
         return call_cached_tree("fit-joint", sorted(static.items()),
                                 functools.partial(joint_core, **static), a)
     return joint_core(a, **static)
+
+
+def run_joint_batch(batch: JointArrays, **static) -> JointCore:
+    """:func:`joint_core` vmapped over a batch of starts (every leaf of ``batch`` with a
+    leading batch axis), through a kept program when eager."""
+    batch = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), batch)
+    fn = jax.vmap(functools.partial(joint_core, **static))
+    if is_concrete(batch):
+        return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
+    return fn(batch)
+
+
+def best_start(out: JointCore) -> int:
+    """Index of the best start of a batch: the lowest weighted cost among the converged
+    ones with finite values (else among the finite ones; else the first)."""
+    cost = np.sum(np.asarray(out.resid, dtype=float) ** 2, axis=1).sum(axis=1)
+    finite = np.isfinite(cost) & np.all(np.isfinite(np.asarray(out.p)), axis=1)
+    ok = finite & (np.asarray(out.code._value) == FIT_RESULTS.successful._value)
+    for pick in (ok, finite):
+        if pick.any():
+            return int(np.argmin(np.where(pick, cost, np.inf)))
+    return 0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -395,6 +440,8 @@ def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.
 
 
 def _inverse(H):
+    if not np.all(np.isfinite(H)):  # a Jacobian with NaN in it: no intervals (named failure)
+        return np.full_like(H, np.nan)
     d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
     return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
 
@@ -416,6 +463,9 @@ class JointProblem(NamedTuple):
         t, x: each run's window (padded), absolute times.
         sigma: each run's noise level (the rms of its single fit).
         nonneg: the names that are >= 0 (damping constants).
+        residual, args: the same residuals as a hashable callable ``residual(p, args)`` (a
+            :class:`JointResidual`, data - model) and its arrays (a :class:`JointArrays`),
+            for compiled samplers that take the function as a static argument.
     """
 
     names: list
@@ -426,6 +476,26 @@ class JointProblem(NamedTuple):
     x: np.ndarray
     sigma: np.ndarray
     nonneg: tuple
+    residual: Any = None
+    args: Any = None
+
+
+@dataclass(frozen=True)
+class JointResidual:
+    """data - model of every run, (n_runs, n_pad), 0 on the padding, of the joint physical
+    vector p (layout :meth:`Layout.names`): :func:`physical_residuals` with the sign of the
+    posterior's residuals; static and hashable (the joint layout and the reference options).
+
+    Attributes:
+        layout: the joint :class:`Layout`.
+        opts: the reference integrator's budget and tolerances (None for the ansatz).
+    """
+
+    layout: Layout
+    opts: Any = None
+
+    def __call__(self, p, args: JointArrays):
+        return -physical_residuals(p, args, self.layout, self.opts)
 
 
 @dataclass
@@ -757,9 +827,10 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
             singles.append(res)
     notes = sorted({str(w.message) for w in caught})
     unit = _units_of(inputs[0], units)
+    # each run's start: its single fit (where that is not finite, a start from its data)
+    own, usable = _start_params(singles, osc)
     # the common start of the shared constants: the median of the single fits
-    start_vals = {n: float(np.median([s.params[n] for s in singles]))
-                  for n in shared if n != "k3"}
+    start_vals = {n: float(np.median([p[n] for p in own])) for n in shared if n != "k3"}
     lay_local = tuple(c for c in COORDS if c not in shared and (
         (c in DAMPING and c in free) or (c == "w0" and fit_omega0)
         or (c == "offset" and offset) or c in ("x0", "y")))
@@ -767,16 +838,20 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     lay = Layout(model=model, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
     n_max = max(s.t.size for s in singles)
     n_pad = _bucket(n_max)
-    sigma = np.array([max(s.rms, 1e-12 * max(np.ptp(s.x), 1e-300)) for s in singles])
-    w0s = [start_vals.get("w0", s.params["w0"]) for s in singles]
-    amp = np.array([math.hypot(s.params["x0"], s.params["v0"] / w) for s, w in
-                    zip(singles, w0s, strict=True)])
+    sigma = np.array([_noise_level(s) for s in singles])
+    w0s = [start_vals.get("w0", p["w0"]) for p in own]
+    amp = np.array([math.hypot(p["x0"], p["v0"] / w) for p, w in zip(own, w0s, strict=True)])
     k3_start = 0.0 if k3 is None else float(k3)
     k3_scale = float(osc["m"] * np.median(w0s) ** 2 / np.median(amp) ** 2)
     consts = Constants(m=osc["m"], g=osc["g"], k3=None if k3_mode == "none" else k3_start)
-    arrays = _arrays(singles, FIT_MODELS[first], lay, consts, start_vals, sigma, amp, n_pad,
-                     osc=osc, k3_start=k3_start, k3_scale=k3_scale)
-    spans = np.asarray(arrays.span)
+    # the starts of the shared constants: the median of the single fits and each single
+    # fit's own values (a poor single fit spoils the median of few runs); all optimised in
+    # one vmapped batch with the approximate model, the best one goes on
+    candidates = [start_vals] + [{n: float(p[n]) for n in start_vals} if ok else start_vals
+                                 for p, ok in zip(own, usable, strict=True)]
+    batch = [_arrays(singles, own, FIT_MODELS[first], lay, consts, sv, sigma, amp, n_pad,
+                     osc=osc, k3_start=k3_start, k3_scale=k3_scale) for sv in candidates]
+    spans = np.asarray(batch[0].span)
     opts = None
     if spec.integrates:
         longest = int(np.argmax(spans))
@@ -784,30 +859,88 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
                                                max(w0s)), 1e-8, 1e-10)
     steps = int(max_steps or MAX_STEPS["lm"])
     stages = []
+    approx = Layout(model=first, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
+    outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch), lay=approx,
+                           opts=None if spec.start_from else opts, max_steps=steps,
+                           rtol=float(rtol), atol=float(atol))
+    best = best_start(outs)
+    arrays = batch[best]
+    out0 = jax.tree_util.tree_map(lambda v: v[best], outs)
+    which = "the median of the single fits" if best == 0 else f"run {best - 1}'s single fit"
+    stages.append(f"{len(batch)} starts of the shared constants, the best from {which}")
     if spec.start_from:  # the approximate model's joint optimum first
-        approx = Layout(model=first, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
-        out0 = run_joint_core(arrays, lay=approx, opts=None, max_steps=steps,
-                              rtol=float(rtol), atol=float(atol))
         arrays = _restart(arrays, out0, lay, spec, consts)
         stages.append(f"started from the joint {first} fit ({int(out0.steps)} steps)")
-    out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps, rtol=float(rtol),
-                         atol=float(atol))
+        out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps, rtol=float(rtol),
+                             atol=float(atol))
+        # a budget ran out on the way (the approximate optimum far from the exact one):
+        # continue from where it stopped, with the same compiled program
+        for _ in range(CONTINUATIONS):
+            if out.code != FIT_RESULTS.max_steps_reached:
+                break
+            arrays = _restart(arrays, out, lay, spec, consts)
+            done = int(out.steps)
+            out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps,
+                                 rtol=float(rtol), atol=float(atol))
+            stages.append(f"continued after {done} steps")
+    else:
+        out = out0
     return _result(out, arrays, lay, singles, sigma, free=free, model=model, unit=unit,
                    per_mass=per_mass, fit_omega0=bool(fit_omega0), opts=opts, stages=stages,
                    notes=notes, osc=osc)
 
 
 
-def _arrays(singles, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
+def _noise_level(single) -> float:
+    """A run's weight 1/sigma: the rms of its single fit; where that is not a positive finite
+    number (a failed single fit), the noise of the data's first differences (rms / sqrt 2)."""
+    floor = 1e-12 * max(float(np.ptp(single.x)), 1e-300)
+    rms = float(single.rms)
+    if not (math.isfinite(rms) and rms > 0.0):
+        rms = float(np.std(np.diff(np.asarray(single.x, dtype=float)))) / math.sqrt(2.0)
+    return max(rms, floor) if math.isfinite(rms) else 1.0
+
+
+def _start_params(singles, osc) -> tuple[list, list]:
+    """Each run's start (dicts of the :data:`~dampax._fit._params.PARAMS`) and whether it is
+    its single fit's optimum: where that has a non-finite value, the run starts from its
+    data (offset the median, x0 the first sample about it, v0 the slope of the first samples)
+    with w0 and the damping constants at the median of the finite single fits."""
+    fields = TraceParams._fields
+    usable = [all(math.isfinite(float(s.params[n])) for n in fields) for s in singles]
+    pool = [s.params for s, ok in zip(singles, usable, strict=True) if ok]
+    med = {n: (float(np.median([p[n] for p in pool])) if pool else
+               (float(osc["w0"]) if n == "w0" and osc.get("w0") else 0.0)) for n in fields}
+    if not pool and not med["w0"] > 0:
+        med["w0"] = 1.0
+    out = []
+    for s, ok in zip(singles, usable, strict=True):
+        if ok:
+            out.append({n: float(s.params[n]) for n in fields})
+            continue
+        t, x = np.asarray(s.t, dtype=float), np.asarray(s.x, dtype=float)
+        p = {n: (float(s.params[n]) if math.isfinite(float(s.params[n])) else med[n])
+             for n in fields}
+        if not p["w0"] > 0:
+            p["w0"] = med["w0"]
+        off = float(np.median(x))
+        k = max(2, min(x.size, int(0.1 * 2 * math.pi / p["w0"] / max(t[1] - t[0], 1e-300))))
+        p.update(offset=off, x0=float(x[0] - off),
+                 v0=float(np.polyfit(t[:k] - t[0], x[:k], 1)[0]))
+        out.append(p)
+    return out, usable
+
+
+def _arrays(singles, own, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
             k3_start, k3_scale) -> JointArrays:
-    """The arrays of a joint fit started from the single fits (the shared parameters at
-    ``start_vals``), in the coordinates of the fit model ``spec``."""
+    """The arrays of a joint fit started from each run's start ``own`` (the shared parameters
+    at ``start_vals``), in the coordinates of the fit model ``spec``."""
     from ._api import _pad
 
     rows = {k: [] for k in ("tau", "x", "weight", "span", "ref", "scale", "lo", "start")}
     for j, s in enumerate(singles):
         tp, xp, wt = _pad(s.t, s.x, n_pad)
-        p = TraceParams(**{n: start_vals.get(n, s.params[n]) for n in TraceParams._fields})
+        p = TraceParams(**{n: start_vals.get(n, own[j][n]) for n in TraceParams._fields})
         sx = amp[j] if amp[j] > 0 else 1.0
         span = max(float(s.t[-1] - s.t[0]), 1e-12)
         q = spec.to_coords(jax.tree_util.tree_map(jnp.asarray, p), consts)
@@ -910,7 +1043,11 @@ def _result(out: JointCore, a: JointArrays, lay: Layout, singles, sigma, *, free
         w0 = float(out.P[j, 3])
         dt = float(np.median(np.diff(singles[j].t)))
         period = 2 * math.pi / w0 / dt if math.isfinite(w0) and w0 > 0 else 8.0
-        S += score_covariance(J[j, :ns[j]], r[j, :ns[j]], period)
+        Jj, rj = J[j, :ns[j]], r[j, :ns[j]]
+        if ns[j] < 3 or not (np.all(np.isfinite(Jj)) and np.all(np.isfinite(rj))):
+            S += np.nan
+            continue
+        S += score_covariance(Jj, rj, period)
     hac = Hinv @ S @ Hinv
     hac = 0.5 * (hac + hac.T)
     active = np.diag(H) > 0
@@ -980,7 +1117,8 @@ def _result(out: JointCore, a: JointArrays, lay: Layout, singles, sigma, *, free
 
     problem = JointProblem(names=names, p0=p, residuals=residuals, mask=mask, t=t_abs,
                            x=np.asarray(a.x), sigma=np.asarray(sigma),
-                           nonneg=tuple(nm for nm in names if nm.split("[")[0] in DAMPING))
+                           nonneg=tuple(nm for nm in names if nm.split("[")[0] in DAMPING),
+                           residual=JointResidual(lay, opts), args=arrays)
     return JointResult(
         names=names, values=values, stderr=stderr, covariance=hac, delta_covariance=delta,
         shared=lay.shared, free=free, runs=runs, singles=singles,

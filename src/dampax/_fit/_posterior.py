@@ -100,10 +100,19 @@ class Layout(NamedTuple):
     Attributes:
         names: the name of each entry, in order.
         log: per entry, whether it is sampled as its logarithm (a positive constant).
+        noise: the number of independent noise series, each with its own sigma and phi_n:
+            1 (every row of the residual shares them) or the residual's number of rows (one
+            per row, e.g. per run of a joint fit).
     """
 
     names: tuple
     log: tuple
+    noise: int = 1
+
+    @property
+    def dim(self) -> int:
+        """Entries of theta: the layout's, then log sigma and atanh phi_n of each series."""
+        return len(self.names) + 2 * self.noise
 
 
 class _Data(NamedTuple):
@@ -114,43 +123,60 @@ class _Data(NamedTuple):
     width: jax.Array
     theta_map: jax.Array
     L: jax.Array
+    mask: Any = None  # (rows, n) booleans: the samples that count (None: all)
 
 
-def ar1_loglik(r, sigma, phi):
+def ar1_loglik(r, sigma, phi, mask=None):
     """Exact log likelihood of a stationary AR(1) series r (along the last axis; rows of a
-    2-D r are independent series with the same sigma and phi).
+    2-D r are independent series).
 
     Arguments:
         r: residuals, shape (n,) or (rows, n).
-        sigma: innovation standard deviation.
-        phi: lag-1 coefficient, |phi| < 1.
+        sigma: innovation standard deviation: one, or one per row (rows,).
+        phi: lag-1 coefficient, |phi| < 1: one, or one per row.
+        mask: None, or booleans of r's shape: the samples that are data (padding left out of
+            the likelihood; each unbroken stretch of data is a stationary series of its own).
 
     Returns:
         sum_rows [-1/2 sum_t e_t^2 / sigma^2 - r_1^2 (1 - phi^2) / (2 sigma^2) - n log sigma
-        + 1/2 log(1 - phi^2)] with e_t = r_t - phi r_(t-1) (the constant -n/2 log 2 pi left
-        out).
+        + 1/2 log(1 - phi^2)] with e_t = r_t - phi r_(t-1), n the samples of the row that count
+        (the constant -n/2 log 2 pi left out).
     """
     r = jnp.atleast_2d(r)
-    e = r[:, 1:] - phi * r[:, :-1]
-    n = r.shape[-1]
-    per_row = (-0.5 * jnp.sum(e * e, axis=-1) / sigma ** 2
-               - 0.5 * r[:, 0] ** 2 * (1 - phi ** 2) / sigma ** 2
-               - n * jnp.log(sigma) + 0.5 * jnp.log1p(-phi ** 2))
+    sigma = jnp.reshape(sigma, (-1, 1))
+    phi = jnp.reshape(phi, (-1, 1))
+    if mask is None:
+        mask = jnp.ones(r.shape, dtype=bool)
+    mask = jnp.broadcast_to(jnp.atleast_2d(mask), r.shape)
+    prev = jnp.concatenate([jnp.zeros_like(mask[:, :1]), mask[:, :-1]], axis=1)
+    lagged = jnp.concatenate([jnp.zeros_like(r[:, :1]), r[:, :-1]], axis=1)
+    inner = mask & prev                 # innovations e_t = r_t - phi r_(t-1)
+    first = mask & ~prev                # the first sample of a stretch: stationary
+    e = jnp.where(inner, r - phi * lagged, 0.0)
+    r1 = jnp.where(first, r, 0.0)
+    quad = (jnp.sum(e * e, axis=-1, keepdims=True)
+            + (1 - phi ** 2) * jnp.sum(r1 * r1, axis=-1, keepdims=True)) / sigma ** 2
+    n = jnp.sum(mask, axis=-1, keepdims=True)
+    starts = jnp.sum(first, axis=-1, keepdims=True)
+    per_row = -0.5 * quad - n * jnp.log(sigma) + 0.5 * starts * jnp.log1p(-phi ** 2)
     return jnp.sum(per_row)
 
 
 def physical(theta, layout: Layout):
     """p of the layout from the unconstrained theta (exp of the log entries), then sigma and
-    phi_n from the last two entries."""
-    n = len(layout.names)
+    phi_n from the last entries (scalars for one noise series, else one per series)."""
+    n, k = len(layout.names), layout.noise
     p = jnp.stack([jnp.exp(theta[i]) if lg else theta[i] for i, lg in enumerate(layout.log)])
-    return p, jnp.exp(theta[n]), jnp.tanh(theta[n + 1])
+    sigma, phi = jnp.exp(theta[n:n + k]), jnp.tanh(theta[n + k:n + 2 * k])
+    if k == 1:
+        return p, sigma[0], phi[0]
+    return p, sigma, phi
 
 
 def _logpost(theta, data: _Data, residual: Callable, layout: Layout):
     """log prior (independent normals on theta) + AR(1) log likelihood of residual(p)."""
     p, sigma, phi = physical(theta, layout)
-    out = ar1_loglik(residual(p, data.args), sigma, phi) \
+    out = ar1_loglik(residual(p, data.args), sigma, phi, data.mask) \
         - 0.5 * jnp.sum(((theta - data.centre) / data.width) ** 2)
     return jnp.where(jnp.isfinite(out), out, -jnp.inf)
 
@@ -243,37 +269,41 @@ class Draws(NamedTuple):
 
 def sample(residual: Callable, args, layout: Layout, centre, width, theta0, *,
            mode: str = "reverse", num_samples: int = 1000, num_chains: int = 4,
-           num_warmup: int = 500, seed: int = 0) -> Draws:
-    """NUTS draws of theta = (the layout's entries, log sigma, atanh phi_n) for any residual.
+           num_warmup: int = 500, seed: int = 0, mask=None) -> Draws:
+    """NUTS draws of theta = (the layout's entries, log sigma and atanh phi_n of each noise
+    series) for any residual.
 
     The posterior: independent normal priors N(centre, width) on theta, AR(1) noise on
-    ``residual(p, args)`` (:func:`ar1_loglik`), p = :func:`physical` (theta). Mode by L-BFGS
-    from theta0, Laplace preconditioning, window adaptation and sampling vmapped over chains.
+    ``residual(p, args)`` (:func:`ar1_loglik`, the samples of ``mask``), p = :func:`physical`
+    (theta). Mode by L-BFGS from theta0, Laplace preconditioning, window adaptation and
+    sampling vmapped over chains.
 
     Arguments:
         residual: ``residual(p, args) -> r`` (data minus model, shape (n,) or (rows, n)),
             hashable (a frozen dataclass: it is a static argument of the compiled programs).
         args: its arrays (a pytree; traced).
         layout: the names of p and which are sampled as logarithms.
-        centre, width, theta0: prior centres, widths and the start, len(layout.names) + 2.
+        centre, width, theta0: prior centres, widths and the start, ``layout.dim`` entries.
         mode: "reverse" or "forward" differentiation of the log density.
         num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
         seed: random seed.
+        mask: None, or booleans of the residual's shape: the samples in the likelihood (the
+            padding of runs of different lengths left out).
 
     Returns:
         :class:`Draws`.
     """
     from scipy.optimize import minimize
 
-    dim = len(layout.names) + 2
+    dim = layout.dim
     for name, v in (("centre", centre), ("width", width), ("theta0", theta0)):
         if np.shape(v) != (dim,):
-            raise ValueError(f"{name} must have {dim} entries (the layout's and 2 for the "
-                             f"noise), got shape {np.shape(v)}")
+            raise ValueError(f"{name} must have {dim} entries (the layout's and 2 per noise "
+                             f"series), got shape {np.shape(v)}")
     began = time.perf_counter()
     data = _Data(args=args, centre=jnp.asarray(centre, dtype=float),
                  width=jnp.asarray(width, dtype=float), theta_map=jnp.zeros(dim),
-                 L=jnp.eye(dim))
+                 L=jnp.eye(dim), mask=None if mask is None else jnp.asarray(mask, dtype=bool))
     static = dict(residual=residual, layout=layout, mode=mode)
 
     def fun(th):
@@ -370,18 +400,20 @@ def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: Referen
 
 @dataclass
 class Posterior:
-    """Posterior draws of a trace fit (:func:`posterior`).
+    """Posterior draws of a trace fit or of a joint fit of several runs (:func:`posterior`).
 
     Attributes:
         draws: xarray Dataset, one variable per sampled parameter (the free damping constants,
             k3 when free, w0 and offset when fitted, x0, v0, sigma, phi_noise), dims (chain,
             draw): the ``posterior`` group of ArviZ; the fixed parameters are its attributes
-            ``fixed_<name>``.
+            ``fixed_<name>``. Of a joint fit: the shared parameters (chain, draw), each run's
+            own (x0, v0, offset, sigma, phi_noise, ...) (chain, draw, run).
         sample_stats: xarray Dataset of the sampler's statistics per draw (:data:`SAMPLE_STATS`:
             lp, diverging, energy, step_size, tree_depth, acceptance_rate, n_steps).
-        observed_data: xarray Dataset of the fit window: x over the coordinate t.
+        observed_data: xarray Dataset of the fit window: x over the coordinate t (of a joint
+            fit: x and t over (run, sample), NaN after each run's last sample).
         free: the sampled constants (the damping constants, then k3 when free).
-        fit: the least-squares :class:`FitResult` it started from.
+        fit: the least-squares :class:`FitResult` (``JointResult``) it started from.
         model: the fit model sampled ("ansatz" or "reference").
         units, per_mass: as the fit's.
         accept_rate, divergences, step_size: sampler diagnostics (means over chains and
@@ -426,29 +458,41 @@ class Posterior:
         if not 0.0 < level < 1.0:
             raise ValueError(f"level must be in (0, 1), got {level!r}")
         out = {}
-        for name in self.draws.data_vars:
-            a = np.asarray(self.draws[name].values, dtype=float)
-            q = np.quantile(a, [0.5 - 0.5 * level, 0.5 + 0.5 * level])
-            bulk = ess_bulk(a)
-            out[name] = {"mean": float(a.mean()), "sd": float(a.std(ddof=1)),
-                         "lo": float(q[0]), "hi": float(q[1]), "r_hat": rhat(a),
-                         "ess_bulk": bulk, "ess_tail": ess_tail(a), "ess": bulk}
+        for var in self.draws.data_vars:
+            v = self.draws[var]
+            if "run" in v.dims:  # a joint posterior's per-run parameter: name[j]
+                v = v.transpose("chain", "draw", "run")
+                items = [(f"{var}[{j}]", v.values[..., j]) for j in range(v.sizes["run"])]
+            else:
+                items = [(var, v.values)]
+            for name, a in items:
+                a = np.asarray(a, dtype=float)
+                q = np.quantile(a, [0.5 - 0.5 * level, 0.5 + 0.5 * level])
+                bulk = ess_bulk(a)
+                out[name] = {"mean": float(a.mean()), "sd": float(a.std(ddof=1)),
+                             "lo": float(q[0]), "hi": float(q[1]), "r_hat": rhat(a),
+                             "ess_bulk": bulk, "ess_tail": ess_tail(a), "ess": bulk}
         return out
 
     def report(self, level: float = 0.95) -> str:
         """The summary as text, with the sampler's diagnostics."""
         s = self.summary(level)
         nc, nd = self.draws.sizes["chain"], self.draws.sizes["draw"]
-        lines = [f"[[Posterior]] NUTS (blackjax, window adaptation), {self.model} model, "
-                 f"{nc} chains x {nd} draws, AR(1) noise; accept rate "
+        joint = "run" in self.draws.dims
+        what = (f"joint {self.model} fit of {self.draws.sizes['run']} runs"
+                if joint else f"{self.model} model")
+        lines = [f"[[Posterior]] NUTS (blackjax, window adaptation), {what}, "
+                 f"{nc} chains x {nd} draws, AR(1) noise{' per run' if joint else ''}; "
+                 f"accept rate "
                  f"{self.accept_rate:.2f}, {self.divergences} divergences, "
                  f"{self.seconds:.1f} s"
                  + (f"; 1 sample in {self.stride}" if self.stride > 1 else ""),
                  f"    {'':<10} {'mean':>12} {f'{100 * level:g} % interval':>28} "
                  f"{'r_hat':>6} {'ess_bulk':>8} {'ess_tail':>8}"]
         for name, row in s.items():
-            unit = unit_of(name, self.units, self.per_mass) if name in DAMPING or name in (
-                "w0", "offset", "x0", "v0", "k3") else ("" if name == "phi_noise"
+            base = _base(name)
+            unit = unit_of(base, self.units, self.per_mass) if base in DAMPING or base in (
+                "w0", "offset", "x0", "v0", "k3") else ("" if base == "phi_noise"
                                                         else self.units)
             lines.append(f"    {name + ':':<10} {row['mean']:>12.6g} [{row['lo']:>12.6g}, "
                          f"{row['hi']:>12.6g}] {row['r_hat']:>6.3f} {row['ess_bulk']:>8.0f} "
@@ -474,7 +518,10 @@ class Posterior:
         ``names``); ``dampax._plot.plot_corner``."""
         from .._plot import plot_corner
 
-        names = list(names) if names is not None else list(self.free)
+        if names is None:  # of a joint posterior: the shared constants
+            names = [n for n in self.free if n in self.draws.data_vars
+                     and self.draws[n].dims == ("chain", "draw")]
+        names = list(names)
         return plot_corner(self.draws, names, path,
                            units={n: unit_of(n, self.units, self.per_mass) for n in names})
 
@@ -538,11 +585,183 @@ def _trace_setup(res, stride: int, vary_k3: bool):
     return residual, args, Layout(tuple(names), tuple(log)), centre, width, theta0
 
 
+def _base(name: str) -> str:
+    """The parameter of a layout name: "x0" of "x0[1]"."""
+    return name.split("[")[0]
+
+
+def _joint_setup(res, stride: int):
+    """(residual, args, layout, centre, width, theta0, mask) of the joint fit ``res`` (a
+    :class:`~dampax._fit._joint.JointResult`): the joint problem's residuals of every run,
+    thinned by ``stride``, its padding masked out, one AR(1) noise series per run; the priors
+    of :data:`PRIORS` per parameter (a shared one centred on the runs' median)."""
+    from ._joint import JointResidual
+
+    pr = res.problem()
+    lay = pr.residual.layout
+    opts = pr.residual.opts
+    if opts is not None:
+        opts = ReferenceOptions(opts.max_swings, REFERENCE_RTOL, REFERENCE_ATOL)
+    a = pr.args
+    # the padding beyond the longest run dropped (to a power of two: similar sets share the
+    # compiled sampler), then every stride-th sample
+    n_max = int(np.max(np.sum(pr.mask, axis=1)))
+    keep = min(a.tau.shape[1], max(256, 1 << int(math.ceil(math.log2(max(n_max, 1))))))
+    args = a._replace(tau=a.tau[:, :keep:stride], x=a.x[:, :keep:stride],
+                      weight=a.weight[:, :keep:stride])
+    mask = np.asarray(args.weight) > 0.0
+    residual = JointResidual(lay, opts)
+    singles, runs = res.singles, res.runs
+    amp = [max(float(s.derived["A"]), 1e-300) for s in singles]
+    w_turn = [s.params["w0"] / (1.0 + float(s.diagnostics.get("w0/turning - 1", 0.0)))
+              for s in singles]
+    m = float(runs[0].fixed["m"])
+    names, log, centre, width, theta0 = [], [], [], [], []
+    for name, v in zip(pr.names, np.asarray(pr.p0, dtype=float), strict=True):
+        base = _base(name)
+        j = int(name[len(base) + 1:-1]) if "[" in name else None
+        if base in DAMPING:
+            guesses = [max(float(s.init.get(base, s.params[base])), 1e-30)
+                       for s in (singles if j is None else [singles[j]])]
+            guess = float(np.median(guesses))
+            c, w, start, is_log = math.log(guess), 3.0, math.log(max(v, guess * 1e-6)), True
+        elif base == "w0":
+            wt = float(np.median(w_turn)) if j is None else w_turn[j]
+            c, w, start, is_log = wt, 0.05 * wt, v, False
+        elif base == "k3":  # k3 A^2/(m w0^2) ~ N(0, 0.5) at the runs' median
+            scale = m * float(np.median([r.params["w0"] for r in runs])) ** 2
+            c, w, start, is_log = 0.0, 0.5 * scale / float(np.median(amp)) ** 2, v, False
+        elif base == "offset":
+            c, w, start, is_log = v, amp[j], v, False
+        elif base == "x0":
+            c, w, start, is_log = v, 2 * amp[j], v, False
+        else:  # v0
+            c, w, start, is_log = v, 2 * amp[j] * runs[j].params["w0"], v, False
+        names.append(name)
+        log.append(is_log)
+        centre.append(c)
+        width.append(w)
+        theta0.append(start)
+    r = np.asarray(residual(jnp.asarray(pr.p0, dtype=float), args))
+    log_rms, log_sig, atanh_phi = [], [], []
+    for j in range(len(runs)):
+        rj = r[j][mask[j]]
+        phi_hat = float(np.clip(np.corrcoef(rj[:-1], rj[1:])[0, 1], -0.9, 0.995))
+        log_rms.append(math.log(float(np.sqrt(np.mean(rj * rj))) or 1e-12))
+        log_sig.append(math.log(float(np.std(rj[1:] - phi_hat * rj[:-1])) or 1e-12))
+        atanh_phi.append(math.atanh(phi_hat))
+    n = len(runs)
+    centre += log_rms + [0.0] * n
+    width += [2.0] * (2 * n)
+    theta0 += log_sig + atanh_phi
+    layout = Layout(tuple(names), tuple(log), noise=n)
+    return residual, args, layout, centre, width, theta0, mask
+
+
+def _joint_posterior(traces, *, start_fit, shared, free, model, num_samples, num_chains,
+                     num_warmup, seed, bar, began, fit_kw) -> Posterior:
+    """The posterior of a joint fit of several runs (:func:`posterior` with a list)."""
+    import xarray as xr
+
+    from ._api import fit
+    from ._joint import JointResult
+
+    res = start_fit if start_fit is not None else fit(
+        list(traces), shared=shared, free=free, model=model, seed=seed, **fit_kw)
+    bar.update()
+    if not isinstance(res, JointResult) or res.model != model:
+        raise ValueError(f"start_fit must be a {model!r} joint fit (a JointResult of dp.fit "
+                         f"with the list of runs), got {type(res).__name__}"
+                         + (f" of the {res.model!r} model" if hasattr(res, "model") else ""))
+    if shared is not None and set(_names(shared)) != set(res.shared):
+        raise ValueError(f"start_fit: its shared parameters {res.shared!r} are not "
+                         f"shared={_names(shared)!r}")
+    n_runs = len(res.runs)
+    stride = max(1, math.ceil(max(r.ndata for r in res.runs) / MAX_SAMPLES))
+    residual, args, layout, centre, width, theta0, mask = _joint_setup(res, stride)
+    out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
+                 num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup,
+                 seed=seed, mask=mask)
+    bar.update(2)
+    bar.close()
+    nch, nd, dim = out.theta.shape
+    flat = jnp.asarray(out.theta.reshape(-1, dim))
+    P, sigma, phi_n = (np.asarray(v) for v in jax.vmap(lambda th: physical(th, layout))(flat))
+    coords = {"chain": np.arange(nch), "draw": np.arange(nd), "run": np.arange(n_runs)}
+    data = {}
+    shared_names = [nm for nm in layout.names if "[" not in nm]
+    for nm in shared_names:
+        data[nm] = (("chain", "draw"), P[:, layout.names.index(nm)].reshape(nch, nd))
+    per_run = [_base(nm) for nm in layout.names if nm.endswith("[0]")]
+    for base in per_run:
+        cols = [layout.names.index(f"{base}[{j}]") for j in range(n_runs)]
+        data[base] = (("chain", "draw", "run"), P[:, cols].reshape(nch, nd, n_runs))
+    data["sigma"] = (("chain", "draw", "run"), sigma.reshape(nch, nd, n_runs))
+    data["phi_noise"] = (("chain", "draw", "run"), phi_n.reshape(nch, nd, n_runs))
+    r0 = res.runs[0]
+    sampled = set(shared_names) | set(per_run)
+    fixed = {f"fixed_{nm}": float(r0.params[nm]) for nm in (*DAMPING, "w0")
+             if nm not in sampled}
+    fixed.update(fixed_m=float(r0.fixed["m"]), fixed_g=float(r0.fixed["g"]))
+    attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
+             "model": f"joint {model} fit of {n_runs} runs + AR(1) noise per run",
+             "units": res.units, "per_mass": int(res.per_mass), "free": ",".join(res.free),
+             "shared": ",".join(res.shared), "stride": stride,
+             "t_start": [float(r.t[0]) for r in res.runs],
+             "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items()), **fixed}
+    draws = xr.Dataset(data, coords=coords, attrs=attrs)
+    n_max = max(r.ndata for r in res.runs)
+    tt = np.full((n_runs, n_max), np.nan)
+    xx = np.full((n_runs, n_max), np.nan)
+    for j, r in enumerate(res.runs):
+        tt[j, :r.ndata] = r.t
+        xx[j, :r.ndata] = r.x
+    observed = xr.Dataset({"x": (("run", "sample"), xx), "t": (("run", "sample"), tt)},
+                          coords={"run": np.arange(n_runs), "sample": np.arange(n_max)},
+                          attrs={"units": res.units, "stride": stride,
+                                 "sources": [str(r.source) for r in res.runs],
+                                 "padding": "NaN after each run's last sample"})
+    return _finish(out, draws, observed, res, model, began, stride, free=tuple(res.free))
+
+
+def _names(value) -> tuple:
+    if isinstance(value, str):
+        return tuple(s.strip() for s in value.split(",") if s.strip())
+    return tuple(value)
+
+
+def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> Posterior:
+    """The :class:`Posterior` of the draws (the sample_stats group built here)."""
+    import xarray as xr
+
+    st = out.stats
+    coords = {"chain": draws.coords["chain"].values, "draw": draws.coords["draw"].values}
+    stats = xr.Dataset(
+        {"lp": (("chain", "draw"), st["lp"].astype(float)),
+         "diverging": (("chain", "draw"), st["diverging"].astype(bool)),
+         "energy": (("chain", "draw"), st["energy"].astype(float)),
+         "step_size": (("chain", "draw"), st["step_size"].astype(float)),
+         "tree_depth": (("chain", "draw"), st["tree_depth"].astype(np.int64)),
+         "acceptance_rate": (("chain", "draw"), st["acceptance_rate"].astype(float)),
+         "n_steps": (("chain", "draw"), st["n_steps"].astype(np.int64))},
+        coords=coords, attrs={"inference_library": "blackjax",
+                              "max_tree_depth": MAX_DOUBLINGS,
+                              "sampling_time": out.seconds_chains})
+    return Posterior(draws=draws, free=free, fit=res, sample_stats=stats,
+                     observed_data=observed, model=model, units=res.units,
+                     per_mass=res.per_mass, accept_rate=float(np.mean(st["acceptance_rate"])),
+                     divergences=int(np.sum(st["diverging"])),
+                     step_size=float(np.mean(st["step_size"][:, 0])),
+                     seconds=time.perf_counter() - began, seconds_chains=out.seconds_chains,
+                     stride=stride)
+
+
 def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
               seed: int = 0, units: str | None = None, start_fit=None,
-              progress: bool = False) -> Posterior:
+              progress: bool = False, shared=None, starts: int = 32,
+              max_swings: int | None = None) -> Posterior:
     """Sample the posterior of the free damping constants (and the nuisance parameters) with
     NUTS from blackjax, on log-parameters, with AR(1) noise (see the module doc for the model,
     the priors and the sampler).
@@ -551,14 +770,21 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
         trace_or_t, x, oscillator, free, fit_omega0, offset, start, end, units: as in
             :func:`~dampax.fit` (no oscillator: per unit mass, w0 sampled). ``free`` may
             include "k3" (the cubic stiffness, sampled on its own scale; the start fit then
-            profiles it, as ``dp.fit(free=(..., "k3"))`` does).
+            profiles it, as ``dp.fit(free=(..., "k3"))`` does). A list of two or more runs
+            (as ``dp.fit`` takes it) samples the posterior of their joint fit: the
+            parameters of ``shared`` common to all runs, each run's own x0, v0, offset (and
+            w0 and constants not shared) and its own AR(1) noise (sigma, phi_noise); the
+            padding of the shorter runs is not in the likelihood. In the posterior group the
+            shared parameters have dims (chain, draw), the per-run ones (chain, draw, run);
+            :meth:`Posterior.summary` names them ``x0[1]`` as ``JointResult.names`` does.
+        shared, starts, max_swings: joint fits only, as in ``dp.fit`` (the start fit).
         model: "ansatz" (closed form, eqs. 11, 20-23) or "reference" (eq. 3 integrated with
             exact stick-slip; slower, forward-mode gradients).
         num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps (blackjax
             window adaptation, per chain).
         seed: random seed.
-        start_fit: a :class:`FitResult` of the same data, options and model to start from
-            (default: ``fit(...)`` is run).
+        start_fit: a :class:`FitResult` (for a list of runs a ``JointResult``) of the same
+            data, options and model to start from (default: ``fit(...)`` is run).
         progress: show a tqdm bar over the stages (start fit, mode, chains) on stderr.
 
     Returns:
@@ -583,6 +809,19 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
         raise ValueError("free: name at least one damping constant")
     began = time.perf_counter()
     bar = tqdm(total=3, desc="posterior", unit="stage", disable=not progress)
+    if isinstance(trace_or_t, (list, tuple)) and x is None:
+        if vary_k3:
+            raise ValueError("free: a joint posterior samples k3 only as shared=(..., 'k3')")
+        return _joint_posterior(
+            trace_or_t, start_fit=start_fit, shared=shared, free=free, model=model,
+            num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup, seed=seed,
+            bar=bar, began=began,
+            fit_kw=dict(oscillator=oscillator, fit_omega0=fit_omega0, offset=offset,
+                        start=start, end=end, units=units, starts=starts,
+                        max_swings=max_swings))
+    if shared is not None:
+        raise ValueError("shared: names constants common to several runs; it needs a list of "
+                         "two or more traces, not a single trace")
     res = start_fit if start_fit is not None else fit(
         trace_or_t, x, oscillator=oscillator, free=names_in, model=model,
         fit_omega0=fit_omega0, offset=offset, start=start, end=end, units=units, seed=seed)
@@ -625,26 +864,8 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
              **fixed}
     draws = xr.Dataset({n: (("chain", "draw"), np.asarray(vals[n], dtype=float).reshape(nch, nd))
                         for n in order}, coords=coords, attrs=attrs)
-    st = out.stats
-    stats = xr.Dataset(
-        {"lp": (("chain", "draw"), st["lp"].astype(float)),
-         "diverging": (("chain", "draw"), st["diverging"].astype(bool)),
-         "energy": (("chain", "draw"), st["energy"].astype(float)),
-         "step_size": (("chain", "draw"), st["step_size"].astype(float)),
-         "tree_depth": (("chain", "draw"), st["tree_depth"].astype(np.int64)),
-         "acceptance_rate": (("chain", "draw"), st["acceptance_rate"].astype(float)),
-         "n_steps": (("chain", "draw"), st["n_steps"].astype(np.int64))},
-        coords=coords, attrs={"inference_library": "blackjax",
-                              "max_tree_depth": MAX_DOUBLINGS,
-                              "sampling_time": out.seconds_chains})
     observed = xr.Dataset({"x": (("t",), np.asarray(res.x, dtype=float))},
                           coords={"t": np.asarray(res.t, dtype=float)},
                           attrs={"units": res.units, "source": str(res.source),
                                  "stride": stride})
-    return Posterior(draws=draws, free=names_in, fit=res, sample_stats=stats,
-                     observed_data=observed, model=model, units=res.units,
-                     per_mass=res.per_mass, accept_rate=float(np.mean(st["acceptance_rate"])),
-                     divergences=int(np.sum(st["diverging"])),
-                     step_size=float(np.mean(st["step_size"][:, 0])),
-                     seconds=time.perf_counter() - began, seconds_chains=out.seconds_chains,
-                     stride=stride)
+    return _finish(out, draws, observed, res, model, began, stride, free=names_in)
