@@ -17,7 +17,6 @@ import numpy as np
 
 from dampax_cli._arguments import add_sensitivity_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
-from .._global import check_bounds
 from .._models import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
 from .._sensitivity import (
@@ -42,6 +41,8 @@ from ._common import (
 
 def parse_global(spec: str) -> dict[str, tuple[float, float]]:
     """The ranges of ``--global "mu=0.01:0.05,D=0.5:3"`` as {name: (lo, hi)} (ValueError)."""
+    from .._global import check_bounds  # the global mode's module, imported only for it
+
     bounds: dict[str, tuple[float, float]] = {}
     for item in split_names(spec):
         name, sep, rng = item.partition("=")

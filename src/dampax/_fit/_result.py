@@ -283,7 +283,8 @@ class FitResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state).
+        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state),
+        placed with fixed margins (``dampax._plot._place``).
 
         Returns:
             The path written.
@@ -291,9 +292,12 @@ class FitResult:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
-        fig = Figure(figsize=(10, 6.5), layout="constrained")
+        from .._plot import _place
+
+        fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
         FigureCanvasAgg(fig)
         ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
+        _place(fig, nrows=2, left=0.95, right=0.2, bottom=0.6, top=0.35, hspace=0.2)
         off = self.params.get("offset", 0.0)
         if self.full_t is not None and len(self.full_t) > len(self.t):
             before = self.full_t < self.t[0]
