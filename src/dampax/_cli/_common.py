@@ -97,7 +97,7 @@ def oscillator_from(args: argparse.Namespace):
 
     from .._oscillator import Oscillator
 
-    given = dict(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g)
+    given = dict(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g, k3=0.0)
     try:
         # float64 arrays put on the device as they are: Oscillator's jnp.asarray(value, float)
         # then converts nothing, where a Python float would compile a conversion (issue 26)
