@@ -481,6 +481,17 @@ class FitContext:
     profile: object = None
 
 
+def _envelope_curve(t, a, bp, c):
+    """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
+    (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
+    from the cache in every new process (issue 26); compiled as one, f may differ from the
+    eager value in the last bit. The arguments: concrete numbers."""
+    from .._cache import call_cached
+
+    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
+    return call_cached("fit-envelope", (), decay, *args)
+
+
 def _trace_derived(params: dict, coords, ctx: FitContext):
     """(derived, envelope A f(t), fixed) of a trace fit: eq. 21, xc = mu g/w0^2, k = m w0^2,
     the ansatz amplitude and phase (eqs. 22-23) and its halt time."""
@@ -494,7 +505,7 @@ def _trace_derived(params: dict, coords, ctx: FitContext):
     envelope = None
     t_start = float(ctx.t[0])
     if math.isfinite(A) and A > 0:
-        envelope = A * np.asarray(decay(ctx.t - t_start, d2 * A, d1, d0 / A))
+        envelope = A * np.asarray(_envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A))
         derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
     derived["A"], derived["phi"] = A, phi
     fixed = {"m": m, "g": g}
