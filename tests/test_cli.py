@@ -5,6 +5,7 @@ tests (the 2-core test machine compiles in both at once); its test collects it a
 """
 
 import math
+import os
 import re
 import subprocess
 import sys
@@ -426,3 +427,27 @@ def test_errormap_plots_option(tmp_path, capsys):
         main(["errormap", "--plots", "some", "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
     assert "--plots" in capsys.readouterr().err
+
+
+def test_import_dampax_leaves_the_optional_stacks_out():
+    """``import dampax`` (and the command line's module) import neither the fitting stack nor
+    plotting, netCDF or sampling libraries: ``dampax solve`` does not pay for them (issue 26).
+    The lazy names still resolve, with ``from dampax import fit``, and ``dir()`` lists them."""
+    heavy = ("dampax._fit", "dampax._global", "dampax._maps", "optimistix", "optax", "lineax",
+             "blackjax", "matplotlib", "xarray", "arviz", "scipy")
+    code = ("import sys, dampax, dampax._cli; "
+            f"print(sorted(m for m in sys.modules if m.split('.')[0] in {heavy!r} "
+            f"or m in {heavy!r})); "
+            "names = dir(dampax); from dampax import fit, error_map; import dampax as d; "
+            "print(fit is d._fit.fit, 'fit' in names, 'global_sensitivity' in names, "
+            "d.error_map is d._maps.error_map, 'fit' in d.__all__)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=120, env={**os.environ, "DAMPAX_CACHE": "0"})
+    assert proc.returncode == 0, proc.stderr
+    imported, resolved = proc.stdout.splitlines()
+    assert imported == "[]", imported
+    assert resolved == "True True True True True"
+    import dampax
+
+    with pytest.raises(AttributeError, match="no_such_name"):
+        dampax.no_such_name  # noqa: B018

@@ -3,6 +3,11 @@
 Importing dampax enables float64 in JAX (``jax_enable_x64``): every number this library
 compares against a reference needs it. It also turns JAX's persistent compilation cache on in
 the user's cache directory (``DAMPAX_CACHE=0`` turns that off; see ``dampax._cache``).
+
+The fitting stack (``dampax._fit``: optimistix, optax, lineax), the global sensitivity, the
+error maps, the plots and the paper's reproduction are imported when one of their names is
+first used (a module ``__getattr__``, PEP 562): ``import dampax`` and ``dampax solve`` do not
+pay for them. ``from dampax import fit`` and ``dir(dampax)`` work as for any other name.
 """
 
 import jax as _jax
@@ -13,34 +18,11 @@ from ._cache import enable_compilation_cache as _enable_compilation_cache  # noq
 
 _enable_compilation_cache()
 
-from ._fit import ArrayFit as ArrayFit  # noqa: E402
-from ._fit import FitResult as FitResult  # noqa: E402
-from ._fit import JointProblem as JointProblem  # noqa: E402
-from ._fit import JointResult as JointResult  # noqa: E402
-from ._fit import ModelComparison as ModelComparison  # noqa: E402
-from ._fit import Posterior as Posterior  # noqa: E402
-from ._fit import compare_envelope_models as compare_envelope_models  # noqa: E402
-from ._fit import compare_models as compare_models  # noqa: E402
-from ._fit import example_trace as example_trace  # noqa: E402
-from ._fit import fit as fit  # noqa: E402
-from ._fit import fit_arrays as fit_arrays  # noqa: E402
-from ._fit import fit_envelope as fit_envelope  # noqa: E402
-from ._fit import fit_joint as fit_joint  # noqa: E402
-from ._fit import initial_guess as initial_guess  # noqa: E402
-from ._fit import posterior as posterior  # noqa: E402
-from ._fit import residual_function as residual_function  # noqa: E402
-from ._global import global_sensitivity as global_sensitivity  # noqa: E402
-from ._maps import error_map as error_map  # noqa: E402
 from ._models import MODELS as MODELS  # noqa: E402
 from ._models import Model as Model  # noqa: E402
 from ._oscillator import Oscillator as Oscillator  # noqa: E402
 from ._oscillator import damping_coefficients as damping_coefficients  # noqa: E402
 from ._oscillator import from_ratios as from_ratios  # noqa: E402
-from ._plot import plot_global_sensitivity as plot_global_sensitivity  # noqa: E402
-from ._plot import plot_sensitivity as plot_sensitivity  # noqa: E402
-from ._plot import plot_trend as plot_trend  # noqa: E402
-from ._reproduce import paper_numbers as paper_numbers  # noqa: E402
-from ._reproduce import reproduce as reproduce  # noqa: E402
 from ._sensitivity import Sensitivity as Sensitivity  # noqa: E402
 from ._sensitivity import sensitivity as sensitivity  # noqa: E402
 from ._solution import RESULTS as RESULTS  # noqa: E402
@@ -50,3 +32,51 @@ from ._solve import turning_points as turning_points  # noqa: E402
 from ._trace import Trace as Trace  # noqa: E402
 from ._trace import load_trace as load_trace  # noqa: E402
 from ._version import __version__ as __version__  # noqa: E402
+
+#: public name -> the module that defines it, imported on first use (:func:`__getattr__`)
+_LAZY = {
+    "ArrayFit": "._fit",
+    "FitResult": "._fit",
+    "JointProblem": "._fit",
+    "JointResult": "._fit",
+    "ModelComparison": "._fit",
+    "Posterior": "._fit",
+    "compare_envelope_models": "._fit",
+    "compare_models": "._fit",
+    "example_trace": "._fit",
+    "fit": "._fit",
+    "fit_arrays": "._fit",
+    "fit_envelope": "._fit",
+    "fit_joint": "._fit",
+    "initial_guess": "._fit",
+    "posterior": "._fit",
+    "residual_function": "._fit",
+    "global_sensitivity": "._global",
+    "error_map": "._maps",
+    "plot_global_sensitivity": "._plot",
+    "plot_sensitivity": "._plot",
+    "plot_trend": "._plot",
+    "paper_numbers": "._reproduce",
+    "reproduce": "._reproduce",
+}
+
+
+def __getattr__(name: str):
+    """A public name of :data:`_LAZY`: import its module, bind the name here and return it."""
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module, __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    """The module's names with the lazy ones (autocompletion lists them before first use)."""
+    return sorted(set(globals()) | set(_LAZY))
+
+
+#: every public name, the lazy ones included (``from dampax import *`` imports them all)
+__all__ = sorted(name for name in (*globals(), *_LAZY) if not name.startswith("_"))

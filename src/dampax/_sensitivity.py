@@ -172,18 +172,18 @@ class Sensitivity(eqx.Module):
         """
         i = self.index(name)
         axis = jnp.ndim(self.dhalt_time) - 1  # the wrt axis comes after the batch axes
-        return {"x": jnp.take(self.dx, i, axis=axis),
-                "energy": jnp.take(self.denergy, i, axis=axis),
-                "halt_time": jnp.take(self.dhalt_time, i, axis=axis),
-                "halt_position": jnp.take(self.dhalt_position, i, axis=axis),
-                "halt_time_trend": jnp.take(self.dhalt_time_trend, i, axis=axis),
-                "halt_position_trend": jnp.take(self.dhalt_position_trend, i, axis=axis),
-                "swings_trend": jnp.take(self.dswings_trend, i, axis=axis),
-                "turning_time": jnp.take(self.dturning_time, i, axis=axis),
-                "turning_time_trend": jnp.take(self.dturning_time_trend, i, axis=axis),
-                "turning_position": jnp.take(self.dturning_position, i, axis=axis),
-                "turning_position_trend": jnp.take(self.dturning_position_trend, i,
-                                                   axis=axis)}
+        arrays = {"x": self.dx, "energy": self.denergy, "halt_time": self.dhalt_time,
+                  "halt_position": self.dhalt_position,
+                  "halt_time_trend": self.dhalt_time_trend,
+                  "halt_position_trend": self.dhalt_position_trend,
+                  "swings_trend": self.dswings_trend, "turning_time": self.dturning_time,
+                  "turning_time_trend": self.dturning_time_trend,
+                  "turning_position": self.dturning_position,
+                  "turning_position_trend": self.dturning_position_trend}
+        if axis == 0 and is_concrete(arrays):  # values: numpy's take compiles no program
+            return {k: jax.device_put(np.take(np.asarray(a), i, axis=axis))
+                    for k, a in arrays.items()}
+        return {k: jnp.take(a, i, axis=axis) for k, a in arrays.items()}
 
     def as_dict(self) -> dict[str, dict[str, Array]]:
         """{name: self.of(name)} for every name of ``wrt``, in order."""
@@ -209,7 +209,7 @@ class Sensitivity(eqx.Module):
         out = {}
         for i, name in enumerate(self.wrt):
             g = self.of(name)
-            g["swings"] = jnp.zeros(())  # an integer: 0 locally, where it is defined
+            g["swings"] = jax.device_put(np.zeros(()))  # an integer: 0 locally, where defined
             # rounding (e.g. a trend of 1e-27 s where the quantity does not depend on the
             # parameter): |d| theta w below NEGLIGIBLE |quantity|
             theta = abs(float(np.asarray(self.window_values)[i, 0] + np.asarray(
@@ -352,6 +352,14 @@ def check_window(window) -> float:
         raise ValueError(f"window must be a relative half-width with 0 < window < 1 (0.05 is "
                          f"+-5 %), got {window!r}")
     return w
+
+
+def _as_float64(value):
+    """``jnp.asarray(value, dtype=float)``; a Python or numpy number is put on the device as a
+    float64 array instead (no conversion program compiled, issue 26): the same value."""
+    if isinstance(value, (int, float, np.number, np.ndarray)) and not isinstance(value, bool):
+        return jax.device_put(np.asarray(value, dtype=float))
+    return jnp.asarray(value, dtype=float)
 
 
 def _check_ts(ts) -> Array:
@@ -648,8 +656,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
         if any(jnp.ndim(leaf) for leaf in jax.tree_util.tree_leaves(value)):
             raise ValueError(f"{name}: sensitivity needs scalars, not a batch; map over a batch "
                              f"with jax.vmap")
-    x0 = jnp.asarray(x0, dtype=float)
-    v0 = jnp.asarray(v0, dtype=float)
+    x0, v0 = _as_float64(x0), _as_float64(v0)
     options = dict(solve_options)
     t_end = options.pop("t_end", None)
     if method == "reference":
@@ -670,7 +677,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
         result = _evaluate_cached(osc, x0, v0, ts, t_end, static)
     else:
         result = _evaluate(osc, x0, v0, ts, t_end, *static)
-    if is_concrete(result.result._value) and not np.all(np.asarray(result.valid)):
+    if is_concrete(result.result._value) and message(result.result):  # numpy: no dispatch
         raise ValueError(f"method={method!r}: {message(result.result)}")
     return result
 

@@ -124,8 +124,7 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         if sol is None:
             sol = solve_reference(osc, x0, v0, **options)
     else:
-        x0 = jnp.asarray(x0, dtype=float)
-        v0 = jnp.asarray(v0, dtype=float)
+        x0, v0 = _as_float64(x0), _as_float64(v0)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
                               back=back, kappa=kappa, linear=known_linear(osc))
     if eager and is_concrete(sol.result._value) and sol.message:
@@ -133,6 +132,15 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     if throw:
         sol = sol.result.error_if(sol, ~sol.valid)
     return sol
+
+
+def _as_float64(value):
+    """``jnp.asarray(value, dtype=float)``; a Python or numpy number is put on the device as a
+    float64 array instead, which compiles no conversion program (a command's eager
+    operations each cost a lowering and a cache read, issue 26). The same value and type."""
+    if isinstance(value, (int, float, np.number, np.ndarray)) and not isinstance(value, bool):
+        return jax.device_put(np.asarray(value, dtype=float))
+    return jnp.asarray(value, dtype=float)
 
 
 def _reference_kept(osc, x0, v0, options):
@@ -148,7 +156,7 @@ def _reference_kept(osc, x0, v0, options):
     if not (all(isinstance(v, str | int | float | bool) for v in static.values())
             and is_concrete(t_end)):
         return None
-    extra = () if t_end is None else (jnp.asarray(t_end, dtype=float),)
+    extra = () if t_end is None else (_as_float64(t_end),)
     if static.get("max_swings") is None:  # the budget from the values, as the plain route's
         span = (DEFAULT_PERIODS * 2.0 * math.pi / np.asarray(osc.omega0) if t_end is None
                 else t_end)
@@ -158,8 +166,7 @@ def _reference_kept(osc, x0, v0, options):
         return solve_reference(osc, x0, v0, t_end=t_end[0] if t_end else None, **static)
 
     sol = call_cached_tree("reference", (sorted(static.items()), t_end is None), program,
-                           osc, jnp.asarray(x0, dtype=float), jnp.asarray(v0, dtype=float),
-                           *extra)
+                           osc, _as_float64(x0), _as_float64(v0), *extra)
     return None if sol.message else sol
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import os
 import signal
 import sys
@@ -23,18 +24,29 @@ import threading
 from collections.abc import Callable
 
 import dampax_cli
+from dampax_cli._arguments import COMMANDS
 
 from .._cache import keep_every_program
-from . import errormap, fit, reproduce, sensitivity, solve
 from ._common import PROG, silenced
 
+
+def _run_of(name: str) -> Callable[[argparse.Namespace], int]:
+    """``run`` of the subcommand module ``name``, imported only when the command runs: ``dampax
+    solve`` does not import the fitting stack (``dampax._fit``) that ``dampax fit`` needs."""
+
+    def run(args: argparse.Namespace) -> int:
+        return importlib.import_module(f"{__name__}.{name}").run(args)
+
+    run.__qualname__ = run.__name__ = f"run_{name}"
+    return run
+
+
 #: name -> (add_arguments(parser), run(args) -> exit status); the help of each subcommand is
-#: its summary in ``dampax_cli._arguments.COMMANDS``.
+#: its summary in ``dampax_cli._arguments.COMMANDS`` (whose ``add_arguments`` each module
+#: re-exports), and its module is imported when it runs.
 SUBCOMMANDS: dict[str, tuple[Callable[[argparse.ArgumentParser], None],
                              Callable[[argparse.Namespace], int]]] = {
-    name: (module.add_arguments, module.run)
-    for name, module in (("solve", solve), ("errormap", errormap),
-                         ("sensitivity", sensitivity), ("fit", fit), ("reproduce", reproduce))
+    name: (add_arguments, _run_of(name)) for name, (_, add_arguments) in COMMANDS.items()
 }
 
 

@@ -92,10 +92,21 @@ def check_digits(digits: int) -> None:
 def oscillator_from(args: argparse.Namespace):
     """The :class:`~dampax.Oscillator` of the options of
     :func:`dampax_cli._arguments.add_oscillator_arguments`."""
+    import jax
+    import numpy as np
+
     from .._oscillator import Oscillator
 
-    return Oscillator(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g,
-                      mu_s=getattr(args, "mu_s", None))
+    given = dict(m=args.m, k=args.k, mu=args.mu, b=args.b, D=args.D, g=args.g, k3=0.0)
+    if getattr(args, "mu_s", None) is not None:
+        given["mu_s"] = args.mu_s
+    try:
+        # float64 arrays put on the device as they are: Oscillator's jnp.asarray(value, float)
+        # then converts nothing, where a Python float would compile a conversion (issue 26)
+        return Oscillator(**{name: jax.device_put(np.asarray(value, dtype=float))
+                             for name, value in given.items()})
+    except ValueError:
+        return Oscillator(**given)  # the same error, naming the value as it was given
 
 
 def oscillator_text(args: argparse.Namespace) -> str:

@@ -13,11 +13,11 @@ import argparse
 import math
 import sys
 
+import jax
 import numpy as np
 
 from dampax_cli._arguments import add_sensitivity_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
-from .._global import check_bounds
 from .._models import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
 from .._sensitivity import (
@@ -28,7 +28,6 @@ from .._sensitivity import (
     check_wrt,
     sensitivity,
 )
-from .._solve import solve
 from ._common import (
     PROG,
     check_digits,
@@ -42,6 +41,8 @@ from ._common import (
 
 def parse_global(spec: str) -> dict[str, tuple[float, float]]:
     """The ranges of ``--global "mu=0.01:0.05,D=0.5:3"`` as {name: (lo, hi)} (ValueError)."""
+    from .._global import check_bounds  # the global mode's module, imported only for it
+
     bounds: dict[str, tuple[float, float]] = {}
     for item in split_names(spec):
         name, sep, rng = item.partition("=")
@@ -74,11 +75,16 @@ def _trend_path(args: argparse.Namespace) -> str:
 
 
 def _default_t_end(osc: Oscillator, x0: float, v0: float) -> float:
+    """The window of the plot: past the matched ansatz's halt, 2 to 12 undamped periods."""
+    from .._solution import message
+    from .._summary import _solve_one
+
     period = 2.0 * math.pi / float(np.asarray(osc.omega0))
-    try:
-        tau = float(np.asarray(solve(osc, x0, v0, method="ansatz").halt_time))
-    except ValueError:
-        tau = math.inf
+    # the matched ansatz (solve(method="ansatz")) by the kept program of dampax solve: a
+    # repeated command neither traces nor compiles it; NaN where the model does not exist
+    sol, (tau, _, _) = _solve_one(osc, jax.device_put(np.asarray(x0, dtype=float)),
+                                  jax.device_put(np.asarray(v0, dtype=float)), "matched", 1)
+    tau = math.inf if message(sol.result) else float(np.asarray(tau))
     if not math.isfinite(tau):
         return 4.0 * period
     return min(max(2.0 * period, tau + 0.5 * period), 12.0 * period)

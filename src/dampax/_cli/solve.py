@@ -58,10 +58,10 @@ def run(args: argparse.Namespace) -> int:
     A0 = math.hypot(x0, v0 / w0)
     phi0 = math.atan2(-v0 / w0, x0) if A0 > 0 else 0.0
     r0, r1, r2 = damping_ratios(osc, x0, v0)
-    sol = matched.solution
+    sol = matched.solution  # valid (else matched.error): its A, phi are the amplitude, phase
     rows = [
-        ("A", float(np.asarray(sol.amplitude)), "m", "matched amplitude (eq. 22)"),
-        ("phi", float(np.asarray(sol.phase)), "rad", "matched phase (eq. 23)"),
+        ("A", float(np.asarray(sol.A)), "m", "matched amplitude (eq. 22)"),
+        ("phi", float(np.asarray(sol.phi)), "rad", "matched phase (eq. 23)"),
         ("A0", A0, "m", "undamped amplitude, x0 = A0 cos(phi0)"),
         ("phi0", phi0, "rad", "undamped phase, v0 = -w0 A0 sin(phi0)"),
         ("d0/(w0 A0)", r0, "", "Coulomb ratio, d0 = 2 mu g/(pi w0)"),

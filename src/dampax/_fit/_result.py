@@ -291,7 +291,8 @@ class FitResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state).
+        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state),
+        placed with fixed margins (``dampax._plot._place``).
 
         Returns:
             The path written.
@@ -299,9 +300,12 @@ class FitResult:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
-        fig = Figure(figsize=(10, 6.5), layout="constrained")
+        from .._plot import _place
+
+        fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
         FigureCanvasAgg(fig)
         ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
+        _place(fig, nrows=2, left=0.95, right=0.2, bottom=0.6, top=0.35, hspace=0.2)
         off = self.params.get("offset", 0.0)
         if self.full_t is not None and len(self.full_t) > len(self.t):
             before = self.full_t < self.t[0]
@@ -485,6 +489,17 @@ class FitContext:
     profile: object = None
 
 
+def _envelope_curve(t, a, bp, c):
+    """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
+    (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
+    from the cache in every new process (issue 26); compiled as one, f may differ from the
+    eager value in the last bit. The arguments: concrete numbers."""
+    from .._cache import call_cached
+
+    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
+    return call_cached("fit-envelope", (), decay, *args)
+
+
 def _trace_derived(params: dict, coords, ctx: FitContext):
     """(derived, envelope A f(t), fixed) of a trace fit: eq. 21, xc = mu g/w0^2, k = m w0^2,
     the ansatz amplitude and phase (eqs. 22-23) and its halt time."""
@@ -498,7 +513,7 @@ def _trace_derived(params: dict, coords, ctx: FitContext):
     envelope = None
     t_start = float(ctx.t[0])
     if math.isfinite(A) and A > 0:
-        envelope = A * np.asarray(decay(ctx.t - t_start, d2 * A, d1, d0 / A))
+        envelope = A * np.asarray(_envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A))
         derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
     derived["A"], derived["phi"] = A, phi
     fixed = {"m": m, "g": g}
