@@ -15,7 +15,6 @@ from ._api import EXAMPLE as EXAMPLE
 from ._api import compare_envelope_models as compare_envelope_models
 from ._api import compare_models as compare_models
 from ._api import example_trace as example_trace
-from ._api import fit as fit
 from ._api import fit_arrays as fit_arrays
 from ._api import fit_envelope as fit_envelope
 from ._api import residual_function as residual_function
@@ -24,6 +23,7 @@ from ._core import METHOD_NAMES as METHOD_NAMES
 from ._core import MODELS as MODELS
 from ._core import OPTIMIZERS as OPTIMIZERS
 from ._core import FitModel as FitModel
+from ._entry import fit as fit
 from ._guess import initial_guess as initial_guess
 from ._joint import SHARED as SHARED
 from ._joint import JointProblem as JointProblem

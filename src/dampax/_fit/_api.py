@@ -265,19 +265,6 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             the combined decay of some damping terms but not their split ("mu and D are not
             separately identifiable ...: fix all but one of them"); the reason named.
     """
-    if isinstance(trace_or_t, (list, tuple)) and x is None:
-        from ._joint import fit_joint
-
-        if p0 is not None:
-            raise ValueError("p0: not supported by a joint fit of several runs")
-        if mu_s is not None or "mu_s" in tuple(free):
-            raise ValueError("mu_s: static friction is not supported by a joint fit of "
-                             "several runs; fit each run alone")
-        return fit_joint(list(trace_or_t), shared=shared, free=free, oscillator=oscillator,
-                         model=model, fit_omega0=fit_omega0, offset=offset, start=start,
-                         end=end, loss=loss, optimizer=optimizer, max_steps=max_steps,
-                         rtol=rtol, atol=atol, max_swings=max_swings, units=units,
-                         starts=starts, seed=seed, k3=k3)
     if shared is not None:
         raise ValueError("shared: names constants common to several runs; it needs a list of "
                          "two or more traces, not a single trace")

@@ -663,7 +663,7 @@ def _joint_posterior(traces, *, start_fit, shared, free, model, num_samples, num
     """The posterior of a joint fit of several runs (:func:`posterior` with a list)."""
     import xarray as xr
 
-    from ._api import fit
+    from ._entry import fit
     from ._joint import JointResult
 
     res = start_fit if start_fit is not None else fit(
@@ -793,8 +793,8 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     import xarray as xr
     from tqdm import tqdm
 
-    from ._api import fit
     from ._core import MODELS
+    from ._entry import fit
     from ._params import FREE, check_choice, check_free
 
     check_choice("model", model, MODELS)
