@@ -212,20 +212,9 @@ def run(args: argparse.Namespace) -> int:
                 "intervals": {k: list(v) for k, v in result.conf_interval(args.level).items()}}
         except (ValueError, np.linalg.LinAlgError):
             pass
-    if post is not None:
-        print()
-        print(post.report(args.level))
-        summary["posterior"] = post.summary(args.level)
-        written += [post.to_netcdf(out_dir / "posterior.nc"),
-                    post.corner(out_dir / "corner.png")]
-    write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
-    result.plot(out_dir / "fit.png")
-    print()
-    print(f"  {elapsed:.1f} s (compilation included); written: "
-          f"{', '.join(str(p) for p in written)}")
-    if not result.success:
-        error(f"{PROG}: fit failed: {_cli_words(result.reason)}")
-        return EXIT_FAILED
+    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "fit")
+    if failed is not None:
+        return failed
     if not result.adequate:
         error(f"{PROG}: the model does not describe the data: "
               f"{_cli_words('; '.join(result.inadequacy))}")
@@ -280,6 +269,25 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
                "traces": [{"source": tr.source, "n": len(tr), "n_dropped": tr.n_dropped,
                            "rate": tr.rate} for tr in traces]}
     written = [out_dir / "fit.json", out_dir / "fit.png"]
+    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "joint fit")
+    if failed is not None:
+        return failed
+    if not result.adequate:
+        error(f"{PROG}: the model does not describe every run")
+        return EXIT_INADEQUATE
+    return 0
+
+
+def _jsonable(value):
+    """json.dumps default: numpy numbers as floats (NaN as null)."""
+    v = float(value)
+    return v if math.isfinite(v) else None
+
+
+def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what: str):
+    """The common end of a single and a joint fit: the posterior's report and files, fit.json,
+    fit.png, the list of files; returns EXIT_FAILED (after the message) when the fit failed,
+    else None."""
     if post is not None:
         print()
         print(post.report(args.level))
@@ -292,15 +300,6 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     print(f"  {elapsed:.1f} s (compilation included); written: "
           f"{', '.join(str(p) for p in written)}")
     if not result.success:
-        error(f"{PROG}: joint fit failed: {_cli_words(result.reason)}")
+        error(f"{PROG}: {what} failed: {_cli_words(result.reason)}")
         return EXIT_FAILED
-    if not result.adequate:
-        error(f"{PROG}: the model does not describe every run")
-        return EXIT_INADEQUATE
-    return 0
-
-
-def _jsonable(value):
-    """json.dumps default: numpy numbers as floats (NaN as null)."""
-    v = float(value)
-    return v if math.isfinite(v) else None
+    return None
