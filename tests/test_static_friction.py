@@ -201,7 +201,7 @@ def test_fit_with_free_mu_s(fit_traces, mu_s):
 
 def test_cli_fit_with_free_mu_s(fit_traces, tmp_path, capsys):
     """``dampax fit --free mu,D,mu_s --model reference`` on the trace with static friction
-    (the programs of the test above); --posterior does not take mu_s and says so."""
+    (the programs of the test above); mu_s needs the reference model and says so."""
     t, x, _ = fit_traces[FIT_MU_S]
     path = tmp_path / "stick.txt"
     path.write_text("".join(f"{a:.4f} {b:.7f}\n" for a, b in zip(t, x, strict=True)))
@@ -211,8 +211,6 @@ def test_cli_fit_with_free_mu_s(fit_traces, tmp_path, capsys):
     out = capsys.readouterr().out
     assert re.search(r"mu_s:\s+[0-9.]+ \+/- ", out), out
     assert "every value gives the fitted halt" in out
-    assert main([*argv, "--posterior"]) == 2  # refused before any fit
-    assert "--posterior" in capsys.readouterr().err
     assert main([*argv[:-5], "--model", "ansatz", *argv[-5:]]) == 2
     assert "need --model reference" in capsys.readouterr().err
 
@@ -226,3 +224,31 @@ def test_cli_solve_accepts_mu_s(capsys):
     with pytest.raises(SystemExit):
         main(["fit", "--help"])
     assert "--mu-s" in capsys.readouterr().out
+
+
+def test_posterior_likelihood_carries_mu_s(fit_traces):
+    """The posterior of a fit with static friction holds mu_s (fixed, or the free fit's value;
+    it is a step function of the halt, so it is not sampled): its residuals at the fit's
+    parameters are the data minus scipy's exact stick-slip motion with that mu_s, and the
+    halted tail is in them (without mu_s the motion swings on and misses by centimetres)."""
+    import jax.numpy as jnp
+    from helpers import evaluate, scipy_stick_slip
+
+    from dampax._fit._posterior import _trace_setup, static_friction
+
+    t, x, _ = fit_traces[FIT_MU_S]
+    res = dp.fit(t, x, oscillator=dp.Oscillator(m=M, k=K), free=("mu", "D"),
+                 model="reference", mu_s=FIT_MU_S)
+    assert res.fixed["mu_s"] == FIT_MU_S == static_friction(res)
+    residual, args, layout, _, _, theta0 = _trace_setup(res, 1, vary_k3=False)
+    assert "mu_s" not in layout.names and float(args.consts.mu_s) == FIT_MU_S
+    p = res.params
+    point = jnp.asarray([p[n] if n != "y" else p["v0"] for n in residual.names])
+    got = np.asarray(residual(point, args))
+    segments, _, rest = scipy_stick_slip(M, p["w0"] ** 2 * M, p["mu"], p["b"], p["D"], p["x0"],
+                                         p["v0"], float(res.t[-1] - res.t[0]), rtol=1e-11,
+                                         atol=1e-13, mu_s=FIT_MU_S)
+    want = np.asarray(res.x) - p["offset"] - evaluate(segments, rest, res.t - res.t[0])[0]
+    assert rest is not None and np.max(np.abs(got - want)) < 1e-7
+    sliding = args._replace(consts=args.consts._replace(mu_s=None))
+    assert np.max(np.abs(np.asarray(residual(point, sliding)))) > 1e-2

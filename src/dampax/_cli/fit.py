@@ -125,9 +125,6 @@ def run(args: argparse.Namespace) -> int:
                                                        or args.envelope):
         raise ValueError("--mu-s and --free ...,mu_s (static friction) need --model reference "
                          "and a trace (the other models assume mu_s = mu)")
-    if args.posterior and (args.mu_s is not None or "mu_s" in free):
-        raise ValueError("--posterior does not sample the static friction mu_s (--mu-s, --free "
-                         "...,mu_s): fit without --posterior")
     start = _parse_start(args.start)
     truth = None
     units = args.units
@@ -175,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
                                  fit_omega0=fit_omega0, offset=not args.no_offset,
                                  start=start, end=args.end, num_samples=args.draws,
                                  num_chains=args.chains, num_warmup=args.warmup,
-                                 seed=args.seed, units=units, start_fit=result)
+                                 seed=args.seed, units=units, start_fit=result,
+                                 mu_s=args.mu_s)
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
     elapsed = time.perf_counter() - began

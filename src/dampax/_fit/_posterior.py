@@ -388,7 +388,8 @@ def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: Referen
 
     m = consts.m
     k3 = 0.0 if consts.k3 is None else consts.k3
-    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3)
+    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3,
+                     mu_s=consts.mu_s)
     sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
                 rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint=adjoint)
     return jnp.where(sol.valid, q.offset + sol.x(tau), jnp.nan)
@@ -497,6 +498,14 @@ class Posterior:
             lines.append(f"    {name + ':':<10} {row['mean']:>12.6g} [{row['lo']:>12.6g}, "
                          f"{row['hi']:>12.6g}] {row['r_hat']:>6.3f} {row['ess_bulk']:>8.0f} "
                          f"{row['ess_tail']:>8.0f} {unit}".rstrip())
+        attrs = self.draws.attrs
+        if "fixed_mu_s" in attrs:  # static friction: held, not sampled (static_friction)
+            held = f"    mu_s held at {attrs['fixed_mu_s']:.6g}"
+            if "mu_s_interval" in attrs:
+                lo, hi = attrs["mu_s_interval"]
+                held += (f" (the fit's; every value in [{lo:.6g}, {hi:.6g}) gives the same "
+                         "halt): the draws are conditional on that halt")
+            lines.append(held)
         bad = [n for n, row in s.items() if not row["r_hat"] < 1.01] if nc > 1 else []
         if bad:
             lines.append(f"    warning: r_hat >= 1.01 for {', '.join(bad)}: the chains "
@@ -538,7 +547,7 @@ def _trace_setup(res, stride: int, vary_k3: bool):
     span = float(res.t[-1] - res.t[0])
     m, g = float(res.fixed["m"]), float(res.fixed["g"])
     p = res.params
-    free = tuple(c for c in res.free if c != "k3")
+    free = tuple(c for c in res.free if c not in ("k3", "mu_s"))
     A = float(res.derived["A"])
     if model == "reference":
         x0_hat, y_hat, y_name, y_width = p["x0"], p["v0"], "v0", 2 * A * p["w0"]
@@ -579,10 +588,23 @@ def _trace_setup(res, stride: int, vary_k3: bool):
     residual = TraceResidual(model=model, names=tuple(names), opts=opts)
     base = TraceCoords(**{f: jnp.asarray(float(p[f] if f in p else 0.0))
                           for f in TraceCoords._fields})
-    args = TraceArgs(t=t, x=xd, base=base, consts=Constants(m=jnp.asarray(m),
-                                                            g=jnp.asarray(g)),
-                     span=jnp.asarray(span))
+    mu_s = static_friction(res)
+    consts = Constants(m=jnp.asarray(m), g=jnp.asarray(g),
+                       mu_s=None if mu_s is None else jnp.asarray(mu_s))
+    args = TraceArgs(t=t, x=xd, base=base, consts=consts, span=jnp.asarray(span))
     return residual, args, Layout(tuple(names), tuple(log)), centre, width, theta0
+
+
+def static_friction(res) -> float | None:
+    """The static friction mu_s a trace fit's motion has (None: mu_s = mu): held at its value
+    (``fixed["mu_s"]``), or the value of ``fit(free=(..., "mu_s"))``. x(t) depends on mu_s only
+    through which turning point is the halt (a step function, ``_static``), so the posterior
+    does not sample it: it samples the other parameters at that mu_s, i.e. conditional on
+    the fitted halt; the values of mu_s that give the same halt are the fit's interval."""
+    if "mu_s" in res.free:
+        return float(res.params["mu_s"])
+    value = res.fixed.get("mu_s")
+    return None if value is None else float(value)
 
 
 def _base(name: str) -> str:
@@ -761,7 +783,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
               seed: int = 0, units: str | None = None, start_fit=None,
               progress: bool = False, shared=None, starts: int = 32,
-              max_swings: int | None = None) -> Posterior:
+              max_swings: int | None = None, mu_s: float | None = None) -> Posterior:
     """Sample the posterior of the free damping constants (and the nuisance parameters) with
     NUTS from blackjax, on log-parameters, with AR(1) noise (see the module doc for the model,
     the priors and the sampler).
@@ -778,6 +800,13 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
             shared parameters have dims (chain, draw), the per-run ones (chain, draw, run);
             :meth:`Posterior.summary` names them ``x0[1]`` as ``JointResult.names`` does.
         shared, starts, max_swings: joint fits only, as in ``dp.fit`` (the start fit).
+        mu_s: model "reference", one trace: the static friction coefficient held at this value
+            (as ``dp.fit(mu_s=...)``). With ``free=(..., "mu_s")`` the start fit searches it
+            (x(t) depends on mu_s only through which turning point is the halt, a step
+            function no sampler can move); the posterior then samples the other parameters
+            at the fitted mu_s, conditional on that halt, and records mu_s and the interval
+            of values that give the same halt as the attributes ``fixed_mu_s`` and
+            ``mu_s_interval``.
         model: "ansatz" (closed form, eqs. 11, 20-23) or "reference" (eq. 3 integrated with
             exact stick-slip; slower, forward-mode gradients).
         num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps (blackjax
@@ -804,7 +833,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     names_in = check_free(free, allowed=FREE)
     vary_k3 = "k3" in names_in
-    free = tuple(c for c in names_in if c != "k3")  # the damping constants
+    free = tuple(c for c in names_in if c not in ("k3", "mu_s"))  # the damping constants
     if not free:
         raise ValueError("free: name at least one damping constant")
     began = time.perf_counter()
@@ -824,11 +853,15 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                          "two or more traces, not a single trace")
     res = start_fit if start_fit is not None else fit(
         trace_or_t, x, oscillator=oscillator, free=names_in, model=model,
-        fit_omega0=fit_omega0, offset=offset, start=start, end=end, units=units, seed=seed)
+        fit_omega0=fit_omega0, offset=offset, start=start, end=end, units=units, seed=seed,
+        mu_s=mu_s)
     bar.update()
     if tuple(res.free) != names_in or res.model != model:
         raise ValueError(f"start_fit must be a {model!r} fit with free={names_in!r}, got a "
                          f"{res.model!r} fit with free={tuple(res.free)!r}")
+    if mu_s is not None and res.fixed.get("mu_s") != float(mu_s):
+        raise ValueError(f"start_fit must be a fit with mu_s={mu_s!r}, got one with "
+                         f"mu_s={res.fixed.get('mu_s')!r}")
     stride = max(1, math.ceil(len(res.t) / MAX_SAMPLES))
     residual, args, layout, centre, width, theta0 = _trace_setup(res, stride, vary_k3)
     out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
@@ -857,6 +890,10 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     fixed = {f"fixed_{n}": float(res.params[n]) for n in (*DAMPING, "w0", "offset")
              if n not in sampled}
     fixed.update(fixed_m=float(res.fixed["m"]), fixed_g=float(res.fixed["g"]))
+    if static_friction(res) is not None:  # held (not sampled): see static_friction
+        fixed["fixed_mu_s"] = static_friction(res)
+        if "mu_s" in res.free:
+            fixed["mu_s_interval"] = [float(v) for v in res.profiled["mu_s"]["interval"]]
     attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
              "model": f"{model} + AR(1) noise", "units": res.units,
              "per_mass": int(res.per_mass), "free": ",".join(names_in), "t_start": float(res.t[0]),

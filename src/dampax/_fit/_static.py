@@ -89,9 +89,10 @@ def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarra
 
 
 def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
-    """A fit at fixed mu_s with ``derived["halt_time"]`` of its own motion (the reference
-    with mu_s, where it halts within twice the window; otherwise the value stays the ansatz's
-    estimate for mu_s = mu, which is later)."""
+    """A fit at fixed mu_s with ``fixed["mu_s"]`` and ``derived["halt_time"]`` of its own
+    motion (the reference with mu_s, where it halts within twice the window; otherwise the
+    value stays the ansatz's estimate for mu_s = mu, which is later)."""
+    res = dataclasses.replace(res, fixed={**res.fixed, "mu_s": float(mu_s)})
     sol, _ = _motion(res, m, g, k3, mu_s)
     halt = float(sol.halt_time)
     if not (bool(np.asarray(sol.halted)) and math.isfinite(halt)):
@@ -219,7 +220,7 @@ def fit_mu_s(fit, trace_or_t, x, *, free, options):
                         "end_sliding": float(np.asarray(base.model_x)[-1])}}
     return dataclasses.replace(
         best, params={**best.params, "mu_s": value}, stderr={**best.stderr, "mu_s": sd},
-        init={**base.init},
+        init={**base.init}, fixed={k: v for k, v in best.fixed.items() if k != "mu_s"},
         free=tuple(best.free) + ("mu_s",), profiled={**best.profiled, **profile},
         derived={**best.derived, "x_static": value * g / w0 ** 2,
                  "rms_mu_s_eq_mu": base.rms})
