@@ -507,16 +507,19 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     if np.all(np.isfinite(g)) and math.isfinite(sd_e):
         extra = np.outer(g, g) * sd_e * sd_e
     # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
-    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; where it rises less
-    # than PROFILE_MIN of that (S is not quadratic over the interval: where the block sticks
-    # moves with k3 and changes the cost by steps) the interval does not hold
+    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
+    # c < 1 times that is widened by 1/sqrt(c); where c < PROFILE_FAIL (S is not quadratic
+    # over the interval: where the block sticks moves with k3 and changes the cost by steps)
+    # the interval does not hold
     success, reason = best.success, best.reason
     if math.isfinite(sd_e) and sd_e > 0 and best.success:
-        from ._checks import PROFILE_MIN
+        from ._checks import PROFILE_FAIL
 
         rises = [(cost(e_best + sgn * 2.0 * sd_e) - s0) / (4.0 * sigma2) for sgn in (-1, 1)]
         profile["k3"]["profile"] = rises
-        low = [c for c in rises if math.isfinite(c) and c < PROFILE_MIN]
+        profile["k3"]["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and
+                                       PROFILE_FAIL <= c < 1.0 else 1.0 for c in rises)
+        low = [c for c in rises if math.isfinite(c) and c < PROFILE_FAIL]
         if low:
             success = False
             reason = (f"the intervals do not hold: with k3 held 2 sd from its value and the "

@@ -64,12 +64,14 @@ END_PERIODS = 4.0
 #: its delta-method standard error otherwise, where the decrement in noise variances bounds
 #: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
-#: the intervals hold when, with a parameter held 2 interval sd from its value and the others
-#: refitted, the cost rises at least this multiple of what the intervals assume: a rise of c
-#: times puts the true bound of an interval at 1/sqrt(c) of the reported one, so that a 90 %
-#: interval covers 2 Phi(1.645 sqrt(c)) - 1; below this c it covers less than 80 % (a larger
-#: rise: wider intervals than needed, conservative)
-PROFILE_MIN = (1.2816 / 1.645) ** 2
+#: with a parameter held 2 interval sd from its value and the others refitted, the cost rises
+#: c times what the intervals assume (c = 1 where the model is linear in its parameters): the
+#: bound of the interval on that side lies at 1/sqrt(c) of the reported distance, and for
+#: c < 1 ``conf_interval`` widens that side by 1/sqrt(c) (c > 1: conservative, kept). Below
+#: this c the cost is not near a quadratic over the interval (its bound lies beyond twice the
+#: reported one; one profile point no longer measures it) and the fit fails: the intervals
+#: do not hold
+PROFILE_FAIL = 0.25
 
 
 def check_sampling(t: np.ndarray, x: np.ndarray) -> None:
@@ -667,11 +669,15 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         which = damping + (["w0"] if "w0" in names else [])
         prof = profile_ratios(profile, params, stderr, sd, which, chisqr, s2)
         flat = [(k, c) for k, cs in prof.items() for c in cs if math.isfinite(c)
-                and c < PROFILE_MIN]
+                and c < PROFILE_FAIL]
         vals = [c for cs in prof.values() for c in cs if math.isfinite(c)]
         if vals:
             diag["profile_min"] = float(min(vals))
             diag["profile_max"] = float(max(vals))
+        if not flat:  # each side of an interval where the cost rises less than assumed
+            diag["interval_scale"] = {
+                k: tuple(1.0 / math.sqrt(c) if math.isfinite(c) and c < 1.0 else 1.0
+                         for c in cs) for k, cs in prof.items()}
         if flat:
             k, c = min(flat, key=lambda kc: kc[1])
             fails.append(f"the intervals do not hold: with {k} held 2 sd from its value and "

@@ -172,16 +172,18 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     return 0.5 * (cov + cov.T), L
 
 
-def normal_intervals(values: dict, sd: dict, level: float, nonneg=()) -> dict:
+def normal_intervals(values: dict, sd: dict, level: float, nonneg=(), scale=None) -> dict:
     """{name: (lo, hi)} = value -+ z sd at the two-sided ``level`` (clipped at 0 for
-    ``nonneg``)."""
+    ``nonneg``); ``scale``: {name: (below, above)} factors of the two sides (the profile's
+    correction, ``_checks.PROFILE_FAIL``)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     z = NormalDist().inv_cdf(0.5 + 0.5 * level)
     out = {}
     for name, v in values.items():
         s = sd[name]
-        lo, hi = v - z * s, v + z * s
+        below, above = (scale or {}).get(name, (1.0, 1.0))
+        lo, hi = v - z * s * below, v + z * s * above
         if name in nonneg:
             lo = max(lo, 0.0)
         out[name] = (float(lo), float(hi))

@@ -19,6 +19,19 @@ from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
 from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
 
 
+def _jsonable(v):
+    """A diagnostic as JSON: strings as they are, numbers (None where not finite), and dicts
+    and sequences of them."""
+    if isinstance(v, str) or v is None or isinstance(v, bool):
+        return v
+    if isinstance(v, dict):
+        return {str(k): _jsonable(w) for k, w in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(w) for w in v]
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
 @dataclass
 class FitResult:
     """Result of :func:`fit` / :func:`fit_envelope`.
@@ -126,14 +139,17 @@ class FitResult:
         autocorrelated residuals: a Newey-West (HAC) sandwich covariance with a Bartlett
         kernel whose bandwidth comes from the autocorrelation of the scores
         (``dampax._fit._intervals``: why this method), normal intervals value +- z sd,
-        clipped at 0 for the damping constants.
+        clipped at 0 for the damping constants; a side over which the profile of the cost
+        rises c < 1 times what the interval assumes is widened by 1/sqrt(c)
+        (``diagnostics["interval_scale"]``, ``_checks.PROFILE_FAIL``).
 
         Arguments:
             level: two-sided coverage, in (0, 1).
         """
         sd = self.hac_stderr
         out = _intervals.normal_intervals({n: self.params[n] for n in self.varied}, sd,
-                                          level, nonneg=DAMPING)
+                                          level, nonneg=DAMPING,
+                                          scale=self.diagnostics.get("interval_scale"))
         if self.profiled:  # k3 of fit(free=(..., "k3")): from the profile's curvature
             from scipy.stats import norm
 
@@ -142,7 +158,9 @@ class FitResult:
                 if "interval" in pr:  # mu_s: the values that give the fitted halt
                     out[name] = tuple(pr["interval"])
                     continue
-                out[name] = (pr["value"] - z * pr["stderr"], pr["value"] + z * pr["stderr"])
+                below, above = pr.get("scale", (1.0, 1.0))
+                out[name] = (pr["value"] - z * pr["stderr"] * below,
+                             pr["value"] + z * pr["stderr"] * above)
         return out
 
     @property
@@ -283,8 +301,7 @@ class FitResult:
             "converged": bool(self.converged), "adequate": bool(self.adequate),
             "inadequacy": list(self.inadequacy), "per_mass": bool(self.per_mass),
             "units": self.units,
-            "diagnostics": {k: (v if isinstance(v, str) else num(v))
-                            for k, v in self.diagnostics.items()},
+            "diagnostics": {k: _jsonable(v) for k, v in self.diagnostics.items()},
             "starts": self.starts.to_dict() if self.starts is not None else None,
             "n_iterations": int(self.n_iterations), "warnings": list(self.warnings),
         }
