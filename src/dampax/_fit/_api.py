@@ -421,6 +421,13 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             else:
                 text += " found no lower cost"
         stages.append(text)
+    if max_steps is None and bool(out.code == FIT_RESULTS.max_steps_reached):
+        # the default budget ran out on the way (a long valley): one more round from there,
+        # kept where it lowers the cost (a budget the caller set is honoured)
+        more = run(out.params, spec.name, fs)
+        if float(more.chisqr) < float(out.chisqr):
+            stages.append(f"the step budget ran out: continued ({int(more.steps)} more steps)")
+            out = more
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     best = out
 

@@ -23,7 +23,8 @@ failures
     between them exceed those elsewhere, :func:`end_mismatch`, or grossly:
     :data:`END_PERIODS`); for the exact model ("reference") residuals that AR(1) noise cannot
     produce (:func:`residual_structure`: a local optimum); intervals that do not hold (the
-    profile of the cost rises less over them than they assume: :func:`profile_ratios`; or a
+    profile of the cost rises far less over them than they assume, :func:`profile_ratios`
+    below :data:`PROFILE_FAIL`; a smaller shortfall widens that side of the interval); or a
     damping constant whose interval excludes 0 at 1 % is not needed by the likelihood-ratio
     test at 1 %: :func:`bound_tests`, a valley in the cost far outside the intervals).
 refusals (ValueError, the true reason)
