@@ -55,7 +55,9 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from scipy.integrate import solve_ivp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from helpers import evaluate, scipy_stick_slip  # noqa: E402  (the tests' scipy integrator)
 
 G = 9.81
 #: the family's bounds (issue 25, item 1)
@@ -76,59 +78,22 @@ FIXABLE = ("mu", "b", "D", "offset")
 
 
 def stick_slip(m, k, mu, b, D, x0, v0, t_end, *, k3=0.0, g=G, rtol=1e-11, atol=None):
-    """Eq. 3 with a cubic spring, swing by swing (scipy DOP853, terminal event at v = 0).
+    """Eq. 3 with a cubic spring, swing by swing (scipy DOP853, terminal event at v = 0): the
+    tests' ``helpers.scipy_stick_slip`` with an absolute tolerance of 1e-13 of the amplitude.
 
     Returns (segments, rest): dense-output pieces (t0, t1, sol) and the rest state (t, x) or
     None when the block still moves at ``t_end``.
     """
     scale = max(abs(x0), abs(v0) / math.sqrt(k / m), 1e-300)
-    atol = 1e-13 * scale if atol is None else atol
-    t, x, v = 0.0, float(x0), float(v0)
-    segments = []
-
-    def holds(x):
-        return abs(k * x + k3 * x ** 3) <= mu * m * g
-
-    if v == 0.0:
-        if holds(x):
-            return segments, (0.0, x)
-        s = -math.copysign(1.0, k * x + k3 * x ** 3)
-    else:
-        s = math.copysign(1.0, v)
-    while t < t_end:
-        def rhs(_t, y, s=s):
-            return [y[1], (-k * y[0] - k3 * y[0] ** 3 - s * mu * m * g - b * y[1]
-                           - D * s * y[1] * y[1]) / m]
-
-        def event(_t, y, s=s):
-            return s * y[1]
-
-        event.terminal = True
-        event.direction = -1
-        sol = solve_ivp(rhs, (t, t_end), [x, v], method="DOP853", rtol=rtol, atol=atol,
-                        events=event, dense_output=True)
-        segments.append((t, float(sol.t[-1]), sol.sol))
-        if sol.status != 1:
-            return segments, None
-        t = float(sol.t_events[0][0])
-        x = float(sol.y_events[0][0][0])
-        v = 0.0
-        if holds(x):
-            return segments, (t, x)
-        s = -math.copysign(1.0, x)
-    return segments, None
+    segments, _, rest = scipy_stick_slip(m, k, mu, b, D, x0, v0, t_end, g=g, rtol=rtol,
+                                         atol=1e-13 * scale if atol is None else atol, k3=k3,
+                                         max_swings=1_000_000)
+    return segments, rest
 
 
 def positions(segments, rest, ts):
     """x(ts) of a :func:`stick_slip` result."""
-    x = np.full(ts.shape, np.nan)
-    for t0, t1, sol in segments:
-        sel = (ts >= t0) & (ts <= t1)
-        if np.any(sel):
-            x[sel] = sol(ts[sel])[0]
-    if rest is not None:
-        x[ts >= rest[0]] = rest[1]
-    return x
+    return evaluate(segments, rest, np.asarray(ts, dtype=float))[0]
 
 
 def ar1_noise(rng, n, sd, phi):
