@@ -6,6 +6,7 @@ damping only; the half-swings need D = 0 and underdamping), not against stored o
 """
 
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -124,15 +125,21 @@ def test_registry_models_solve_with_their_options():
 
 
 def test_one_spelling_in_every_command(tmp_path, capsys):
-    out = tmp_path / "maps"
-    assert main(["errormap", "--models", "matched_tail", "--reference", "coulomb_exact",
-                 "--d0", "0.05", "--d2", "0", "--phi0", "0", "--periods", "3",
-                 "--samples-per-period", "16", "--out", str(out), "--no-progress"]) == 0
-    assert main(["sensitivity", "--models", "matched_tail", "--D", "0", "--wrt", "mu",
-                 "--samples", "8", "--plot", str(tmp_path / "s.png")]) == 0
-    text = capsys.readouterr().out
-    assert text.count(dp.MODELS["matched_tail"].label) >= 2
+    """The model's one name (errormap, sensitivity) and label (solve) of the registry in every
+    command. The commands run with the settings of other tests (``errormap --quick`` as
+    tests/test_maps.py, ``solve`` with the analytic models only): their compiled programs
+    are shared."""
+    label = dp.MODELS["matched_tail"].label
+    assert main(["errormap", "--quick", "--out", str(tmp_path / "maps"), "--no-progress",
+                 "--plots", "none"]) == 0
+    assert re.search(r"^  matched_tail\s+[0-9]", capsys.readouterr().out, re.M)
+    assert main(["solve", "--mu", "0.03", "--no-reference", "--turning", "0"]) == 0
+    assert label in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["sensitivity", "--help"])
+    assert "matched_tail" in capsys.readouterr().out
     assert main(["sensitivity", "--models", "tail"]) == 2  # the old spelling is gone
+    assert "matched_tail" in capsys.readouterr().err
 
 
 def test_traced_t_end_under_jit_and_vmap():
