@@ -623,3 +623,24 @@ def test_issue25_generated_family_sample():
         assert rec["status"] != "refused", rec.get("error")
         assert not rec["confident_wrong"], rec
         assert not rec["false_failure"], rec
+
+
+def test_distribution_functions_equal_scipy_stats():
+    """dampax._fit._dist (scipy.special, no scipy.stats import on the fit's path) against
+    scipy.stats over the arguments the checks use."""
+    from scipy import stats
+
+    from dampax._fit import _dist
+
+    for p in (1e-6, 0.005, 0.05, 0.5, 0.95, 0.999):
+        assert _dist.norm_ppf(p) == pytest.approx(stats.norm.ppf(p), rel=1e-12, abs=1e-12)
+    for k in (1, 2, 3, 7, 150, 600):
+        for x in (0.0, 0.3, 2.0, k, 3.0 * k + 10.0):
+            assert _dist.chi2_sf(x, k) == pytest.approx(stats.chi2.sf(x, k), rel=1e-10,
+                                                        abs=1e-300)
+        for p in (0.01, 0.05, 0.5):
+            assert _dist.chi2_isf(p, k) == pytest.approx(stats.chi2.isf(p, k), rel=1e-10)
+    for d1, d2 in ((3.7, 120.5), (40.0, 2000.0), (1.0, 8.0)):
+        for x in (0.0, 0.5, 1.0, 2.5, 10.0):
+            assert _dist.f_sf(x, d1, d2) == pytest.approx(stats.f.sf(x, d1, d2), rel=1e-10,
+                                                          abs=1e-300)

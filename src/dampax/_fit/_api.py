@@ -463,7 +463,8 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
     import dataclasses
 
     from scipy.optimize import minimize_scalar
-    from scipy.stats import norm
+
+    from ._dist import norm_ppf
 
     base = fit(trace_or_t, x, free=free, **options)
     m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
@@ -537,7 +538,7 @@ def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
         params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
         free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
         derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
-                 "k3_z": float(norm.ppf(0.975))})
+                 "k3_z": norm_ppf(0.975)})
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

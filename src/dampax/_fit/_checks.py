@@ -201,7 +201,7 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
         the blocks), p (the smaller of the two, doubled: both tests), the block with the
         largest q_j as (t_from, t_to), and q_share (its share of the sum).
     """
-    from scipy.stats import chi2
+    from ._dist import chi2_sf
 
     r = np.asarray(r, dtype=float)
     n = r.size
@@ -233,9 +233,9 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     if not s2 > 0:
         return out
     q = q / s2
-    p_global = float(chi2.sf(q.sum(), 3 * J))
+    p_global = chi2_sf(float(q.sum()), 3 * J)
     k = int(np.argmax(q))
-    p_local = float(min(1.0, J * chi2.sf(q[k], 3)))
+    p_local = float(min(1.0, J * chi2_sf(float(q[k]), 3)))
     return dict(phi=phi, blocks=J, p_global=p_global, p_local=p_local,
                 p=min(1.0, 2.0 * min(p_global, p_local)),
                 worst=(float(t[edges[k]]), float(t[edges[k + 1] - 1])),
@@ -258,7 +258,7 @@ def end_mismatch(t, r, t_model, t_data, phi):
     swings and the other rests) are no larger than elsewhere: the ratio of their mean squares
     against F(m1, m2), m the effective numbers of samples of each part (m (1 - phi^2) /
     (1 + phi^2) for AR(1) noise). 1 when the ends agree."""
-    from scipy.stats import f
+    from ._dist import f_sf
 
     lo, hi = min(t_model, t_data), max(t_model, t_data)
     inside = (t > lo) & (t <= hi)
@@ -271,7 +271,7 @@ def end_mismatch(t, r, t_model, t_data, phi):
     ratio = float(np.mean(r[inside] ** 2)) / ref
     shrink = (1.0 - phi * phi) / (1.0 + phi * phi)
     m1, m2 = m * shrink, (r.size - m) * shrink
-    return float(f.sf(ratio, m1, m2)) if m1 > 0 and m2 > 0 else 1.0
+    return f_sf(ratio, m1, m2) if m1 > 0 and m2 > 0 else 1.0
 
 
 def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
@@ -477,8 +477,7 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         measured numbers. ``diagnostics["unidentifiable"]``, when present, is the true reason
         to refuse the fit (the decay is measured, its split between the damping terms is not).
     """
-    from scipy.stats import chi2
-
+    from ._dist import chi2_isf
     from ._intervals import hac_covariance
 
     fails, bad, diag = [], [], {}
@@ -576,7 +575,7 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
             se = np.array([stderr.get(n, math.nan) for n in damping])
             wald = float(np.sum((v / se) ** 2)) if np.all(se > 0) else math.nan
         diag["decay_wald"] = wald
-        if not wald > chi2.isf(0.05, len(damping)):
+        if not wald > chi2_isf(0.05, len(damping)):
             fails.append(f"no measurable decay: the fitted damping constants "
                          f"({', '.join(damping)}) are together consistent with zero (Wald "
                          f"chi2 = {wald:.3g}, {len(damping)} dof)")
@@ -591,7 +590,7 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
             v = np.array([params[n] for n in weak])
             wald = float(v @ np.linalg.pinv(C) @ v)
             diag["split_wald"] = wald
-            if wald > chi2.isf(0.01, len(weak)):
+            if wald > chi2_isf(0.01, len(weak)):
                 moving = an.n_turns
                 diag["unidentifiable"] = (
                     f"{', '.join(weak[:-1])} and {weak[-1]} are not separately identifiable "

@@ -102,7 +102,7 @@ WHITE_P = 0.01
 def whiteness_p(e: np.ndarray, period_samples: float) -> float:
     """p-value of the Ljung-Box test that ``e`` is white, over lags 1..m with m one period
     (at least 10, at most n/5 and 200): Q = n (n + 2) sum rho_k^2 / (n - k) ~ chi2(m)."""
-    from scipy.stats import chi2
+    from ._dist import chi2_sf
 
     e = np.asarray(e, dtype=float)
     n = e.size
@@ -115,7 +115,7 @@ def whiteness_p(e: np.ndarray, period_samples: float) -> float:
         return 1.0
     rho = np.array([float(e[k:] @ e[:-k]) / den for k in range(1, m + 1)])
     q = n * (n + 2) * float(np.sum(rho * rho / (n - np.arange(1, m + 1))))
-    return float(chi2.sf(q, m))
+    return chi2_sf(q, m)
 
 
 def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,

@@ -151,9 +151,9 @@ class FitResult:
                                           level, nonneg=DAMPING,
                                           scale=self.diagnostics.get("interval_scale"))
         if self.profiled:  # k3 of fit(free=(..., "k3")): from the profile's curvature
-            from scipy.stats import norm
+            from ._dist import norm_ppf
 
-            z = float(norm.ppf(0.5 + 0.5 * level))
+            z = norm_ppf(0.5 + 0.5 * level)
             for name, pr in self.profiled.items():
                 if "interval" in pr:  # mu_s: the values that give the fitted halt
                     out[name] = tuple(pr["interval"])
