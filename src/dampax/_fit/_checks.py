@@ -509,9 +509,10 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
     if null:
         diag["null_space"] = null
         group = [n for n in ("mu", "b", "D", "w0") if n in null[0]]
-        if group:
-            group.append("offset" if "offset" in null[0] else
-                         next(n for n in null[0] if n not in group))
+        others = [n for n in null[0] if n not in group]
+        if others:  # the offset first: what Coulomb friction trades with over one swing
+            group.append("offset" if "offset" in others else others[0])
+        if len(group) >= 2:
             diag["unidentifiable"] = (
                 f"{', '.join(group[:-1])} and {group[-1]} are not separately identifiable "
                 f"from this window ({an.n_turns} turning point{'s' if an.n_turns != 1 else ''}"
