@@ -644,3 +644,18 @@ def test_distribution_functions_equal_scipy_stats():
         for x in (0.0, 0.5, 1.0, 2.5, 10.0):
             assert _dist.f_sf(x, d1, d2) == pytest.approx(stats.f.sf(x, d1, d2), rel=1e-10,
                                                           abs=1e-300)
+
+
+def test_collinear_damping_constants_are_refused_with_the_reason():
+    """Draw 71 of the generated family's ansatz part (7 swings fading into 80 s, per unit mass):
+    the Jacobian's columns of mu and b cancel exactly and nothing else takes part. The fit
+    names the pair (it crashed with StopIteration)."""
+    cal = _calibration_module()
+    spec = dict(m=0.12761251161962178, k=1.6130472964426226, mu=0.0014224739747641655,
+                b=0.053917411224241256, D=0.9700329642297716, k3=0.0,
+                x0=-0.07921651611736243, v0=0.1506794349947874, offset=-0.05122024099373079,
+                noise=0.0024437569832596725, phi=0.0, span=81.40487382929874, n=2998,
+                noise_seed=1504832035)
+    t, x = cal.simulate(spec)
+    with pytest.raises(ValueError, match="mu and b are not separately identifiable"):
+        fit(t, x, free=("mu", "b", "D"))
