@@ -5,10 +5,12 @@ friendly; :func:`core` is the one compiled function of every fit (docs/DESIGN.md
 
 Fit models (:data:`FIT_MODELS`, one entry each):
 
-- "ansatz": x(t) = offset + A f(t - t0) cos(w0 (t - t0) + phi), the closed form of Lelas &
-  Pezer (eqs. 11, 20) with a = d2 A, b' = d1, c = d0 / A (eq. 21). Fitted in the coordinates
-  (x0, y = A sin(phi)): x0 = A cos(phi) and v0 = -(a + b' + c) x0 - w0 y is the matched
-  (x0, v0) <-> (A, phi) map of eqs. 22-23, so no quartic is solved inside the fit.
+- "ansatz": x(t) = offset + A f(t - t0) cos(wd (t - t0) + phi), the closed form of Lelas &
+  Pezer (eqs. 11, 20) with a = d2 A, b' = d1, c = d0 / A (eq. 21), its phase advancing at the
+  viscous damped frequency wd = sqrt(w0^2 - d1^2) (w0 when b = 0; ``_params.phase_rate``: with
+  eq. 11's w0 a fit of w0 returns wd). Fitted in the coordinates (x0, y = A sin(phi)):
+  x0 = A cos(phi) and v0 = -(a + b' + c) x0 - wd y is the matched (x0, v0) <-> (A, phi) map
+  of eqs. 22-23, so no quartic is solved inside the fit.
 - "reference": eq. 3 integrated by ``solve(method="reference")`` (DOP853, exact stick-slip)
   from (x0, v0), forward-mode derivatives; started from the "ansatz" fit.
 - "envelope": E(t) = offset + A f(t - t1) for a table of successive maxima (eq. 20).
@@ -56,6 +58,7 @@ from ._params import (
     flat,
     log_bounds,
     on_damping,
+    phase_rate,
     to_model,
     trace_setup,
     unflat,
@@ -89,8 +92,9 @@ class FIT_RESULTS(eqx.Enumeration):
 
 
 def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
-    """x(tau) = offset + A f(tau) cos(w0 tau + phi), eqs. 11, 20-21; x0 = A cos(phi),
-    y = A sin(phi).
+    """x(tau) = offset + A f(tau) cos(wd tau + phi), eqs. 11, 20-21 with the phase advancing
+    at the viscous damped frequency wd = sqrt(w0^2 - d1^2) (``_params.phase_rate``; w0 when
+    b = 0); x0 = A cos(phi), y = A sin(phi).
 
     With a cubic stiffness (``consts.k3`` not None; docs/cubic_stiffness.md):
     x = offset + A f [cos th + beta f^2 (cos 3th - cos th)], th = w0 tau + phi + P(tau),
@@ -101,14 +105,14 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     phi = jnp.arctan2(q.y, q.x0)
     if consts.k3 is None:
         f = decay(tau, d2 * A, d1, d0 / A)
-        return q.offset + A * f * jnp.cos(q.w0 * tau + phi)
+        return q.offset + A * f * jnp.cos(phase_rate(q.w0, d1) * tau + phi)
     from .._cubic import phase_excess
     from .._decay import _decay_constants, _decay_from
 
     k = _decay_constants(d2 * A, d1, d0 / A)
     f = _decay_from(k, tau)
     ratio = consts.k3 * A * A / (consts.m * q.w0 * q.w0)
-    th = q.w0 * tau + phi + phase_excess(k, q.w0, 0.75 * ratio, tau, f)
+    th = phase_rate(q.w0, d1) * tau + phi + phase_excess(k, q.w0, 0.75 * ratio, tau, f)
     cth, sth = jnp.cos(th), jnp.sin(th)
     return q.offset + A * f * (cth - (ratio / 32.0) * f * f * 4.0 * cth * sth * sth)
 

@@ -291,10 +291,22 @@ def d_to_physical(d0, d1, d2, w0, m, g):
     return constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)
 
 
+def phase_rate(w0, d1):
+    """The rate at which the fitted ansatz's phase advances: the viscous damped frequency
+    wd = sqrt(w0^2 - d1^2), d1 = b/(2m) (the exact half period pi/wd of a viscous swing,
+    docs/DESIGN.md 2.4; w0 exactly when b = 0). Eq. 11's cos(w0 t + phi) lets the phase drift
+    by d1^2 t/(2 w0), which a fit of w0 absorbs as a bias of w0 (issue 25's calibration:
+    w0 of ansatz fits 3-8 sd low with viscous damping)."""
+    r = d1 / w0
+    return w0 * jnp.sqrt(jnp.clip(1.0 - r * r, 1e-6, 1.0))
+
+
 def ansatz_y(x0, v0, mu, b, D, w0, m, g, iters=40):
     """y = A sin(phi) of the ansatz through (x0, v0), eqs. 22-23 with x0 = A cos(phi):
-    v0 = -(d2 A + d1 + d0/A) x0 - w0 y, A = sqrt(x0^2 + y^2), by fixed-point iteration."""
+    v0 = -(d2 A + d1 + d0/A) x0 - wd y, A = sqrt(x0^2 + y^2), by fixed-point iteration
+    (wd: :func:`phase_rate`)."""
     d0, d1, d2 = damping_d(mu, b, D, w0, m, g)
+    w0 = phase_rate(w0, d1)
 
     def body(_, w):
         A = jnp.sqrt(x0 * x0 + w * w)
@@ -305,8 +317,10 @@ def ansatz_y(x0, v0, mu, b, D, w0, m, g, iters=40):
 
 
 def ansatz_v0(x0, y, mu, b, D, w0, m, g):
-    """v0 of the ansatz at (x0, y = A sin(phi)): eq. 12 at t = 0 with eqs. 22-23."""
+    """v0 of the ansatz at (x0, y = A sin(phi)): eq. 12 at t = 0 with eqs. 22-23, the phase
+    advancing at wd (:func:`phase_rate`)."""
     d0, d1, d2 = damping_d(mu, b, D, w0, m, g)
+    w0 = phase_rate(w0, d1)
     A = jnp.sqrt(x0 * x0 + y * y)
     return -(d2 * A + d1 + d0 / A) * x0 - w0 * y
 
