@@ -225,7 +225,9 @@ def judge(res, truth: dict, clean=None, t=None) -> dict:
     inside99, cover90, worst = {}, {}, 0.0
     for name, value in truth.items():
         lo, hi = ci99[name]
-        inside99[name] = bool(lo <= value <= hi)
+        # an interval that is not finite (a standard error that is not) holds nothing: such a
+        # fit is not counted right (nor as a false failure when it fails)
+        inside99[name] = bool(lo <= value <= hi) and math.isfinite(hi - lo)
         lo9, hi9 = ci90[name]
         cover90[name] = bool(lo9 <= value <= hi9)
         half = 0.5 * (ci99[name][1] - ci99[name][0])

@@ -273,8 +273,9 @@ class FitResult:
                 lines.append(f"{label:<{w}} = {c:+.4f}")
         for note in self.warnings:
             lines.append(f"[[Warning]] {note}")
-        if "note" in self.diagnostics:
-            lines.append(f"[[Note]] {self.diagnostics['note']}")
+        for key in ("note_decay", "note"):
+            if key in self.diagnostics:
+                lines.append(f"[[Note]] {self.diagnostics[key]}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
