@@ -428,6 +428,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         if float(more.chisqr) < float(out.chisqr):
             stages.append(f"the step budget ran out: continued ({int(more.steps)} more steps)")
             out = more
+    others = {}  # mu of a motion that halts at a neighbouring turning point -> its held cost
+    if spec.integrates and vary.mu and mu_s is None and not _inner and loss == "linear":
+        out, others = _other_halts(out, run, t, vary, fs, spec.name, stages,
+                                   (osc["m"], osc["g"], 0.0 if k3 is None else k3))
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     best = out
 
@@ -444,10 +448,93 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         profile=profile if loss == "linear" and not _inner else None))
     if "unidentifiable" in res.diagnostics and not _inner:
         raise ValueError(res.diagnostics["unidentifiable"])
+    if others and res.success:
+        res = _other_halt_check(res, others)
     if mu_s is not None and not _inner:  # the halt of the motion with static friction
         from ._static import with_static_halt
 
         res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
+    return res
+
+
+def _other_halts(out, run, t, vary, fs, name, stages, constants):
+    """The search of ``fit`` for a better optimum where the block halts at a neighbouring
+    turning point (``_static.other_halts``), for the exact model with mu free.
+
+    With the thresholds th_(h-1) (halt one turning point earlier) and th_h (one later): mu
+    held just past each threshold (by a quarter of its standard error), at 1.05 and 1.25
+    th_(h-1) and at 0.95 and 0.8 th_h, the rest refitted; and free fits started at 1.05
+    th_(h-1) and 0.95 th_h. A lower cost is taken (a held fit's by freeing mu from it: the
+    optimizer only goes downhill, so it stays in that basin) and the search repeated once
+    around it.
+
+    Returns:
+        (the fit, {held mu: its cost}) for :func:`_other_halt_check`.
+    """
+    from ._static import other_halts
+
+    held = vary._replace(mu=False)
+    others = {}
+    for _ in range(2):
+        prev, last = other_halts(out.params, t, *constants)
+        se = float(out.stderr.mu) if math.isfinite(float(out.stderr.mu)) else 0.0
+        points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
+                  last * (1.0 - 1e-3) - 0.25 * se, 0.95 * last, 0.8 * last]
+        others, fits = {}, []
+        for mu_alt in points:
+            if math.isfinite(mu_alt) and mu_alt > 0.0:
+                fit_alt = run(out.params._replace(mu=mu_alt), name, fs, mask=held)
+                others[mu_alt] = float(fit_alt.chisqr)
+                fits.append(fit_alt)
+        lower = [f for f in fits if float(f.chisqr) < float(out.chisqr)]
+        starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
+        starts += [out.params._replace(mu=v) for v in (1.05 * prev, 0.95 * last)
+                   if math.isfinite(v) and v > 0.0]
+        better = None
+        for p in starts:
+            cand = run(p, name, fs)
+            if float(cand.chisqr) < float(out.chisqr if better is None else better.chisqr):
+                better = cand
+        if better is None:
+            break
+        stages.append(f"a motion that halts at another turning point fits better (cost "
+                      f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(out.chisqr):.4g})")
+        out = better
+    return out, others
+
+
+def _other_halt_check(res: FitResult, others: dict) -> FitResult:
+    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
+    with mu outside its interval (``_static.other_halts``): with mu held at each value of
+    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
+    the fit,
+    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_checks.bound_tests``),
+    below :data:`~dampax._fit._checks.LR_CHI2` (1 %) while mu differs by more than
+    :data:`~dampax._fit._checks.LR_Z` interval sd: the data hold two answers, and the
+    interval of one of them is no interval."""
+    import dataclasses
+
+    from ._checks import LR_CHI2, LR_Z
+
+    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
+    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
+        return res
+    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
+    mu = float(res.params["mu"])
+    for mu_alt, cost in others.items():
+        if not abs(mu_alt - mu) > LR_Z * sd:
+            continue
+        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
+        if rise < LR_CHI2:
+            reason = (f"two motions fit nearly as well: this one and one that halts at another "
+                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
+                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
+                      "where the block sticks does not settle mu; fit a longer record or fix "
+                      "the offset")
+            return dataclasses.replace(res, success=False, reason=reason,
+                                       diagnostics={**res.diagnostics,
+                                                    "other_halt_mu": mu_alt,
+                                                    "other_halt_chi2": rise})
     return res
 
 

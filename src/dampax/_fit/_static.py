@@ -88,6 +88,36 @@ def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarra
     return th, halts
 
 
+def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]:
+    """The thresholds of mu at which a fit's motion would halt one turning point earlier or
+    later (sliding friction, mu_s = mu; the check of ``fit`` for another optimum).
+
+    Where the block sticks is a step function of mu: the motion halts at the first turning
+    point j with th_j = |k x_j + k3 x_j^3| / (m g) <= mu. A fit that halts at turning point h
+    (th_h <= mu < th_(h-1)) has neighbours that halt at h - 1 (mu >= th_(h-1)) and h + 1
+    (mu < th_h), a jump in the cost that no gradient crosses; over two or three swings their
+    optimum can fit as well.
+
+    Arguments:
+        params: the fit's parameters (dict or TraceParams: mu, b, D, w0, x0, v0).
+        t: the window's times.
+        m, g, k3: the fit's constants.
+
+    Returns:
+        (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
+        point; both when the motion does not halt inside the window).
+    """
+    from types import SimpleNamespace
+
+    p = params if isinstance(params, dict) else params._asdict()
+    ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
+    th, halts = thresholds(ns, m, g, k3)
+    if not halts or th.size == 0:
+        return math.nan, math.nan
+    h = th.size - 1
+    return (float(th[h - 1]) if h >= 1 else math.nan), float(th[h])
+
+
 def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
     """A fit at fixed mu_s with ``fixed["mu_s"]`` and ``derived["halt_time"]`` of its own
     motion (the reference with mu_s, where it halts within twice the window; otherwise the
