@@ -662,3 +662,24 @@ def test_collinear_damping_constants_are_refused_with_the_reason():
     t, x = cal.simulate(spec)
     with pytest.raises(ValueError, match="mu and b are not separately identifiable"):
         fit(t, x, free=("mu", "b", "D"))
+
+
+def test_two_swings_with_two_optima_fail_with_the_reason():
+    """Draw 125 of the generated family (2 swings, AR(1) noise phi = 0.53, free mu and b, w0
+    fitted): the least-squares optimum halts one turning point later than the truth, with mu
+    22 interval sd off; the truth's motion costs more (the noise prefers the other). The fit
+    finds the motion that halts at the truth's turning point, which fits nearly as well, and
+    fails with that reason instead of a confident wrong answer."""
+    cal = _calibration_module()
+    spec = dict(m=3.9487683026199956, k=18.404073353633393, mu=0.006694468208940884,
+                b=1.3420153648176687, D=0.0, k3=0.0, x0=-0.007420987492392991,
+                v0=-0.12879634536655088, offset=0.012813652961777442,
+                noise=0.0001153023673501254, phi=0.5297550982206217, span=3.8470327015659804,
+                n=2992, noise_seed=994447306)
+    t, x = cal.simulate(spec)
+    res = fit(t, x, free=("mu", "b"), model="reference")
+    lo, hi = res.conf_interval(0.99)["mu"]
+    assert not lo <= spec["mu"] <= hi  # the optimum is the wrong one ...
+    assert not res.success and "two motions fit nearly as well" in res.reason, res.reason
+    other = res.diagnostics["other_halt_mu"]  # ... and the other one is named
+    assert abs(other - spec["mu"]) < abs(res.params["mu"] - spec["mu"])
