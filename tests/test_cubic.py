@@ -303,10 +303,10 @@ def test_fit_recovers_k3_of_a_synthetic_trace():
     # and keeps its rms (the same fit, not run a second time here)
     assert res.rms < 1.1 * 0.002 * A < res.derived["rms_linear_spring"]
     # the posterior samples k3 too (from the profiled fit): its 95 % interval holds the truth
-    post = dp.posterior(t, x, free=("b", "D", "k3"), start_fit=res, num_samples=200,
-                        num_chains=2, num_warmup=150, seed=3)
+    post = dp.posterior(t, x, free=("b", "D", "k3"), start_fit=res, num_samples=100,
+                        num_chains=2, num_warmup=100, seed=3)
     s = post.summary(0.95)["k3"]
-    assert post.draws["k3"].shape == (2, 200) and post.free == ("b", "D", "k3")
+    assert post.draws["k3"].shape == (2, 100) and post.free == ("b", "D", "k3")
     assert s["lo"] < k3 < s["hi"] and (s["hi"] - s["lo"]) < 0.2 * k3, s
     assert s["r_hat"] < 1.05, s
 

@@ -121,7 +121,7 @@ def test_reference_posterior(trace, post):
     gradient); its intervals hold the truth and agree with the ansatz's."""
     t, x = trace
     ref = dp.posterior(t, x, oscillator=OSC, free=("mu", "D"), model="reference",
-                       start="data", seed=2, num_samples=100, num_chains=2, num_warmup=100)
+                       start="data", seed=2, num_samples=60, num_chains=2, num_warmup=60)
     s, sa = ref.summary(0.95), post.summary(0.95)
     assert ref.model == "reference" and ref.fit.model == "reference"
     for name, value in (("mu", MU), ("D", D), ("sigma", NOISE)):
