@@ -302,7 +302,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if "k3" in free:
         if k3 is not None:
             raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
-        return _fit_k3(trace_or_t, x, free=tuple(f for f in free if f != "k3"),
+        from ._stiffness import fit_k3
+
+        return fit_k3(fit, trace_or_t, x, free=tuple(f for f in free if f != "k3"),
                        options=dict(oscillator=oscillator, model=model,
                                     fit_omega0=fit_omega0, offset=offset, start=start,
                                     end=end, loss=loss, optimizer=optimizer, p0=p0,
@@ -430,7 +432,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             out = more
     others = {}  # mu of a motion that halts at a neighbouring turning point -> its held cost
     if spec.integrates and vary.mu and mu_s is None and not _inner and loss == "linear":
-        out, others = _other_halts(out, run, t, vary, fs, spec.name, stages,
+        from ._static import search_other_halts
+
+        out, others = search_other_halts(out, run, t, vary, fs, spec.name, stages,
                                    (osc["m"], osc["g"], 0.0 if k3 is None else k3))
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     best = out
@@ -449,183 +453,14 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if "unidentifiable" in res.diagnostics and not _inner:
         raise ValueError(res.diagnostics["unidentifiable"])
     if others and res.success:
-        res = _other_halt_check(res, others)
+        from ._static import other_halt_check
+
+        res = other_halt_check(res, others)
     if mu_s is not None and not _inner:  # the halt of the motion with static friction
         from ._static import with_static_halt
 
         res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
     return res
-
-
-def _other_halts(out, run, t, vary, fs, name, stages, constants):
-    """The search of ``fit`` for a better optimum where the block halts at a neighbouring
-    turning point (``_static.other_halts``), for the exact model with mu free.
-
-    With the thresholds th_(h-1) (halt one turning point earlier) and th_h (one later): mu
-    held just past each threshold (by a quarter of its standard error), at 1.05 and 1.25
-    th_(h-1) and at 0.95 and 0.8 th_h, the rest refitted; and free fits started at 1.05
-    th_(h-1) and 0.95 th_h. A lower cost is taken (a held fit's by freeing mu from it: the
-    optimizer only goes downhill, so it stays in that basin) and the search repeated once
-    around it.
-
-    Returns:
-        (the fit, {held mu: its cost}) for :func:`_other_halt_check`.
-    """
-    from ._static import other_halts
-
-    held = vary._replace(mu=False)
-    others = {}
-    for _ in range(2):
-        prev, last = other_halts(out.params, t, *constants)
-        se = float(out.stderr.mu) if math.isfinite(float(out.stderr.mu)) else 0.0
-        points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
-                  last * (1.0 - 1e-3) - 0.25 * se, 0.95 * last, 0.8 * last]
-        others, fits = {}, []
-        for mu_alt in points:
-            if math.isfinite(mu_alt) and mu_alt > 0.0:
-                fit_alt = run(out.params._replace(mu=mu_alt), name, fs, mask=held)
-                others[mu_alt] = float(fit_alt.chisqr)
-                fits.append(fit_alt)
-        lower = [f for f in fits if float(f.chisqr) < float(out.chisqr)]
-        starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
-        starts += [out.params._replace(mu=v) for v in (1.05 * prev, 0.95 * last)
-                   if math.isfinite(v) and v > 0.0]
-        better = None
-        for p in starts:
-            cand = run(p, name, fs)
-            if float(cand.chisqr) < float(out.chisqr if better is None else better.chisqr):
-                better = cand
-        if better is None:
-            break
-        stages.append(f"a motion that halts at another turning point fits better (cost "
-                      f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(out.chisqr):.4g})")
-        out = better
-    return out, others
-
-
-def _other_halt_check(res: FitResult, others: dict) -> FitResult:
-    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
-    with mu outside its interval (``_static.other_halts``): with mu held at each value of
-    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
-    the fit,
-    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_checks.bound_tests``),
-    below :data:`~dampax._fit._checks.LR_CHI2` (1 %) while mu differs by more than
-    :data:`~dampax._fit._checks.LR_Z` interval sd: the data hold two answers, and the
-    interval of one of them is no interval."""
-    import dataclasses
-
-    from ._checks import LR_CHI2, LR_Z
-
-    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
-    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
-        return res
-    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
-    mu = float(res.params["mu"])
-    for mu_alt, cost in others.items():
-        if not abs(mu_alt - mu) > LR_Z * sd:
-            continue
-        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
-        if rise < LR_CHI2:
-            reason = (f"two motions fit nearly as well: this one and one that halts at another "
-                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
-                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
-                      "where the block sticks does not settle mu; fit a longer record or fix "
-                      "the offset")
-            return dataclasses.replace(res, success=False, reason=reason,
-                                       diagnostics={**res.diagnostics,
-                                                    "other_halt_mu": mu_alt,
-                                                    "other_halt_chi2": rise})
-    return res
-
-
-def _fit_k3(trace_or_t, x, *, free, options) -> FitResult:
-    """:func:`fit` with the cubic stiffness k3 profiled (see its ``free``).
-
-    S(k3), the residual sum of squares of the fit at fixed k3, is minimised by Brent's method
-    in e = k3 A^2/(m w0^2) on [-0.3, 0.3]; the interval of k3 comes from the curvature of S at
-    the minimum (central differences), sigma^2 = S/(n - p) and the factor (1 + rho)/(1 - rho)
-    of the residuals' lag-1 autocorrelation rho. Returns the fit at the best k3 with "k3" in
-    ``params``, ``stderr``, ``free`` and ``conf_interval``.
-    """
-    import dataclasses
-
-    from scipy.optimize import minimize_scalar
-
-    from ._dist import norm_ppf
-
-    base = fit(trace_or_t, x, free=free, **options)
-    m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
-    w0 = float(base.params["w0"])
-    amp = float(math.hypot(base.params["x0"], base.params["v0"] / w0))
-    scale = m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
-    cache = {}
-
-    # every fit at fixed k3 starts from the linear-spring optimum (one start: the global
-    # starts were spent on the linear fit)
-    inner = {**options, "starts": 1,
-             "p0": {name: float(base.params[name]) for name in PARAMS}}
-
-    def run(e):
-        e = float(e)
-        if e not in cache:
-            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, _inner=True, **inner)
-        return cache[e]
-
-    def cost(e):
-        res = run(e)
-        return float(res.chisqr) if np.isfinite(res.chisqr) else 1e300
-
-    opt = minimize_scalar(cost, bracket=(-0.01, 0.01), bounds=None, method="brent",
-                          options={"xtol": 1e-4, "maxiter": 40})
-    e_best = float(np.clip(opt.x, -0.3, 0.3))
-    best = run(e_best)
-    # curvature of S(e) at the minimum
-    h = max(0.02 * abs(e_best), 2e-3)
-    s0, sp, sm = cost(e_best), cost(e_best + h), cost(e_best - h)
-    curv = (sp + sm - 2.0 * s0) / (h * h)
-    r = np.asarray(best.residuals, dtype=float)
-    n, p = r.size, best.nvarys + 1
-    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
-    rho = min(max(rho, 0.0), 0.99)
-    sigma2 = s0 / max(n - p, 1) * (1.0 + rho) / (1.0 - rho)
-    sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
-    k3 = e_best * scale
-    sd = sd_e * scale
-    profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
-                      "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
-                      "at_bound": abs(e_best) >= 0.3}}
-    # the others' intervals allow for k3's uncertainty (issue 25): cov += g g^T sd_e^2 with g
-    # the change of each optimum with e (central differences of the profile's fits)
-    extra = None
-    plus, minus = run(e_best + h), run(e_best - h)
-    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
-    if np.all(np.isfinite(g)) and math.isfinite(sd_e):
-        extra = np.outer(g, g) * sd_e * sd_e
-    # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
-    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
-    # c < 1 times that is widened by 1/sqrt(c); where c < PROFILE_FAIL (S is not quadratic
-    # over the interval: where the block sticks moves with k3 and changes the cost by steps)
-    # the interval does not hold
-    success, reason = best.success, best.reason
-    if math.isfinite(sd_e) and sd_e > 0 and best.success:
-        from ._checks import PROFILE_FAIL
-
-        rises = [(cost(e_best + sgn * 2.0 * sd_e) - s0) / (4.0 * sigma2) for sgn in (-1, 1)]
-        profile["k3"]["profile"] = rises
-        profile["k3"]["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and
-                                       PROFILE_FAIL <= c < 1.0 else 1.0 for c in rises)
-        low = [c for c in rises if math.isfinite(c) and c < PROFILE_FAIL]
-        if low:
-            success = False
-            reason = (f"the intervals do not hold: with k3 held 2 sd from its value and the "
-                      f"rest refitted the cost rises only {min(low):.2g} times what its interval "
-                      "assumes (the cost is not quadratic in k3 over its interval)")
-    return dataclasses.replace(
-        best, success=success, reason=reason,
-        params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
-        free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
-        derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
-                 "k3_z": norm_ppf(0.975)})
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

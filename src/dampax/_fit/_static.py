@@ -1,4 +1,7 @@
-"""``fit(free=(..., "mu_s"))``: the static friction coefficient, searched by the halt it gives.
+"""Where the block halts, in fits: ``fit(free=(..., "mu_s"))`` (the static friction coefficient,
+searched by the halt it gives) and, for every reference fit with mu free, the search of the
+motions that halt at a neighbouring turning point (:func:`search_other_halts`,
+:func:`other_halt_check`).
 
 With static friction mu_s >= mu the block sticks at the first turning point x_j where
 |k x_j + k3 x_j^3| <= mu_s m g (``Oscillator.mu_s``). The motion before that turning point does
@@ -116,6 +119,84 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
         return math.nan, math.nan
     h = th.size - 1
     return (float(th[h - 1]) if h >= 1 else math.nan), float(th[h])
+
+
+def search_other_halts(out, run, t, vary, fs, name, stages, constants):
+    """The search of ``fit`` for a better optimum where the block halts at a neighbouring
+    turning point (``_static.other_halts``), for the exact model with mu free.
+
+    With the thresholds th_(h-1) (halt one turning point earlier) and th_h (one later): mu
+    held just past each threshold (by a quarter of its standard error), at 1.05 and 1.25
+    th_(h-1) and at 0.95 and 0.8 th_h, the rest refitted; and free fits started at 1.05
+    th_(h-1) and 0.95 th_h (where to look, not thresholds: the verdict is the likelihood
+    ratio of :func:`other_halt_check`). A lower cost is taken (a held fit's by freeing mu
+    from it: the optimizer only goes downhill, so it stays in that basin) and the search
+    repeated once around it.
+
+    Returns:
+        (the fit, {held mu: its cost}) for :func:`other_halt_check`.
+    """
+    held = vary._replace(mu=False)
+    others = {}
+    for _ in range(2):
+        prev, last = other_halts(out.params, t, *constants)
+        se = float(out.stderr.mu) if math.isfinite(float(out.stderr.mu)) else 0.0
+        points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
+                  last * (1.0 - 1e-3) - 0.25 * se, 0.95 * last, 0.8 * last]
+        others, fits = {}, []
+        for mu_alt in points:
+            if math.isfinite(mu_alt) and mu_alt > 0.0:
+                fit_alt = run(out.params._replace(mu=mu_alt), name, fs, mask=held)
+                others[mu_alt] = float(fit_alt.chisqr)
+                fits.append(fit_alt)
+        lower = [f for f in fits if float(f.chisqr) < float(out.chisqr)]
+        starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
+        starts += [out.params._replace(mu=v) for v in (1.05 * prev, 0.95 * last)
+                   if math.isfinite(v) and v > 0.0]
+        better = None
+        for p in starts:
+            cand = run(p, name, fs)
+            if float(cand.chisqr) < float(out.chisqr if better is None else better.chisqr):
+                better = cand
+        if better is None:
+            break
+        stages.append(f"a motion that halts at another turning point fits better (cost "
+                      f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(out.chisqr):.4g})")
+        out = better
+    return out, others
+
+
+def other_halt_check(res, others: dict):
+    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
+    with mu outside its interval (``_static.other_halts``): with mu held at each value of
+    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
+    the fit,
+    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_checks.bound_tests``),
+    below :data:`~dampax._fit._checks.LR_CHI2` (1 %) while mu differs by more than
+    :data:`~dampax._fit._checks.LR_Z` interval sd: the data hold two answers, and the
+    interval of one of them is no interval."""
+    from ._checks import LR_CHI2, LR_Z
+
+    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
+    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
+        return res
+    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
+    mu = float(res.params["mu"])
+    for mu_alt, cost in others.items():
+        if not abs(mu_alt - mu) > LR_Z * sd:
+            continue
+        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
+        if rise < LR_CHI2:
+            reason = (f"two motions fit nearly as well: this one and one that halts at another "
+                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
+                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
+                      "where the block sticks does not settle mu; fit a longer record or fix "
+                      "the offset")
+            return dataclasses.replace(res, success=False, reason=reason,
+                                       diagnostics={**res.diagnostics,
+                                                    "other_halt_mu": mu_alt,
+                                                    "other_halt_chi2": rise})
+    return res
 
 
 def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):

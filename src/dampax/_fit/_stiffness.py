@@ -1,0 +1,104 @@
+"""``fit(free=(..., "k3"))``: the cubic stiffness k3, profiled around the linear-spring fit.
+
+The fit at fixed k3 is a plain least-squares fit (k3 a constant of its model); S(k3), its
+residual sum of squares, is minimised over k3 by Brent's method and k3's interval comes from
+the curvature of S (docs/cubic_stiffness.md; issue 14, issue 25 for the profile check).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from ._params import PARAMS, oscillator_values
+
+
+def fit_k3(fit, trace_or_t, x, *, free, options):
+    """``fit`` with the cubic stiffness k3 profiled (see its ``free``); ``fit`` is passed in
+    (this module does not import ``_api``).
+
+    S(k3), the residual sum of squares of the fit at fixed k3, is minimised by Brent's method
+    in e = k3 A^2/(m w0^2) on [-0.3, 0.3]; the interval of k3 comes from the curvature of S at
+    the minimum (central differences), sigma^2 = S/(n - p) and the factor (1 + rho)/(1 - rho)
+    of the residuals' lag-1 autocorrelation rho. Returns the fit at the best k3 with "k3" in
+    ``params``, ``stderr``, ``free`` and ``conf_interval``.
+    """
+    from scipy.optimize import minimize_scalar
+
+    from ._dist import norm_ppf
+
+    base = fit(trace_or_t, x, free=free, **options)
+    m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
+    w0 = float(base.params["w0"])
+    amp = float(math.hypot(base.params["x0"], base.params["v0"] / w0))
+    scale = m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
+    cache = {}
+
+    # every fit at fixed k3 starts from the linear-spring optimum (one start: the global
+    # starts were spent on the linear fit)
+    inner = {**options, "starts": 1,
+             "p0": {name: float(base.params[name]) for name in PARAMS}}
+
+    def run(e):
+        e = float(e)
+        if e not in cache:
+            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, _inner=True, **inner)
+        return cache[e]
+
+    def cost(e):
+        res = run(e)
+        return float(res.chisqr) if np.isfinite(res.chisqr) else 1e300
+
+    opt = minimize_scalar(cost, bracket=(-0.01, 0.01), bounds=None, method="brent",
+                          options={"xtol": 1e-4, "maxiter": 40})
+    e_best = float(np.clip(opt.x, -0.3, 0.3))
+    best = run(e_best)
+    # curvature of S(e) at the minimum
+    h = max(0.02 * abs(e_best), 2e-3)
+    s0, sp, sm = cost(e_best), cost(e_best + h), cost(e_best - h)
+    curv = (sp + sm - 2.0 * s0) / (h * h)
+    r = np.asarray(best.residuals, dtype=float)
+    n, p = r.size, best.nvarys + 1
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
+    rho = min(max(rho, 0.0), 0.99)
+    sigma2 = s0 / max(n - p, 1) * (1.0 + rho) / (1.0 - rho)
+    sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
+    k3 = e_best * scale
+    sd = sd_e * scale
+    profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
+                      "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
+                      "at_bound": abs(e_best) >= 0.3}}
+    # the others' intervals allow for k3's uncertainty (issue 25): cov += g g^T sd_e^2 with g
+    # the change of each optimum with e (central differences of the profile's fits)
+    extra = None
+    plus, minus = run(e_best + h), run(e_best - h)
+    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
+    if np.all(np.isfinite(g)) and math.isfinite(sd_e):
+        extra = np.outer(g, g) * sd_e * sd_e
+    # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
+    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
+    # c < 1 times that is widened by 1/sqrt(c); where c < PROFILE_FAIL (S is not quadratic
+    # over the interval: where the block sticks moves with k3 and changes the cost by steps)
+    # the interval does not hold
+    success, reason = best.success, best.reason
+    if math.isfinite(sd_e) and sd_e > 0 and best.success:
+        from ._checks import PROFILE_FAIL
+
+        rises = [(cost(e_best + sgn * 2.0 * sd_e) - s0) / (4.0 * sigma2) for sgn in (-1, 1)]
+        profile["k3"]["profile"] = rises
+        profile["k3"]["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and
+                                       PROFILE_FAIL <= c < 1.0 else 1.0 for c in rises)
+        low = [c for c in rises if math.isfinite(c) and c < PROFILE_FAIL]
+        if low:
+            success = False
+            reason = (f"the intervals do not hold: with k3 held 2 sd from its value and the "
+                      f"rest refitted the cost rises only {min(low):.2g} times what its interval "
+                      "assumes (the cost is not quadratic in k3 over its interval)")
+    return dataclasses.replace(
+        best, success=success, reason=reason,
+        params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
+        free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
+        derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
+                 "k3_z": norm_ppf(0.975)})
