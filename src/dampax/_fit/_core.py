@@ -117,18 +117,23 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     return q.offset + A * f * (cth - (ratio / 32.0) * f * f * 4.0 * cth * sth * sth)
 
 
-def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions):
-    """x(tau) of eq. 3 from (x0, v0 = y), integrated by the reference solver (DOP853); with
-    static friction ``consts.mu_s`` when it is not None."""
+def reference_solution(q: TraceCoords, consts: Constants, span, opts: ReferenceOptions,
+                       adjoint: str = "forward"):
+    """The reference solution (DOP853, exact stick-slip) of eq. 3 from (x0, v0 = y) over the
+    window's span; with static friction ``consts.mu_s`` when it is not None."""
     from .._solve import solve
 
     m = consts.m
     k3 = 0.0 if consts.k3 is None else consts.k3
     osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3,
                      mu_s=consts.mu_s)
-    sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
-                rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint="forward")
-    return q.offset + sol.x(tau)
+    return solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
+                 rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint=adjoint)
+
+
+def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions):
+    """x(tau) of eq. 3 from (x0, v0 = y): :func:`reference_solution` (forward mode)."""
+    return q.offset + reference_solution(q, consts, span, opts).x(tau)
 
 
 def _envelope_curve(tau, q: EnvelopeParams, consts: Constants, span, opts):

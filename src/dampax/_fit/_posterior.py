@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._core import FIT_MODELS, ReferenceOptions
+from ._core import FIT_MODELS, ReferenceOptions, reference_solution
 from ._params import DAMPING, Constants, TraceCoords, ansatz_v0, unit_of
 
 #: the posterior uses every s-th sample of the fit window, at most this many (the AR(1) noise
@@ -382,16 +382,8 @@ class TraceResidual:
 
 def _reference_curve(tau, q: TraceCoords, consts: Constants, span, opts: ReferenceOptions,
                      adjoint: str):
-    """``_core._reference_curve`` with a choice of adjoint; invalid solutions give NaN."""
-    from .._oscillator import Oscillator
-    from .._solve import solve
-
-    m = consts.m
-    k3 = 0.0 if consts.k3 is None else consts.k3
-    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3,
-                     mu_s=consts.mu_s)
-    sol = solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
-                rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint=adjoint)
+    """``_core.reference_solution`` with a choice of adjoint; invalid solutions give NaN."""
+    sol = reference_solution(q, consts, span, opts, adjoint)
     return jnp.where(sol.valid, q.offset + sol.x(tau), jnp.nan)
 
 
