@@ -439,9 +439,27 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     best = out
 
-    def profile(name, value):  # the fit with one parameter held (the intervals' check)
-        prof = run(best.params._replace(**{name: float(value)}), last["name"], last["fs"],
-                   mask=vary._replace(**{name: False}))
+    def profile(name, value, start=None, batch=False):
+        # the fit with one parameter held (the checks), from the fit's values with ``start``'s
+        # in place; ``batch``: first a batch of jittered starts around there (the fit's own
+        # batch program: its first model), the best one polished
+        held = {name: float(value), **{k: float(v) for k, v in (start or {}).items()}}
+        mask = vary._replace(**{name: False})
+        p = best.params._replace(**held)
+        if batch and starts > 1:
+            p = run_starts(t, xw, p, free=tuple(f for f in free if f != name), vary=mask,
+                           consts=consts, f_scale=last["fs"], n=int(starts),
+                           seed=int(seed) + 2, fit_omega0=fit_omega0, omega=an_w.omega,
+                           w0_spread=an_w.omega_spread, model=first, optimizer=optimizer,
+                           max_steps=steps, rtol=float(rtol), atol=float(atol),
+                           extra=(p,)).params
+            # its damping constants (the approximate model's state and frequency can lie
+            # far from the exact model's where the block halts early)
+            p = p._replace(**{k: float(getattr(p, k)) for k in free if k != name},
+                           **{k: getattr(best.params, k) for k in ("w0", "offset", "x0",
+                                                                      "v0")})
+            p = p._replace(**{name: float(value)})
+        prof = run(p, last["name"], last["fs"], mask=mask)
         return float(prof.chisqr)
 
     res = build_result(out, FitContext(

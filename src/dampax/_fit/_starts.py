@@ -148,9 +148,14 @@ def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int,
     params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
     finite = np.isfinite(costs) & np.all(np.isfinite(params), axis=1)
     costs = np.where(finite, costs, np.nan)
+    # a converged start is preferred (its optimum is a stationary point, the others ran out
+    # of their step budget on the way), unless one that did not converge costs less than
+    # half as much (rms 1.4 times lower): the converged ones stopped at a stationary point
+    # far above it (a strongly damped trace: the block halting early, a flat plateau)
     pick = np.where(finite & ok, costs, np.inf)
-    if not np.any(np.isfinite(pick)):
-        pick = np.where(finite, costs, np.inf)
+    lowest = np.where(finite, costs, np.inf)
+    if not np.any(np.isfinite(pick)) or np.min(lowest) < 0.5 * np.min(pick):
+        pick = lowest
     if not np.any(np.isfinite(pick)):  # nothing finite: keep the guess
         return Starts(n=n, reached=0, costs=costs, best=0, stride=stride, params=guess)
     best = int(np.argmin(pick))

@@ -134,16 +134,17 @@ def search_other_halts(out, run, t, vary, fs, name, stages, constants):
     repeated once around it.
 
     Returns:
-        (the fit, {held mu: its cost}) for :func:`other_halt_check`.
+        (the fit, {held mu: its cost}) for :func:`other_halt_check`: the held fits of both
+        rounds and the optimum a lower cost replaced.
     """
     held = vary._replace(mu=False)
-    others = {}
+    others = {}  # every held fit of the search, and an optimum it left (a basin it saw)
     for _ in range(2):
         prev, last = other_halts(out.params, t, *constants)
         se = float(out.stderr.mu) if math.isfinite(float(out.stderr.mu)) else 0.0
         points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
                   last * (1.0 - 1e-3) - 0.25 * se, 0.95 * last, 0.8 * last]
-        others, fits = {}, []
+        fits = []
         for mu_alt in points:
             if math.isfinite(mu_alt) and mu_alt > 0.0:
                 fit_alt = run(out.params._replace(mu=mu_alt), name, fs, mask=held)
@@ -162,6 +163,7 @@ def search_other_halts(out, run, t, vary, fs, name, stages, constants):
             break
         stages.append(f"a motion that halts at another turning point fits better (cost "
                       f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(out.chisqr):.4g})")
+        others[float(out.params.mu)] = float(out.chisqr)  # the basin left: nearly as good?
         out = better
     return out, others
 

@@ -79,23 +79,29 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
         extra = np.outer(g, g) * sd_e * sd_e
     # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
     # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
-    # c < 1 times that is widened by 1/sqrt(c); where c < PROFILE_FAIL (S is not quadratic
-    # over the interval: where the block sticks moves with k3 and changes the cost by steps)
-    # the interval does not hold
+    # c < 1 times that is widened by 1/sqrt(c) (followed out where c < 1/4:
+    # _checks.profile_side); where its bound lies beyond the reach (S is flat: where the block
+    # sticks moves with k3 and changes the cost by steps) the interval does not hold
     success, reason = best.success, best.reason
     if math.isfinite(sd_e) and sd_e > 0 and best.success:
-        from ._checks import PROFILE_FAIL
+        from ._checks import PROFILE_FAIL, PROFILE_REACH, profile_side
 
-        rises = [(cost(e_best + sgn * 2.0 * sd_e) - s0) / (4.0 * sigma2) for sgn in (-1, 1)]
+        rises = []
+        for sgn in (-1, 1):
+            def rise(d, sgn=sgn):
+                return (cost(e_best + sgn * d) - s0) / (4.0 * sigma2)
+
+            rises.append(profile_side(rise, 2.0 * sd_e, rise(2.0 * sd_e)))
         profile["k3"]["profile"] = rises
         profile["k3"]["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and
                                        PROFILE_FAIL <= c < 1.0 else 1.0 for c in rises)
         low = [c for c in rises if math.isfinite(c) and c < PROFILE_FAIL]
         if low:
             success = False
-            reason = (f"the intervals do not hold: with k3 held 2 sd from its value and the "
-                      f"rest refitted the cost rises only {min(low):.2g} times what its interval "
-                      "assumes (the cost is not quadratic in k3 over its interval)")
+            reason = (f"the intervals do not hold: with k3 held from 2 to "
+                      f"{2 * PROFILE_REACH:.0f} sd from its value and the rest refitted the cost "
+                      "rises less than its interval assumes (the cost is not quadratic in k3 "
+                      "over its interval)")
     return dataclasses.replace(
         best, success=success, reason=reason,
         params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
