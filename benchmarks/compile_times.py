@@ -7,7 +7,7 @@ nothing compiled before helps:
 - solve: ``dp.solve(dp.Oscillator(m=1, k=30, mu=0.03, D=2.95), 0.2, 0.0, method="reference")``
   then ``sol.x(np.linspace(0, 3, 600))``;
 - map: ``dp.error_map(...)`` on a 2 x 2 grid (default models, periods, samples); the step's
-  compile (``dampax._maps._executable``) is also timed on its own where the module has it;
+  compile (``dampax._studies._maps._executable``) is also timed on its own where the module has it;
 - fit: ``dp.fit(t, x, oscillator=dp.Oscillator(m=1, k=30), free=("mu", "D"),
   model="reference")`` on a synthetic trace: a reference solve (k = 30, mu = 0.003,
   D = 0.295, x0 = 0.2, v0 = 0), 3 s at 500 Hz, plus 1 mm of Gaussian noise (seed 0), made
@@ -76,7 +76,7 @@ def _child(which, trace_path):
         out["cold"], out["warm"] = _timed(call), _timed(call)
         out["parts"] = f"of the cold call, dp.solve {parts[0]:.1f} s, sol.x the rest"
     elif which == "map":
-        from dampax import _maps
+        from dampax._studies import _maps as _maps
 
         compiles = []
         if hasattr(_maps, "_executable"):  # time the step's compile inside the call

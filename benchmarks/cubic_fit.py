@@ -37,7 +37,7 @@ def main():
         cases.append(("spring", f"spring {run}", DATA / "spring_mass_airdrag" / f"{run}.csv",
                       dict(oscillator=spring, fit_omega0=True), ("b", "D")))
     cases.append(("pendulum", "pendulum", DATA / "pendulum_airdrag" / "AAAtAmp3revised.txt",
-                  dict(units="rad"), ("b", "D")))
+                  dict(window=dp.Window(units="rad")), ("b", "D")))
     for deg in (60, 70, 80, 90, 100):
         cases.append(("torsion", f"torsion {deg} deg",
                       DATA / "torsion_pendulum_friction" / f"release_{deg}deg.txt", {},

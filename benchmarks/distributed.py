@@ -40,7 +40,7 @@ import json, sys, time, os
 spec = json.loads(sys.argv[1])
 import numpy as np
 import dampax as dp
-import dampax._distributed as dist
+import dampax._studies._distributed as dist
 
 if spec.get("pin"):  # move each worker to its own core once it runs (Linux)
     import subprocess as sp

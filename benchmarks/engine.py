@@ -105,8 +105,8 @@ def map_costs(args):
     import numpy as np
 
     import dampax as dp
-    from dampax._maps import error_map
     from dampax._oscillator import from_ratios
+    from dampax._studies._maps import error_map
 
     n0, n2, nph = (int(v) for v in args.grid.lower().split("x"))
     axes = dict(d0_ratio=np.linspace(0.0, 0.1, n0), d2_ratio=np.linspace(0.0, 0.75, n2),

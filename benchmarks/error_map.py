@@ -50,7 +50,7 @@ def main() -> None:
     import numpy as np
 
     import dampax as dp
-    from dampax._maps import error_map
+    from dampax._studies._maps import error_map
 
     if args.n:
         side = max(2, round((args.n / 8) ** 0.5))  # d0 x d2 x 8 phi0 ... grows d0, d2

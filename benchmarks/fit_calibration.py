@@ -39,7 +39,7 @@ Measured, per model:
 - coverage: the share of 90 % ``conf_interval`` that contain the truth, per parameter, over
   the successful fits (goal 85-95 %).
 
-``--quick`` draws 12 traces and fits the reference model only. Not a test (tests/test_fit.py
+``--quick`` draws 12 traces and fits the reference model only. Not a test (tests/fit/test_fit.py
 fits a small fixed-seed sample of this family): the table goes to benchmarks/README.md.
 """
 
@@ -192,10 +192,13 @@ def fit_one(spec, t, x, model, *, free=None, fixed=None, max_swings=MAX_SWINGS):
     import dampax as dp
 
     free = tuple(spec["free"] if free is None else free)
-    kw = dict(model=model, max_swings=max_swings)
+    kw = dict(model=model)
+    solver = dp.LeastSquares(max_swings=max_swings)
     fixed = dict(fixed or {})
     if "offset" in fixed:  # held at its value: offset=False with p0
-        kw.update(offset=False, p0={"offset": fixed.pop("offset")})
+        kw["offset"] = False
+        solver = solver._replace(p0={"offset": fixed.pop("offset")})
+    kw["solver"] = solver
     if spec["given"]:
         kw["oscillator"] = dp.Oscillator(m=spec["m"], k=spec["k"], **fixed)
         if spec["k3"]:

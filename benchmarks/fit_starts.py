@@ -48,9 +48,11 @@ def main():
     trace = dp.load_trace(path, time="time", position="position")
     warnings.simplefilter("ignore")
     for starts in (1, 32):  # compile both
-        dp.fit(trace, free=("b", "D"), starts=starts)
-    t1, one = best_time(lambda: dp.fit(trace, free=("b", "D"), starts=1), args.repeat)
-    t32, many = best_time(lambda: dp.fit(trace, free=("b", "D"), starts=32), args.repeat)
+        dp.fit(trace, free=("b", "D"), solver=dp.LeastSquares(starts=starts))
+    t1, one = best_time(lambda: dp.fit(trace, free=("b", "D"),
+                                       solver=dp.LeastSquares(starts=1)), args.repeat)
+    t32, many = best_time(lambda: dp.fit(trace, free=("b", "D"),
+                                         solver=dp.LeastSquares(starts=32)), args.repeat)
     print(f"spring run 1, {len(trace)} samples, ansatz, free b, D (per unit mass):")
     print(f"  1 start : {t1:.3f} s   cost {0.5 * one.chisqr:.8g}")
     print(f"  32 starts: {t32:.3f} s   cost {0.5 * many.chisqr:.8g}   ({many.starts.summary()})")

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import dampax as dp
-from dampax import _global
+from dampax._studies import _global as _global
 
 BOUNDS = {"mu": (0.01, 0.05), "D": (0.5, 3.0), "x0": (0.15, 0.25)}
 OSC = dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=1.0)

@@ -16,7 +16,7 @@ absent one has the truth 0; one compiled layout per number of runs) and w0 when 
 Measured: the share of sets fitted with success, the truth of every shared parameter inside
 the 99 % interval, and the coverage of the 90 % ``conf_interval`` per shared parameter (goal
 85-95 %). The reference model by default (exact: the intervals alone decide the coverage).
-tests/test_joint.py fits a small fixed-seed sample of this family.
+tests/fit/test_joint.py fits a small fixed-seed sample of this family.
 """
 
 from __future__ import annotations
@@ -117,7 +117,8 @@ def fit_set(spec, runs, model="reference"):
     """dp.fit of the runs of a set, jointly; (JointResult or None, error)."""
     import dampax as dp
 
-    kw = dict(model=model, start="data", free=spec["free"], max_swings=64)
+    kw = dict(model=model, window=dp.Window(start="data"), free=spec["free"],
+              solver=dp.LeastSquares(max_swings=64))
     if spec["given"]:
         kw["oscillator"] = dp.Oscillator(m=spec["m"], k=spec["k"])
         kw["shared"] = spec["free"]

@@ -34,8 +34,8 @@ def main():
         began = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            res = dp.fit(trace, fit_omega0=True, units="deg", free=("mu", "b", "mu_s"),
-                         model="reference")
+            res = dp.fit(trace, fit_omega0=True, free=("mu", "b", "mu_s"), model="reference",
+                         window=dp.Window(units="deg"))
         took = time.perf_counter() - began
         pr = res.profiled["mu_s"]
         lo, hi = pr["interval"]

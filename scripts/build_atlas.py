@@ -6,7 +6,7 @@ The atlas is `dampax.error_map` (the diffrax reference, 20 undamped periods, 64 
 period) over a grid of the dimensionless ratios d0/(w0 A0), d1/w0, d2 A0/w0 and the initial
 phase phi0 in [0, pi) (phi0 + pi is the mirror-image motion, with the same errors), for every
 analytic model. Only max_error is kept (float32), with the grid and the settings as attributes;
-`dampax._atlas` interpolates it for `solution.error_estimate` and `method="auto"`.
+`dampax._models._atlas` interpolates it for `solution.error_estimate` and `method="auto"`.
 """
 
 from __future__ import annotations

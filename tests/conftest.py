@@ -15,7 +15,13 @@ together.
 """
 
 import os
+import sys
 import tempfile
+from pathlib import Path
+
+# the tests live in one folder per layer (models/, reference/, studies/, fit/, cli/); their
+# shared helpers (tests/helpers.py) are imported as ``helpers`` from every folder
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 _SESSION_DIR = "DAMPAX_TEST_SESSION_CACHE_DIR"  # set by the controller, read by its workers
 
@@ -31,15 +37,18 @@ import dampax  # noqa: E402, F401  (jax_enable_x64 is set on import)
 #: most expensive first; the rest follow in their usual order. Only the order of the files
 #: under xdist changes.
 COST_ORDER = (
-    "tests/test_fit.py", "tests/test_cubic.py", "notebooks/04_fitting_real_data.ipynb",
-    "tests/test_joint.py", "tests/test_reference.py", "tests/test_speed.py",
-    "tests/test_posterior.py", "tests/test_sensitivity.py", "tests/test_static_friction.py",
-    "tests/test_maps.py", "tests/test_models.py", "tests/test_results.py",
-    "notebooks/05_sensitivity.ipynb", "tests/test_distributed.py",
-    "notebooks/03_error_maps.ipynb", "tests/test_domain.py", "tests/test_global.py",
-    "tests/test_lean_ansatz.py", "tests/test_atlas.py", "tests/test_gradients.py",
-    "tests/test_reproduce.py", "tests/test_cli.py", "notebooks/01_quickstart.ipynb",
-    "notebooks/02_paper_figures.ipynb", "tests/test_decay.py",
+    "tests/fit/test_fit.py", "tests/models/test_cubic.py",
+    "notebooks/04_fitting_real_data.ipynb", "tests/fit/test_joint.py",
+    "tests/reference/test_reference.py", "tests/reference/test_speed.py",
+    "tests/fit/test_posterior.py", "tests/studies/test_sensitivity.py",
+    "tests/reference/test_static_friction.py", "tests/studies/test_maps.py",
+    "tests/models/test_models.py", "tests/models/test_results.py",
+    "notebooks/05_sensitivity.ipynb", "tests/studies/test_distributed.py",
+    "notebooks/03_error_maps.ipynb", "tests/models/test_domain.py",
+    "tests/studies/test_global.py", "tests/models/test_lean_ansatz.py",
+    "tests/models/test_atlas.py", "tests/models/test_gradients.py",
+    "tests/cli/test_reproduce.py", "tests/cli/test_cli.py", "notebooks/01_quickstart.ipynb",
+    "notebooks/02_paper_figures.ipynb", "tests/models/test_decay.py",
 )
 
 

@@ -1,5 +1,7 @@
-"""The import structure of the package (docs/DESIGN.md section 6): no import cycle, also through
-imports inside functions, and the reference engine below the entry point and the jobs."""
+"""The import structure of the package (docs/DESIGN.md section 6): one folder per layer, every
+import points down (or within its layer), no import cycle, also through imports inside
+functions, and package imports inside functions only in the CLI and the public face's lazy
+names."""
 
 from __future__ import annotations
 
@@ -74,9 +76,150 @@ def test_no_import_cycle():
             visit(node, [node])
 
 
+#: the layers, bottom up (docs/DESIGN.md section 6): a module may import its own layer and the
+#: ones below it
+LAYERS = (
+    ("dampax._version", "dampax._trig", "dampax._io", "dampax._cache", "dampax._oscillator",
+     "dampax._trace"),
+    ("dampax._models",),
+    ("dampax._reference",),
+    ("dampax._solve",),
+    ("dampax._studies",),
+    ("dampax._plot",),
+    ("dampax._fit",),
+    ("dampax._paper",),
+    ("dampax._cli",),
+    ("dampax",),
+)
+
+
+def _layer(module: str) -> int:
+    for i, prefixes in enumerate(LAYERS[:-1]):
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return i
+    assert module == "dampax", f"{module} is in no layer of LAYERS"
+    return len(LAYERS) - 1
+
+
+def test_every_import_points_down():
+    up = [f"{name} (layer {_layer(name)}) imports {t} (layer {_layer(t)})"
+          for name, targets in _graph().items() for t in sorted(targets)
+          if _layer(t) > _layer(name)]
+    assert not up, "\n".join(up)
+
+
+def test_top_level_modules_and_layer_folders():
+    """At most 12 modules directly in the package; the layers' folders exist."""
+    top = sorted(p.name for p in SRC.glob("*.py"))
+    assert len(top) <= 12, top
+    for folder in ("_models", "_reference", "_studies", "_fit", "_paper", "_cli"):
+        assert (SRC / folder / "__init__.py").exists(), folder
+
+
+def _imports_inside_functions(path: Path) -> list[int]:
+    tree = ast.parse(path.read_text())
+    lines = []
+    for fn in ast.walk(tree):
+        if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            for node in ast.walk(fn):
+                if isinstance(node, ast.ImportFrom) and (
+                        node.level or (node.module or "").startswith("dampax")):
+                    lines.append(node.lineno)
+                elif isinstance(node, ast.Import) and any(
+                        a.name.startswith("dampax") for a in node.names):
+                    lines.append(node.lineno)
+                elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                      and node.func.attr == "import_module"):
+                    lines.append(node.lineno)
+    return sorted(set(lines))
+
+
+def test_package_imports_inside_functions_only_in_the_cli_and_the_public_face():
+    """Outside the CLI (where they keep ``--version`` fast) at most two places import the
+    package inside a function; here one: the lazy names of ``dampax/__init__.py``."""
+    places = {}
+    for path in SRC.rglob("*.py"):
+        name = _module_name(path)
+        if name.startswith("dampax._cli"):
+            continue
+        lines = _imports_inside_functions(path)
+        if lines:
+            places[name] = lines
+    assert len(places) <= 2 and set(places) <= {"dampax"}, places
+
+
 def test_reference_engine_imports_only_the_ground_layers():
-    allowed = {"dampax._oscillator", "dampax._solution", "dampax._atlas", "dampax._trig"}
+    allowed = {"dampax._oscillator", "dampax._models._solution", "dampax._models._atlas",
+               "dampax._trig"}
     for name, targets in _graph().items():
         if name.startswith("dampax._reference"):
             outside = {t for t in targets if not t.startswith("dampax._reference")}
             assert outside <= allowed, f"{name} imports {sorted(outside - allowed)}"
+
+
+def _validations(call) -> dict:
+    """{(check, name): calls} of dampax's input checks (``_oscillator.check_finite``,
+    ``check_real``, ``check_count``) while ``call()`` runs: each module's reference to them
+    (they are imported by name) is replaced by a counting wrapper for the call."""
+    import collections
+    import functools
+    import sys
+
+    from dampax import _oscillator as o
+
+    seen = collections.Counter()
+    originals = {f.__name__: f for f in (o.check_finite, o.check_real, o.check_count)}
+
+    def counting(f):
+        @functools.wraps(f)
+        def wrapper(name, *args, **kwargs):
+            seen[f.__name__, name] += 1
+            return f(name, *args, **kwargs)
+        return wrapper
+
+    patched = []
+    for module in [m for n, m in sys.modules.items() if n.startswith("dampax") and m]:
+        for attr, f in originals.items():
+            if getattr(module, attr, None) is f:
+                setattr(module, attr, counting(f))
+                patched.append((module, attr, f))
+    try:
+        call()
+    finally:
+        for module, attr, f in patched:
+            setattr(module, attr, f)
+    return dict(seen)
+
+
+def test_each_public_call_validates_once():
+    """Validation once, at the edge (issue 27): a public call checks each input once (the
+    oscillator's constants when it is made, x0 and v0 in solve or sensitivity) and the inner
+    functions trust them, also inside the compiled programs (method="auto" runs two models,
+    sensitivity differentiates solve)."""
+    import math
+
+    import jax.numpy as jnp
+
+    import dampax as dp
+
+    # the oscillator and settings of tests/studies/test_sensitivity.py and tests/models/ (their
+    # kept programs serve: nothing new is compiled for this test in the suite)
+    made = _validations(lambda: dp.Oscillator(m=1.0, k=30.0, mu=0.05, D=1.0))
+    assert made == {("check_finite", n): 1 for n in ("m", "k", "mu", "b", "D", "g", "k3")}
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.05, D=1.0)
+    coulomb = dp.Oscillator(m=1.0, k=30.0, mu=0.05)
+    ts = jnp.linspace(0.05, 2.0 * math.pi / math.sqrt(30.0), 24)
+    calls = {
+        "ansatz": lambda: dp.solve(osc, 0.2, 0.0),
+        "rizcallah": lambda: dp.solve(coulomb, 0.2, 0.0, method="rizcallah"),
+        "reference": lambda: dp.solve(osc, 0.2, 0.0, method="reference"),
+        "auto": lambda: dp.solve(osc, 0.2, 0.0, method="auto"),
+        "sensitivity": lambda: dp.sensitivity(osc, 0.2, 0.0, ts,
+                                              wrt=("mu", "b", "D", "x0", "v0"),
+                                              method="ansatz", turning_points=3),
+    }
+    for name, call in calls.items():
+        seen = _validations(call)
+        assert seen.get(("check_finite", "x0")) == 1 and seen.get(("check_finite", "v0")) == 1, \
+            (name, seen)
+        assert all(n == 1 for n in seen.values()), (name, seen)

@@ -18,17 +18,17 @@ from ._cache import enable_compilation_cache as _enable_compilation_cache  # noq
 
 _enable_compilation_cache()
 
-from ._models import MODELS as MODELS  # noqa: E402
-from ._models import Model as Model  # noqa: E402
+from ._models._registry import MODELS as MODELS  # noqa: E402
+from ._models._registry import Model as Model  # noqa: E402
+from ._models._solution import RESULTS as RESULTS  # noqa: E402
+from ._models._solution import AbstractSolution as AbstractSolution  # noqa: E402
 from ._oscillator import Oscillator as Oscillator  # noqa: E402
 from ._oscillator import damping_coefficients as damping_coefficients  # noqa: E402
 from ._oscillator import from_ratios as from_ratios  # noqa: E402
-from ._sensitivity import Sensitivity as Sensitivity  # noqa: E402
-from ._sensitivity import sensitivity as sensitivity  # noqa: E402
-from ._solution import RESULTS as RESULTS  # noqa: E402
-from ._solution import AbstractSolution as AbstractSolution  # noqa: E402
 from ._solve import solve as solve  # noqa: E402
 from ._solve import turning_points as turning_points  # noqa: E402
+from ._studies._sensitivity import Sensitivity as Sensitivity  # noqa: E402
+from ._studies._sensitivity import sensitivity as sensitivity  # noqa: E402
 from ._trace import Trace as Trace  # noqa: E402
 from ._trace import load_trace as load_trace  # noqa: E402
 from ._version import __version__ as __version__  # noqa: E402
@@ -39,8 +39,10 @@ _LAZY = {
     "FitResult": "._fit",
     "JointProblem": "._fit",
     "JointResult": "._fit",
+    "LeastSquares": "._fit",
     "ModelComparison": "._fit",
     "Posterior": "._fit",
+    "Window": "._fit",
     "compare_envelope_models": "._fit",
     "compare_models": "._fit",
     "example_trace": "._fit",
@@ -51,13 +53,13 @@ _LAZY = {
     "initial_guess": "._fit",
     "posterior": "._fit",
     "residual_function": "._fit",
-    "global_sensitivity": "._global",
-    "error_map": "._maps",
+    "global_sensitivity": "._studies._global",
+    "error_map": "._studies._maps",
     "plot_global_sensitivity": "._plot",
     "plot_sensitivity": "._plot",
     "plot_trend": "._plot",
-    "paper_numbers": "._reproduce",
-    "reproduce": "._reproduce",
+    "paper_numbers": "._paper._reproduce",
+    "reproduce": "._paper._reproduce",
 }
 
 

@@ -215,7 +215,7 @@ def _machine_text() -> str:
 def _executable_path(folder: Path, name: str, text: str) -> Path | None:
     """The ``.jaxexe`` file of the executable of the program described by ``text`` on this
     machine, or None in a ``jax.distributed`` run (each process's devices differ; see
-    ``dampax._distributed.compile_cached_here``)."""
+    ``dampax._studies._distributed.compile_cached_here``)."""
     if jax.process_count() > 1:
         return None
     digest = hashlib.sha256((text + _machine_text()).encode()).hexdigest()[:32]

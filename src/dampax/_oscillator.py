@@ -192,6 +192,18 @@ class Oscillator(eqx.Module):
                                  f"friction), got mu_s={mu_s!r} and mu={mu!r}")
             self.mu_s = jnp.asarray(mu_s, dtype=float)
 
+    @classmethod
+    def unchecked(cls, *, m, k, mu, b, D, g=9.81, k3=0.0, mu_s=None) -> Oscillator:
+        """An Oscillator of values already checked (the grid of an error map, checked at its
+        edge), built without checking them again: the fields as ``__init__`` stores them."""
+        self = object.__new__(cls)
+        for name, value in (("m", m), ("k", k), ("mu", mu), ("b", b), ("D", D), ("g", g)):
+            object.__setattr__(self, name, jnp.asarray(value, dtype=float))
+        with jax.ensure_compile_time_eval():
+            object.__setattr__(self, "k3", jnp.asarray(k3, dtype=float))
+        object.__setattr__(self, "mu_s", None if mu_s is None else jnp.asarray(mu_s, dtype=float))
+        return self
+
     @property
     def omega0(self) -> Array:
         """Undamped angular frequency w0 = sqrt(k/m)."""
@@ -395,8 +407,14 @@ def from_ratios(d0_ratio=0.0, d1_ratio=0.0, d2_ratio=0.0, *, m=1.0, k=30.0, A0=0
     Returns:
         An :class:`Oscillator` (array fields for array ratios).
     """
+    mu, b, D = ratio_constants(d0_ratio, d1_ratio, d2_ratio, m=m, k=k, A0=A0, g=g)
+    return Oscillator(m=m, k=k, mu=mu, b=b, D=D, g=g)
+
+
+def ratio_constants(d0_ratio, d1_ratio, d2_ratio, *, m=1.0, k=30.0, A0=0.2, g=9.81):
+    """(mu, b, D) of :func:`from_ratios` (eq. 21 inverted at w0 = sqrt(k/m), A0), unchecked."""
     w0 = math.sqrt(k / m)
     d0 = jnp.asarray(d0_ratio, dtype=float) * w0 * A0
     d1 = jnp.asarray(d1_ratio, dtype=float) * w0
     d2 = jnp.asarray(d2_ratio, dtype=float) * w0 / A0
-    return Oscillator.from_damping(d0, d1, d2, m=m, k=k, g=g)
+    return constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)

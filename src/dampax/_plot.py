@@ -13,10 +13,10 @@ from collections.abc import Mapping
 import numpy as np
 
 from ._io import save_figure
-from ._models import MODELS
+from ._models._registry import MODELS
 from ._oscillator import Oscillator, as_float
-from ._sensitivity import _SYMBOLS, UNITS, Sensitivity
-from ._summary import ModelRun, damping_ratios
+from ._studies._sensitivity import _SYMBOLS, UNITS, Sensitivity
+from ._studies._summary import ModelRun, damping_ratios
 
 
 def _legend_rows(n_labels: int, ncols: int = 4) -> int:
@@ -351,7 +351,7 @@ def plot_sensitivity(results: Mapping[str, Sensitivity], path, *, title: str | N
 
     Arguments:
         results: model name -> unbatched :class:`Sensitivity` over a 1-d grid ``ts``. The keys
-            of the model registry (``dampax._models.MODELS``) are drawn in the papers'
+            of the model registry (``dampax._models._registry.MODELS``) are drawn in the papers'
             colours (matched ansatz solid
             red, reference black dotted, ...); any other key gets its own colour and is its
             own legend label. The panels are the union of the results' ``wrt``, in order.

@@ -9,10 +9,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._ansatz import AnsatzSolution, solve_ansatz
 from ._cache import call_cached_tree
-from ._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
-from ._models import METHODS
+from ._models._ansatz import AnsatzSolution, solve_ansatz
+from ._models._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
+from ._models._registry import METHODS
+from ._models._solution import result_where, solution_estimate, static_checks, stuck_at_start
 from ._oscillator import (
     Oscillator,
     check_count,
@@ -21,9 +22,12 @@ from ._oscillator import (
     is_concrete,
     known_linear,
 )
-from ._reference import solve_reference
-from ._reference._solve import DEFAULT_PERIODS, default_swings
-from ._solution import result_where, solution_estimate, static_checks, stuck_at_start
+from ._reference._solve import (
+    DEFAULT_PERIODS,
+    check_reference_options,
+    default_swings,
+    solve_reference_checked,
+)
 
 #: Rizcallah's default amplitude factor (least squares)
 KAPPA = 4.0 / math.pi
@@ -38,9 +42,9 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
           tolerance: float = 1e-2, throw: bool = False, **options):
     """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
 
-    The models and their options are listed in ``dampax._models.MODELS`` (the registry every
-    command reads): "matched" is ``method="ansatz"``, "undamped" adds ``phase="undamped"``,
-    "matched_tail" adds ``tail="coulomb"``.
+    The models and their options are listed in ``dampax._models._registry.MODELS`` (the
+    registry every command reads): "matched" is ``method="ansatz"``, "undamped" adds
+    ``phase="undamped"``, "matched_tail" adds ``tail="coulomb"``.
 
     Arguments:
         osc: the :class:`Oscillator`.
@@ -49,7 +53,7 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             "coulomb_exact" (exact half-swings; D = 0) or "reference" (DOP853 integration of
             eq. 3 with exact stick-slip); or "auto": the matched ansatz where the error atlas
             puts max |x - x_ref| / A0 below ``tolerance`` with a margin (twice the largest
-            error at the atlas points around this one, see ``dampax._atlas``), else the
+            error at the atlas points around this one, see ``dampax._models._atlas``), else the
             reference. The solution's ``model`` says which ("matched" or "reference");
             eager, scalar input only (the choice depends on the values).
         phase: ansatz only: "matched" (A, phi from eqs. 22-23) or "undamped" (eqs. 8-10).
@@ -92,6 +96,22 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             raise ValueError("method='auto' chooses between the matched ansatz and the "
                              "reference: phase, tail, back and kappa do not apply")
         return _solve_auto(osc, x0, v0, tolerance=tolerance, throw=throw, options=options)
+    kappa, back, options = check_options(osc, x0, v0, method=method, phase=phase, tail=tail,
+                                         back=back, kappa=kappa, options=options)
+    return solve_checked(osc, x0, v0, method=method, phase=phase, tail=tail, back=back,
+                         kappa=kappa, throw=throw, **options)
+
+
+def check_options(osc, x0, v0, *, method, phase="matched", tail=None, back=0, kappa=None,
+                  options=None):
+    """The checks of :func:`solve`, once at the edge (ValueError naming the option; x0, v0
+    finite where concrete).
+
+    Returns:
+        (kappa, back, options) normalised for :func:`solve_checked` (the reference's options
+        by ``_reference.check_reference_options``).
+    """
+    options = dict(options or {})
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS + ('auto',)}, got {method!r}")
     if tail not in (None, "coulomb"):
@@ -109,8 +129,6 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
     back = check_count("back", back)
     if back and tail is None:
         raise ValueError(f"back applies to tail='coulomb' only, got back={back} and tail=None")
-    check_finite("x0", x0)
-    check_finite("v0", v0)
     piecewise = method in ("rizcallah", "coulomb_exact") or tail is not None
     if piecewise and any(np.ndim(a) for a in jax.tree_util.tree_leaves((osc, x0, v0))):
         name = f"method={method!r}" + (f", tail={tail!r}" if tail else "")
@@ -118,11 +136,23 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             f"{name}: array-valued oscillator fields or initial states are not broadcast by "
             "this piecewise model; map over them with jax.vmap(lambda ...: dp.solve(...)) "
             "(the plain ansatz and the reference accept arrays directly)")
+    if method == "reference":
+        options = check_reference_options(x0, v0, **options)
+    else:
+        check_finite("x0", x0)
+        check_finite("v0", v0)
+    return kappa, back, options
+
+
+def solve_checked(osc, x0, v0, *, method, phase="matched", tail=None, back=0, kappa=KAPPA,
+                  throw=False, **options):
+    """:func:`solve` for arguments already checked (:func:`check_options`): what the studies
+    and the fits call inside their own programs, after checking once at their edge."""
     eager = is_concrete(osc, x0, v0)
     if method == "reference":
         sol = _reference_kept(osc, x0, v0, options) if eager else None
         if sol is None:
-            sol = solve_reference(osc, x0, v0, **options)
+            sol = solve_reference_checked(osc, x0, v0, **options)
     else:
         x0, v0 = _as_float64(x0), _as_float64(v0)
         sol = _solve_analytic(osc, x0, v0, method=method, phase=phase, tail=tail,
@@ -151,7 +181,7 @@ def _reference_kept(osc, x0, v0, options):
         The solution, or None where the plain route must run: options that are not plain
         values, or a failed solution (the plain route raises its ValueError, budget named).
     """
-    static = {k: v for k, v in options.items() if k != "t_end"}
+    static = {k: v for k, v in options.items() if k != "t_end" and v is not None}
     t_end = options.get("t_end")
     if not (all(isinstance(v, str | int | float | bool) for v in static.values())
             and is_concrete(t_end)):
@@ -163,7 +193,8 @@ def _reference_kept(osc, x0, v0, options):
         static["max_swings"] = default_swings(osc, x0, v0, span)
 
     def program(osc, x0, v0, *t_end):
-        return solve_reference(osc, x0, v0, t_end=t_end[0] if t_end else None, **static)
+        return solve_reference_checked(osc, x0, v0, t_end=t_end[0] if t_end else None,
+                                       **static)
 
     sol = call_cached_tree("reference", (sorted(static.items()), t_end is None), program,
                            osc, _as_float64(x0), _as_float64(v0), *extra)
@@ -186,10 +217,9 @@ def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
         raise ValueError("method='auto' needs a scalar oscillator and initial state (the "
                          "choice differs from point to point): loop over them, or name the "
                          "method")
-    check_finite("x0", x0)
-    check_finite("v0", v0)
+    reference = check_reference_options(x0, v0, **options)  # x0, v0 too; before either runs
     try:
-        sol = solve(osc, x0, v0, method="ansatz", throw=throw)
+        sol = solve_checked(osc, x0, v0, method="ansatz", throw=throw)
     except ValueError:  # the ansatz does not exist here: the reference does
         sol = None
     # the atlas' upper estimate (the largest error at the surrounding atlas points) times a
@@ -197,7 +227,7 @@ def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
     # to spare (in tests 2 x the upper estimate was never below the true error)
     if sol is not None and _AUTO_MARGIN * float(solution_estimate(sol, bound=True)) < tolerance:
         return sol
-    return solve(osc, x0, v0, method="reference", throw=throw, **options)
+    return solve_checked(osc, x0, v0, method="reference", throw=throw, **reference)
 
 
 @eqx.filter_jit
@@ -239,7 +269,11 @@ def turning_points(sol, n: int):
     Returns:
         (t, x), two arrays of shape (n,).
     """
-    n = check_count("n", n)
+    return turning_points_checked(sol, check_count("n", n))
+
+
+def turning_points_checked(sol, n: int):
+    """:func:`turning_points` for a count already checked (the studies' programs)."""
     if isinstance(sol, AnsatzSolution):
         # an ansatz solved for array fields: its leaves broadcast to a batch shape; map the
         # per-trajectory search over it

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 # pi/2 in three parts (25, 24 and 53 significant bits): n times each of the first two is exact
 # for |n| < 2^28 (|u| < 4.2e8), and the reduced angle stays within 2 ulp up to 8e8 (tested in
-# tests/test_lean_ansatz.py with arguments to 7.9e8)
+# tests/models/test_lean_ansatz.py with arguments to 7.9e8)
 _PIO2 = (1.570796310901641845703125, 1.589325471229585673428e-8, 6.12323399573676588614e-17)
 _SINCOS_MAX = 8e8  # |u| beyond (|n| >= 2^29): jnp.sin and jnp.cos, the reduction is inexact
 

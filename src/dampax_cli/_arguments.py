@@ -3,21 +3,21 @@
 :mod:`dampax_cli` answers ``--help`` and ``--version`` from these definitions alone, and
 :mod:`dampax._cli` builds its parser from the same functions. The few names of dampax's
 registries that the options list are copied here (dampax itself imports JAX);
-``tests/test_cli.py`` checks that they are the library's.
+``tests/cli/test_cli.py`` checks that they are the library's.
 """
 
 from __future__ import annotations
 
 import argparse
 
-# copies of dampax's registries (tests/test_cli.py::test_option_names_are_the_librarys)
-#: dampax._models.MODELS (names), the analytic ones first (dampax._models.ANALYTIC)
+# copies of dampax's registries (tests/cli/test_cli.py::test_option_names_are_the_librarys)
+#: dampax._models._registry.MODELS (names), the analytic ones first (its ANALYTIC)
 ANALYTIC = ("matched", "undamped", "matched_tail", "rizcallah", "coulomb_exact")
 MODELS = ANALYTIC + ("reference",)
-#: dampax._maps.DEFAULT_MODELS and REFERENCES
+#: dampax._studies._maps.DEFAULT_MODELS and REFERENCES
 DEFAULT_MODELS = ("matched", "undamped", "matched_tail", "rizcallah")
 REFERENCES = ("reference", "coulomb_exact")
-#: dampax._sensitivity.PARAMETERS and dampax._global.QUANTITIES
+#: dampax._studies._sensitivity.PARAMETERS and dampax._studies._global.QUANTITIES
 PARAMETERS = ("m", "k", "mu", "b", "D", "g", "k3", "x0", "v0")
 QUANTITIES = ("halt_time", "halt_position", "energy", "x", "max_error")
 #: dampax._fit: the trace models (MODELS) with their FIT_MODELS descriptions, OPTIMIZERS with
@@ -37,7 +37,7 @@ ERRORMAP_QUICK = dict(d0="0:0.1:4", d1="0", d2="0:0.75:4", phi0="0,pi/2",
                       periods=10.0, samples_per_period=32, chunk_size=32)
 
 #: ``dampax errormap --plots``: the metrics (dampax._plot.ERROR_MAP_METRICS) drawn by each
-#: choice (tests/test_cli.py::test_launcher_names_are_the_librarys)
+#: choice (tests/cli/test_cli.py::test_launcher_names_are_the_librarys)
 ERRORMAP_PLOTS = {"none": (), "summary": ("max_error",),
                   "all": ("max_error", "rms_error", "energy_error", "halt_time_error",
                           "halt_position_error")}

@@ -12,8 +12,8 @@ import numpy as np
 from dampax_cli._arguments import ERRORMAP_DEFAULTS, ERRORMAP_PLOTS, ERRORMAP_QUICK
 from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
-from .._maps import largest_ratio_below, worst_in_box
-from .._models import ANALYTIC, MODELS, check_models
+from .._models._registry import ANALYTIC, MODELS, check_models
+from .._studies._maps import largest_ratio_below, worst_in_box
 from ._common import PROG, error, fmt, prepare_out_dir, show_progress
 
 
@@ -105,9 +105,9 @@ def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
-    from .._distributed import DistributedError, check_processes, check_timeout, initialize
     from .._io import write_netcdf
-    from .._maps import _axis, error_map, parse_axis
+    from .._studies._distributed import DistributedError, check_processes, check_timeout, initialize
+    from .._studies._maps import _axis, error_map, parse_axis
 
     preset = ERRORMAP_QUICK if args.quick else ERRORMAP_DEFAULTS
 

@@ -23,6 +23,8 @@ from dampax_cli._arguments import add_fit_arguments as add_arguments  # noqa: F4
 
 from .._fit import (
     FREE,
+    LeastSquares,
+    Window,
     check_free,
     compare_envelope_models,
     compare_models,
@@ -71,7 +73,9 @@ def _cli_words(text: str) -> str:
     """A library message with the Python argument names replaced by the command's flags."""
     for api, flag in (("fit_omega0=True", "--fit-omega0"), ("fit_omega0=False", "--k"),
                       ("fit_omega0", "--fit-omega0"), ("loss=", "--loss "),
-                      ("load_trace(rate=...), ", ""), ("max_steps", "--max-steps")):
+                      ("load_trace(rate=...), ", ""), ("LeastSquares.max_steps", "--max-steps"),
+                      ("max_steps", "--max-steps"), ("LeastSquares.starts", "--starts"),
+                      ("LeastSquares.", "--"), ("Window.", "--")):
         text = text.replace(api, flag)
     return text
 
@@ -111,10 +115,6 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--shared needs two or more trace files (a joint fit of several runs)")
     args.path = paths[0] if paths else None
     out_dir = prepare_out_dir(args.out)
-    if args.starts < 1:
-        raise ValueError(f"--starts must be >= 1, got {args.starts}")
-    if args.max_steps is not None and args.max_steps < 1:
-        raise ValueError(f"--max-steps must be >= 1, got {args.max_steps}")
     if not 0.0 < args.level < 1.0:
         raise ValueError(f"--level must be in (0, 1), got {args.level}")
     if args.posterior and (args.envelope or args.draws < 10 or args.chains < 1
@@ -128,6 +128,13 @@ def run(args: argparse.Namespace) -> int:
     start = _parse_start(args.start)
     truth = None
     units = args.units
+    try:  # the flags map onto dp.fit's option objects, checked when made
+        window = Window(start=start, end=args.end, units=units).checked()
+        solver = LeastSquares(loss=args.loss, optimizer=args.optimizer,
+                              max_steps=args.max_steps, starts=args.starts,
+                              seed=args.seed).checked()
+    except ValueError as err:
+        raise ValueError(_cli_words(str(err))) from None
     if args.example:
         print(f"{PROG} fit --example: generating the synthetic trace with the reference "
               "integrator ...")
@@ -152,9 +159,7 @@ def run(args: argparse.Namespace) -> int:
             comparison = None if args.no_compare else compare_envelope_models(trace, **kw)
         else:
             kw = dict(oscillator=osc, fit_omega0=fit_omega0, offset=not args.no_offset,
-                      start=start, end=args.end, loss=args.loss, optimizer=args.optimizer,
-                      max_steps=args.max_steps, units=units, starts=args.starts,
-                      seed=args.seed)
+                      window=window, solver=solver)
             result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
             # the ranking fits the candidates with the ansatz: this fit is one of them
             done = {free: result} if args.model == "ansatz" else None
@@ -162,7 +167,7 @@ def run(args: argparse.Namespace) -> int:
                 # the example's cost is smooth: its fit's global starts all reach one optimum,
                 # and so does each candidate's turning-point guess (the ranking is the same
                 # with 32 starts per candidate, 6x the work); the reported fit keeps --starts
-                kw["starts"] = EXAMPLE_RANKING_STARTS
+                kw["solver"] = solver._replace(starts=EXAMPLE_RANKING_STARTS)
             comparison = None if args.no_compare else compare_models(
                 trace, model="ansatz", fitted=done, **kw)
             if args.posterior:
@@ -242,9 +247,11 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
         warnings.simplefilter("always")
         result = fit(traces, shared=split_names(args.shared) if args.shared else None,
                      free=free, oscillator=osc, fit_omega0=fit_omega0,
-                     offset=not args.no_offset, start=_parse_start(args.start), end=args.end,
-                     model=args.model, max_steps=args.max_steps, units=args.units,
-                     starts=args.starts, seed=args.seed)
+                     offset=not args.no_offset, model=args.model,
+                     window=Window(start=_parse_start(args.start), end=args.end,
+                                   units=args.units),
+                     solver=LeastSquares(max_steps=args.max_steps, starts=args.starts,
+                                         seed=args.seed))
         post = None
         if args.posterior:  # the joint fit's posterior, started from it
             from .._fit import posterior

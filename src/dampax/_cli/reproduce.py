@@ -14,7 +14,7 @@ def run(args: argparse.Namespace) -> int:
     """Redraw Figures 2-21 of Lelas & Pezer and Rizcallah's comparison; recompute quoted numbers."""
     import time
 
-    from .._reproduce import reproduce, select_figures
+    from .._paper._reproduce import reproduce, select_figures
 
     if args.dpi <= 0:
         raise ValueError(f"--dpi must be > 0, got {args.dpi}")

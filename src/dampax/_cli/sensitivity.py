@@ -18,9 +18,9 @@ import numpy as np
 
 from dampax_cli._arguments import add_sensitivity_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
-from .._models import MODELS, check_models
+from .._models._registry import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
-from .._sensitivity import (
+from .._studies._sensitivity import (
     TREND_NOTE,
     UNITS,
     Sensitivity,
@@ -41,7 +41,7 @@ from ._common import (
 
 def parse_global(spec: str) -> dict[str, tuple[float, float]]:
     """The ranges of ``--global "mu=0.01:0.05,D=0.5:3"`` as {name: (lo, hi)} (ValueError)."""
-    from .._global import check_bounds  # the global mode's module, imported only for it
+    from .._studies._global import check_bounds  # the global mode's module, imported only for it
 
     bounds: dict[str, tuple[float, float]] = {}
     for item in split_names(spec):
@@ -76,8 +76,8 @@ def _trend_path(args: argparse.Namespace) -> str:
 
 def _default_t_end(osc: Oscillator, x0: float, v0: float) -> float:
     """The window of the plot: past the matched ansatz's halt, 2 to 12 undamped periods."""
-    from .._solution import message
-    from .._summary import _solve_one
+    from .._models._solution import message
+    from .._studies._summary import _solve_one
 
     period = 2.0 * math.pi / float(np.asarray(osc.omega0))
     # the matched ansatz (solve(method="ansatz")) by the kept program of dampax solve: a
@@ -225,8 +225,8 @@ def _print_turning_points(results, names, flags, labels, width, d) -> None:
 
 def run_global(args: argparse.Namespace) -> int:
     """``--global``: Sobol' indices and DGSM of the quantity over the ranges; bar chart."""
-    from .._global import global_sensitivity
     from .._plot import plot_global_sensitivity
+    from .._studies._global import global_sensitivity
 
     bounds = parse_global(args.global_spec)
     models = check_models(args.models or "matched", "--models")

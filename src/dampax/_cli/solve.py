@@ -22,9 +22,9 @@ from ._common import (
 
 def run(args: argparse.Namespace) -> int:
     """Print the amplitudes, damping ratios, halt times and turning points of every model."""
-    from .._models import applicable_models
+    from .._models._registry import applicable_models
     from .._plot import plot_results
-    from .._summary import damping_ratios, run_models
+    from .._studies._summary import damping_ratios, run_models
 
     if args.turning < 0:
         raise ValueError(f"--turning must be >= 0, got {args.turning}")

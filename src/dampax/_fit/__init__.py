@@ -25,10 +25,12 @@ from ._core import OPTIMIZERS as OPTIMIZERS
 from ._core import FitModel as FitModel
 from ._entry import fit as fit
 from ._guess import initial_guess as initial_guess
-from ._joint import SHARED as SHARED
-from ._joint import JointProblem as JointProblem
-from ._joint import JointResult as JointResult
 from ._joint import fit_joint as fit_joint
+from ._joint_problem import SHARED as SHARED
+from ._joint_result import JointProblem as JointProblem
+from ._joint_result import JointResult as JointResult
+from ._options import LeastSquares as LeastSquares
+from ._options import Window as Window
 from ._params import CANDIDATES as CANDIDATES
 from ._params import DAMPING as DAMPING
 from ._params import ENVELOPE_PARAMS as ENVELOPE_PARAMS
@@ -38,8 +40,8 @@ from ._params import PARAMS as PARAMS
 from ._params import EnvelopeParams as EnvelopeParams
 from ._params import TraceParams as TraceParams
 from ._params import check_free as check_free
-from ._posterior import Posterior as Posterior
 from ._posterior import posterior as posterior
+from ._posterior_result import Posterior as Posterior
 from ._result import ArrayFit as ArrayFit
 from ._result import FitResult as FitResult
 from ._result import ModelComparison as ModelComparison

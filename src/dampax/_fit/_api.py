@@ -19,6 +19,8 @@ import numpy as np
 
 from .._cache import call_cached_tree
 from .._oscillator import Oscillator
+from .._reference import _uniform
+from .._solve import solve
 from .._trace import Trace, load_trace
 from ._checks import check_sampling, check_trace, looks_stuck
 from ._core import (
@@ -33,6 +35,7 @@ from ._core import (
     run_core,
 )
 from ._guess import analyse, guess_envelope, guess_trace, start_index
+from ._options import Window, options
 from ._params import (
     CANDIDATES,
     FREE,
@@ -54,6 +57,8 @@ from ._params import (
 )
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
 from ._starts import run_starts
+from ._static import fit_mu_s, other_halt_check, search_other_halts, with_static_halt
+from ._stiffness import fit_k3
 
 # ----------------------------------------------------------------------------------------------
 # data preparation
@@ -151,11 +156,8 @@ def _swings_bucket(max_swings, t, w0) -> int:
 def _units_of(trace_or_t, units):
     """The position unit: ``units``, else the unit in the position column's name of a Trace
     ("Angle(deg)" -> "deg"), else "m"."""
-    if units is not None:
-        if not isinstance(units, str) or not units.strip():
-            raise ValueError(f"units must be a non-empty string such as 'm' or 'deg', "
-                             f"got {units!r}")
-        return units.strip()
+    if units is not None:  # checked by Window (or fit_envelope)
+        return units
     if isinstance(trace_or_t, Trace):
         found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
         if found:
@@ -178,12 +180,14 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         units: str | None = None, starts: int = 32, seed: int = 0,
         k3: float | None = None, mu_s: float | None = None, shared=None,
         _inner: bool = False, _direct: bool = False) -> FitResult:
-    """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace.
+    """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace (the
+    implementation of :func:`dampax.fit`, whose ``window`` and ``solver`` objects arrive here
+    as flat, checked keywords).
 
     A list of traces is a joint fit of several runs of one apparatus
     (:func:`~dampax._fit._joint.fit_joint`: the constants named in ``shared`` are common to
     all runs, each run has its own start, offset and window) and returns a
-    :class:`~dampax._fit._joint.JointResult`.
+    :class:`~dampax._fit._joint_result.JointResult`.
 
     From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
     offset) are identifiable. Without an ``oscillator`` the fit is per unit mass: w0 is
@@ -258,7 +262,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             "mu", "b", "D", "w0", "k3" (default: the free damping constants).
 
     Returns:
-        A :class:`FitResult` (a :class:`~dampax._fit._joint.JointResult` for a list of traces).
+        A :class:`FitResult` (a :class:`~dampax._fit._joint_result.JointResult` for a list
+        of traces).
 
     Raises:
         ValueError: bad arguments, a trace without a free decay in it, or a window that fixes
@@ -268,12 +273,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if shared is not None:
         raise ValueError("shared: names constants common to several runs; it needs a list of "
                          "two or more traces, not a single trace")
+    # the options (window, solver) were checked at the edge (dp.fit, ._options)
     check_choice("model", model, MODELS)
-    check_choice("loss", loss, LOSSES)
-    check_choice("optimizer", optimizer, OPTIMIZERS)
-    max_steps = _check_max_steps(max_steps)
-    if isinstance(starts, bool) or int(starts) != starts or starts < 1:
-        raise ValueError(f"starts must be a positive integer, got {starts!r}")
     spec = FIT_MODELS[model]
     free = check_free(free, allowed=FREE)
     if mu_s is not None or "mu_s" in free:
@@ -286,7 +287,6 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if "mu_s" in free:
         if mu_s is not None:
             raise ValueError("mu_s: give either free=(..., 'mu_s') or a fixed mu_s, not both")
-        from ._static import fit_mu_s
 
         return fit_mu_s(fit, trace_or_t, x, free=tuple(f for f in free if f != "mu_s"),
                         options=dict(oscillator=oscillator, model=model,
@@ -302,7 +302,6 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if "k3" in free:
         if k3 is not None:
             raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
-        from ._stiffness import fit_k3
 
         return fit_k3(fit, trace_or_t, x, free=tuple(f for f in free if f != "k3"),
                        options=dict(oscillator=oscillator, model=model,
@@ -432,7 +431,6 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
             out = more
     others = {}  # mu of a motion that halts at a neighbouring turning point -> its held cost
     if spec.integrates and vary.mu and mu_s is None and not _inner and loss == "linear":
-        from ._static import search_other_halts
 
         out, others = search_other_halts(out, run, t, vary, fs, spec.name, stages,
                                    (osc["m"], osc["g"], 0.0 if k3 is None else k3))
@@ -471,11 +469,9 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if "unidentifiable" in res.diagnostics and not _inner:
         raise ValueError(res.diagnostics["unidentifiable"])
     if others and res.success:
-        from ._static import other_halt_check
 
         res = other_halt_check(res, others)
     if mu_s is not None and not _inner:  # the halt of the motion with static friction
-        from ._static import with_static_halt
 
         res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
     return res
@@ -510,6 +506,7 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     max_steps = _check_max_steps(max_steps)
     check_choice("loss", loss, LOSSES)
     check_choice("optimizer", optimizer, OPTIMIZERS)
+    units = Window(units=units).checked().units
     free = check_free(free)
     osc = oscillator_values(oscillator)
     t, E, source = _prepare(t_peaks, amplitudes)
@@ -669,7 +666,8 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         fitted: optional {candidate tuple: FitResult} of fits already made of this trace with
             these ``fit_kwargs`` (e.g. ``dampax fit``'s own fit): used as they are instead of
             fitting those candidates again (traces only).
-        **fit_kwargs: passed to :func:`fit` (or :func:`fit_envelope`).
+        **fit_kwargs: the keywords of :func:`dampax.fit` (``window=``, ``solver=``
+            included), passed on (or to :func:`fit_envelope`).
 
     Returns:
         A :class:`ModelComparison` (``.best``, ``.table``, ``.report()``).
@@ -683,6 +681,9 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         raise ValueError("compare_models needs a trace (or envelope=(t_peaks, amplitudes))")
     if "free" in fit_kwargs:
         raise ValueError("compare_models sets free itself; pass candidates=")
+    if "window" in fit_kwargs or "solver" in fit_kwargs:  # dp.fit's option objects
+        fit_kwargs.update(options(fit_kwargs.pop("window", None),
+                                  fit_kwargs.pop("solver", None)))
     known = {tuple(check_free(k)): r for k, r in (fitted or {}).items()}
     results = {}
     with warnings.catch_warnings():
@@ -736,7 +737,6 @@ def example_trace(**overrides) -> tuple[Trace, dict]:
     Returns:
         (trace, truth).
     """
-    from .._solve import solve
 
     truth = {**EXAMPLE, **overrides}
     osc = Oscillator(m=truth["m"], k=truth["k"], mu=truth["mu"], b=truth["b"], D=truth["D"])
@@ -761,7 +761,6 @@ def _state_on_grid(sol, t, start, step):
 def _positions(sol, t):
     """``sol.x(t)`` of a reference solution; on a uniform grid through a kept program
     (``_cache.call_cached_tree``: a repeated ``dampax fit --example`` does not trace it)."""
-    from .._reference import _uniform
 
     grid = _uniform(t)
     if grid is None:

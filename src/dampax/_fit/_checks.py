@@ -45,7 +45,10 @@ import math
 
 import numpy as np
 
+from ._core import FIT_RESULTS
+from ._dist import chi2_isf, chi2_sf, f_sf
 from ._guess import Analysis, despike
+from ._intervals import hac_covariance
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
 ABSURD = 10.0
@@ -209,7 +212,6 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
         the blocks), p (the smaller of the two, doubled: both tests), the block with the
         largest q_j as (t_from, t_to), and q_share (its share of the sum).
     """
-    from ._dist import chi2_sf
 
     r = np.asarray(r, dtype=float)
     n = r.size
@@ -266,7 +268,6 @@ def end_mismatch(t, r, t_model, t_data, phi):
     swings and the other rests) are no larger than elsewhere: the ratio of their mean squares
     against F(m1, m2), m the effective numbers of samples of each part (m (1 - phi^2) /
     (1 + phi^2) for AR(1) noise). 1 when the ends agree."""
-    from ._dist import f_sf
 
     lo, hi = min(t_model, t_data), max(t_model, t_data)
     inside = (t > lo) & (t <= hi)
@@ -287,7 +288,6 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
     not converge, the residuals hold structure that AR(1) noise cannot produce
     (:func:`residual_structure`), or the motion ends of model and data disagree
     (:func:`end_mismatch`). Then ``fit`` searches further (a batch of starts)."""
-    from ._core import FIT_RESULTS
 
     c = np.asarray(curve, dtype=float)
     if not bool(code == FIT_RESULTS.successful) or not np.all(np.isfinite(c)):
@@ -303,7 +303,6 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
 def _interval_sd(jac, rows, params, t):
     """The sd of the intervals (:func:`~dampax._fit._intervals.hac_covariance`) of the
     Jacobian's columns, or None."""
-    from ._intervals import hac_covariance
 
     w0 = params.get("w0", math.nan)
     if not (math.isfinite(w0) and w0 > 0) or len(t) < 2:
@@ -586,8 +585,6 @@ def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an
         measured numbers. ``diagnostics["unidentifiable"]``, when present, is the true reason
         to refuse the fit (the decay is measured, its split between the damping terms is not).
     """
-    from ._dist import chi2_isf
-    from ._intervals import hac_covariance
 
     fails, bad, diag = [], [], {}
     names = list(varied)

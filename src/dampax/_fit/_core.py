@@ -39,9 +39,11 @@ import optax
 import optimistix as optx
 
 from .._cache import call_cached_tree
-from .._decay import decay
+from .._models._cubic import phase_excess
+from .._models._decay import _decay_constants, _decay_from, decay
+from .._models._solution import result_where
 from .._oscillator import Oscillator, is_concrete
-from .._solution import result_where
+from .._solve import solve
 from ._params import (
     Constants,
     Damping,
@@ -106,8 +108,6 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     if consts.k3 is None:
         f = decay(tau, d2 * A, d1, d0 / A)
         return q.offset + A * f * jnp.cos(phase_rate(q.w0, d1) * tau + phi)
-    from .._cubic import phase_excess
-    from .._decay import _decay_constants, _decay_from
 
     k = _decay_constants(d2 * A, d1, d0 / A)
     f = _decay_from(k, tau)
@@ -121,7 +121,6 @@ def reference_solution(q: TraceCoords, consts: Constants, span, opts: ReferenceO
                        adjoint: str = "forward"):
     """The reference solution (DOP853, exact stick-slip) of eq. 3 from (x0, v0 = y) over the
     window's span; with static friction ``consts.mu_s`` when it is not None."""
-    from .._solve import solve
 
     m = consts.m
     k3 = 0.0 if consts.k3 is None else consts.k3
@@ -166,7 +165,6 @@ def _ansatz_amplitude_phase(params: dict, q, m, g):
 
 def _reference_amplitude_phase(params: dict, q, m, g):
     """(A, phi) of the ansatz matched (eqs. 22-23) to the fitted (x0, v0); NaN if none."""
-    from .._solve import solve
 
     w0 = params["w0"]
     try:

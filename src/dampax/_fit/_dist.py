@@ -2,7 +2,7 @@
 (a fifth of a second to import) instead of ``scipy.stats`` (over half a second: issue 26, the
 latency of ``dampax fit``), and the normal quantile from the standard library.
 
-Each equals its ``scipy.stats`` counterpart to rounding (tests/test_fit.py).
+Each equals its ``scipy.stats`` counterpart to rounding (tests/fit/test_fit.py).
 """
 
 from __future__ import annotations

@@ -37,6 +37,8 @@ from statistics import NormalDist
 
 import numpy as np
 
+from ._dist import chi2_sf
+
 #: a line for the reports and the docs
 METHOD = ("AR(1)-prewhitened Newey-West (HAC) sandwich covariance; Bartlett kernel (bandwidth "
           "from the score autocorrelation) only where the prewhitened residuals are not white")
@@ -102,7 +104,6 @@ WHITE_P = 0.01
 def whiteness_p(e: np.ndarray, period_samples: float) -> float:
     """p-value of the Ljung-Box test that ``e`` is white, over lags 1..m with m one period
     (at least 10, at most n/5 and 200): Q = n (n + 2) sum rho_k^2 / (n - k) ~ chi2(m)."""
-    from ._dist import chi2_sf
 
     e = np.asarray(e, dtype=float)
     n = e.size

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .._io import atomic_path
+
 #: the groups of an InferenceData file that dampax writes, in order
 GROUPS = ("posterior", "sample_stats", "observed_data")
 
@@ -179,8 +181,6 @@ def write_inference_data(groups: dict, path) -> Path:
         The path.
     """
     import xarray as xr
-
-    from .._io import atomic_path
 
     if not groups:
         raise ValueError("groups: give at least one group")

@@ -13,9 +13,14 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .._decay import decay, halt_time
+from .._cache import call_cached
+from .._io import save_figure
+from .._models._decay import decay, halt_time
+from .._plot import _place
 from . import _intervals
+from ._checks import assess
 from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
+from ._dist import norm_ppf
 from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
 
 
@@ -151,7 +156,6 @@ class FitResult:
                                           level, nonneg=DAMPING,
                                           scale=self.diagnostics.get("interval_scale"))
         if self.profiled:  # k3 of fit(free=(..., "k3")): from the profile's curvature
-            from ._dist import norm_ppf
 
             z = norm_ppf(0.5 + 0.5 * level)
             for name, pr in self.profiled.items():
@@ -318,8 +322,6 @@ class FitResult:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
-        from .._plot import _place
-
         fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
         FigureCanvasAgg(fig)
         ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
@@ -353,7 +355,6 @@ class FitResult:
         axr.axhline(0.0, color="k", lw=0.6)
         axr.set_ylabel("data - fit")
         axr.set_xlabel("t [s]")
-        from .._io import save_figure
 
         save_figure(fig, path, dpi=110)
         return Path(path)
@@ -512,7 +513,6 @@ def _envelope_curve(t, a, bp, c):
     (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
     from the cache in every new process (issue 26); compiled as one, f may differ from the
     eager value in the last bit. The arguments: concrete numbers."""
-    from .._cache import call_cached
 
     args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
     return call_cached("fit-envelope", (), decay, *args)
@@ -574,7 +574,6 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":
-        from ._checks import assess
 
         fails, bad, diag = assess(t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
                                   varied=varied_names(ctx.vary), derived=derived,

@@ -33,6 +33,8 @@ import math
 import numpy as np
 
 from .._oscillator import Oscillator
+from .._solve import solve
+from ._checks import LR_CHI2, LR_Z
 from ._params import PARAMS, oscillator_values
 
 #: fits at fixed mu_s of the best-screening candidates, and the most fits at fixed mu_s in all
@@ -50,7 +52,6 @@ def _constants(options) -> tuple[float, float, float]:
 def _motion(res, m: float, g: float, k3: float, mu_s=None):
     """The reference solution of a fit's motion from its start over twice its window (one
     compiled program for every call of a search), and the window's span."""
-    from .._solve import solve
 
     p = res.params
     osc = Oscillator(m=m, k=m * p["w0"] ** 2, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
@@ -177,7 +178,6 @@ def other_halt_check(res, others: dict):
     below :data:`~dampax._fit._checks.LR_CHI2` (1 %) while mu differs by more than
     :data:`~dampax._fit._checks.LR_Z` interval sd: the data hold two answers, and the
     interval of one of them is no interval."""
-    from ._checks import LR_CHI2, LR_Z
 
     sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
     if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):

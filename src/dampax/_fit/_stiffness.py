@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from ._checks import PROFILE_FAIL, PROFILE_REACH, profile_side
+from ._dist import norm_ppf
 from ._params import PARAMS, oscillator_values
 
 
@@ -26,8 +28,6 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
     ``params``, ``stderr``, ``free`` and ``conf_interval``.
     """
     from scipy.optimize import minimize_scalar
-
-    from ._dist import norm_ppf
 
     base = fit(trace_or_t, x, free=free, **options)
     m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
@@ -84,7 +84,6 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
     # sticks moves with k3 and changes the cost by steps) the interval does not hold
     success, reason = best.success, best.reason
     if math.isfinite(sd_e) and sd_e > 0 and best.success:
-        from ._checks import PROFILE_FAIL, PROFILE_REACH, profile_side
 
         rises = []
         for sgn in (-1, 1):

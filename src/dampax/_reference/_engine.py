@@ -21,7 +21,7 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
-from .._solution import RESULTS, first_failure, input_checks
+from .._models._solution import RESULTS, first_failure, input_checks
 from ._events import turning_point
 from ._sampling import WIDTH, hermite_row
 from ._stepping import error_norm, ode_args, rk_step, step_factor

@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._models._solution import RESULTS, AbstractSolution
 from .._oscillator import Oscillator, check_count, is_concrete
-from .._solution import RESULTS, AbstractSolution
 from ._sampling import sample
 
 Array = jax.Array

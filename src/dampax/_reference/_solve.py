@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._models._solution import RESULTS
 from .._oscillator import Oscillator, check_finite, check_real, is_concrete
-from .._solution import RESULTS
 from ._engine import _KINDS, integrate
 from ._solution import FIELDS, ReferenceSolution, sample_single
 
@@ -136,6 +136,23 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         finite, t_end is not positive, or the budget ran out before t_end or the halt (naming
         max_swings); under jit it returns valid = False instead.
     """
+    options = check_reference_options(x0, v0, t_end=t_end, rtol=rtol, atol=atol,
+                                      max_swings=max_swings,
+                                      max_steps_per_swing=max_steps_per_swing, ts=ts,
+                                      adjoint=adjoint, solver=solver)
+    return solve_reference_checked(osc, x0, v0, **options)
+
+
+def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: float = 1e-12,
+                            max_swings: int | None = None,
+                            max_steps_per_swing: int | None = None, ts=None,
+                            adjoint: str = "recursive", solver: str = "dop853") -> dict:
+    """The checks of :func:`solve_reference` (at the edge: ``dp.solve``, ``solve_reference``):
+    ValueError naming the option; x0, v0, t_end and ts finite where concrete.
+
+    Returns:
+        The options of :func:`solve_reference_checked`, normalised (floats, arrays).
+    """
     if solver not in ("dop853", "dopri8"):
         raise ValueError(f"solver must be 'dop853' (Hairer's 8th-order pair), got {solver!r}")
     if adjoint not in _KINDS:
@@ -153,20 +170,30 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         raise ValueError(f"max_steps_per_swing must be an int >= 2, got {max_steps_per_swing!r}")
     check_finite("x0", x0)
     check_finite("v0", v0)
-    x0 = jnp.asarray(x0, dtype=float)
-    v0 = jnp.asarray(v0, dtype=float)
-    if t_end is None:
-        t_end = DEFAULT_PERIODS * 2.0 * math.pi / osc.omega0
-    else:
+    if t_end is not None:  # None: the default span, from the oscillator
         check_finite("t_end", t_end)
         if is_concrete(t_end) and np.any(np.asarray(t_end, dtype=float) <= 0):
             raise ValueError(f"t_end must be > 0, got {t_end!r}")
-    t_end = jnp.asarray(t_end, dtype=float)
     if ts is not None:
         check_finite("ts", ts)
         ts = jnp.asarray(ts, dtype=float)
         if ts.ndim != 1:
             raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}")
+    return dict(t_end=t_end, rtol=rtol, atol=atol, max_swings=max_swings,
+                max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint)
+
+
+def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
+                            atol: float = 1e-12, max_swings: int | None = None,
+                            max_steps_per_swing: int | None = None, ts=None,
+                            adjoint: str = "recursive") -> ReferenceSolution:
+    """:func:`solve_reference` for options already checked (:func:`check_reference_options`):
+    the integration, and eagerly the failure's ValueError (budget named)."""
+    x0 = jnp.asarray(x0, dtype=float)
+    v0 = jnp.asarray(v0, dtype=float)
+    if t_end is None:
+        t_end = DEFAULT_PERIODS * 2.0 * math.pi / osc.omega0
+    t_end = jnp.asarray(t_end, dtype=float)
     if max_swings is None:
         max_swings = (default_swings(osc, x0, v0, t_end) if is_concrete(osc, x0, v0, t_end)
                       else DEFAULT_SWINGS)

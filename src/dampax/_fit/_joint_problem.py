@@ -1,0 +1,401 @@
+"""The joint least-squares problem of several runs (``_joint``): its static layout, the
+padded arrays, the residuals in internal and physical coordinates, the compiled
+Levenberg-Marquardt core over a batch of starts, and the score covariance of the HAC
+intervals (docs/DESIGN.md, fitting; the method is described in ``_joint``)."""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from .._cache import call_cached_tree
+from .._models._solution import result_where
+from .._oscillator import is_concrete
+from . import _intervals
+from ._core import (
+    FIT_MODELS,
+    FIT_RESULTS,
+    _materialised,
+    _result_code,
+)
+from ._params import (
+    DAMPING,
+    Constants,
+    TraceCoords,
+    TraceParams,
+)
+
+#: what ``shared`` may name: the damping constants, the angular frequency and the cubic
+#: stiffness (in this order in the joint parameter vector)
+SHARED = DAMPING + ("w0", "k3")
+#: the model coordinates of a run, the layout of the internal per-run blocks
+COORDS = TraceCoords._fields
+#: Levenberg-Marquardt rounds (rescaling the log coordinates between them)
+ROUNDS = 3
+#: restarts of the exact model's joint fit from where its step budget ran out
+CONTINUATIONS = 2
+
+
+
+# ----------------------------------------------------------------------------------------------
+# the static layout of a joint problem
+
+
+class Layout(NamedTuple):
+    """The static layout of a joint fit (hashable: part of the compiled program's key).
+
+    Attributes:
+        model: the fit model's name.
+        n_runs: number of runs.
+        shared: the shared parameters, a subset of :data:`SHARED` in its order.
+        local: the model coordinates fitted per run (among :data:`COORDS`, in its order).
+        k3: "none" (the linear spring), "fixed" (held at a value) or "shared" (fitted).
+    """
+
+    model: str
+    n_runs: int
+    shared: tuple
+    local: tuple
+    k3: str
+
+    def names(self) -> list[str]:
+        """Names of the joint physical parameters: the shared ones, then ``name[j]`` per run
+        (v0 for the velocity coordinate y)."""
+        per = [("v0" if c == "y" else c) for c in self.local]
+        return list(self.shared) + [f"{c}[{j}]" for j in range(self.n_runs) for c in per]
+
+    @property
+    def size(self) -> int:
+        return len(self.shared) + self.n_runs * len(self.local)
+
+
+class JointArrays(NamedTuple):
+    """The arrays of a joint problem (a pytree; runs along the first axis).
+
+    Attributes:
+        tau, x, weight: times from each run's window start, data, weight 1/sigma_j per sample
+            (0 on the padding), shape (N, n_pad).
+        span: window lengths (N,).
+        ref, scale, lo: per-run reference model coordinates (the start), scales of the internal
+            coordinates and lower bounds of the damping log coordinates (N, 7) in the order of
+            :data:`COORDS`.
+        start: per-run physical parameters at the start, :data:`~dampax._fit._params.PARAMS`
+            order (N, 7): the values of the fixed parameters.
+        sref, sscale, slo: reference, scale and lower bound of the shared coordinates (S,).
+        m, g, k3: mass, g and the cubic stiffness (its value when fixed, its start when
+            shared; 0 for the linear spring).
+    """
+
+    tau: Any
+    x: Any
+    weight: Any
+    span: Any
+    ref: Any
+    scale: Any
+    lo: Any
+    start: Any
+    sref: Any
+    sscale: Any
+    slo: Any
+    m: Any
+    g: Any
+    k3: Any
+
+
+def _consts(lay: Layout, a: JointArrays, k3):
+    return Constants(m=a.m, g=a.g, k3=None if lay.k3 == "none" else k3)
+
+
+def _k3_of(lay: Layout, a: JointArrays, values):
+    """The cubic stiffness: fitted (its entry of the shared ``values``) or ``a.k3``."""
+    if lay.k3 == "shared":
+        return values[lay.shared.index("k3")]
+    return a.k3
+
+
+def _shared_values(lay: Layout, a: JointArrays, th_s):
+    """Physical values of the shared parameters from their internal coordinates."""
+    out = []
+    for i, name in enumerate(lay.shared):
+        if name in DAMPING:
+            out.append(a.sref[i] * jnp.exp(jnp.maximum(th_s[i], a.slo[i])))
+        else:
+            out.append(a.sref[i] + a.sscale[i] * th_s[i])
+    return out
+
+
+def coords_of(theta, lay: Layout, a: JointArrays):
+    """(model coordinates (N, 7) in the order of :data:`COORDS`, k3) of the internal vector."""
+    S = len(lay.shared)
+    th_s = theta[:S]
+    th_l = theta[S:].reshape(lay.n_runs, len(lay.local))
+    values = _shared_values(lay, a, th_s)
+    cols = []
+    for i, name in enumerate(COORDS):
+        if name in lay.shared:
+            col = jnp.broadcast_to(values[lay.shared.index(name)], (lay.n_runs,))
+        elif name in lay.local:
+            th = th_l[:, lay.local.index(name)]
+            if name in DAMPING:
+                col = a.ref[:, i] * jnp.exp(jnp.maximum(th, a.lo[:, i]))
+            else:
+                col = a.ref[:, i] + a.scale[:, i] * th
+        else:
+            col = a.ref[:, i]
+        cols.append(col)
+    return jnp.stack(cols, axis=1), _k3_of(lay, a, values)
+
+
+def _curves(q, k3, lay: Layout, a: JointArrays, opts):
+    """The model of every run at its times (N, n_pad), q the model coordinates (N, 7)."""
+    spec = FIT_MODELS[lay.model]
+    consts = _consts(lay, a, k3)
+
+    def one(tau, qj, span):
+        return spec.curve(tau, TraceCoords(*(qj[i] for i in range(7))), consts, span, opts)
+
+    return jax.vmap(one)(a.tau, q, a.span)
+
+
+def _residuals(theta, a: JointArrays, lay: Layout, opts):
+    """The weighted residuals (model - data)/sigma_j of every run, flat (masked)."""
+    q, k3 = coords_of(theta, lay, a)
+    r = (_curves(q, k3, lay, a, opts) - a.x) * a.weight
+    return jnp.where(a.weight > 0.0, r, 0.0).reshape(-1)
+
+
+def params_of(theta, lay: Layout, a: JointArrays):
+    """(physical parameters (N, 7) in the order of PARAMS, k3) of the internal vector."""
+    spec = FIT_MODELS[lay.model]
+    q, k3 = coords_of(theta, lay, a)
+    consts = _consts(lay, a, k3)
+
+    def one(qj):
+        return jnp.stack(list(spec.to_params(TraceCoords(*(qj[i] for i in range(7))), consts)))
+
+    return jax.vmap(one)(q), k3
+
+
+def _physical_vector(P, k3, lay: Layout):
+    """The joint physical vector (layout :meth:`Layout.names`) from per-run parameters."""
+    shared = [k3 if name == "k3" else P[0, TraceParams._fields.index(name)]
+              for name in lay.shared]
+    per = [TraceParams._fields.index("v0" if c == "y" else c) for c in lay.local]
+    local = P[:, jnp.array(per, dtype=int)].reshape(-1) if per else jnp.zeros(0)
+    return jnp.concatenate([jnp.stack(shared) if shared else jnp.zeros(0), local])
+
+
+def _unpack(p, lay: Layout, a: JointArrays):
+    """(per-run physical parameters (N, 7) in PARAMS order, k3) from the joint physical vector
+    ``p`` (layout :meth:`Layout.names`); fixed parameters at their start values."""
+    S = len(lay.shared)
+    per = p[S:].reshape(lay.n_runs, len(lay.local))
+    cols = []
+    for i, name in enumerate(TraceParams._fields):
+        coord = "y" if name == "v0" else name
+        if name in lay.shared:
+            cols.append(jnp.broadcast_to(p[lay.shared.index(name)], (lay.n_runs,)))
+        elif coord in lay.local:
+            cols.append(per[:, lay.local.index(coord)])
+        else:
+            cols.append(a.start[:, i])
+    k3 = p[lay.shared.index("k3")] if lay.k3 == "shared" else a.k3
+    return jnp.stack(cols, axis=1), k3
+
+
+def physical_residuals(p, a: JointArrays, lay: Layout, opts):
+    """model - data (data units, (N, n_pad), 0 on the padding) of the joint physical vector
+    ``p`` (layout :meth:`Layout.names`; v0 per run, as the single fit reports it)."""
+    spec = FIT_MODELS[lay.model]
+    P, k3 = _unpack(p, lay, a)
+    consts = _consts(lay, a, k3)
+
+    def one(pj):
+        return spec.to_coords(TraceParams(*(pj[i] for i in range(7))), consts)
+
+    q = jax.vmap(one)(P)
+    q = jnp.stack(list(q), axis=1)
+    r = _curves(q, k3, lay, a, opts) - a.x
+    return jnp.where(a.weight > 0.0, r, 0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# the compiled core: optimise, then the Jacobian in the physical parameters
+
+
+class JointCore(NamedTuple):
+    """Output of :func:`joint_core` (arrays)."""
+
+    p: Any          # the joint physical vector at the optimum
+    P: Any          # per-run physical parameters (N, 7)
+    q: Any          # per-run model coordinates (N, 7)
+    k3: Any
+    code: Any
+    steps: Any
+    jac: Any        # d r / d p of the weighted residual rows, (N, n_pad, size)
+    resid: Any      # the weighted residual rows (N, n_pad)
+    curve: Any      # the model (N, n_pad)
+
+
+def _log_info(lay: Layout, a: JointArrays):
+    """(is_log, reference, lower bound) per entry of the internal vector."""
+    is_log = [name in DAMPING for name in lay.shared]
+    dref = [a.sref[i] for i in range(len(lay.shared))]
+    lo = [a.slo[i] for i in range(len(lay.shared))]
+    for j in range(lay.n_runs):
+        for c in lay.local:
+            i = COORDS.index(c)
+            is_log.append(c in DAMPING)
+            dref.append(a.ref[j, i])
+            lo.append(a.lo[j, i])
+    return jnp.array(is_log, dtype=bool), jnp.stack(dref), jnp.stack(lo)
+
+
+def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float,
+               atol: float) -> JointCore:
+    """The joint fit, pure: Levenberg-Marquardt in ``ROUNDS`` rounds, then the physical
+    Jacobian. ``lay``, ``opts`` and the budget are static."""
+    size = lay.size
+    fn = _materialised(functools.partial(_residuals, lay=lay, opts=opts), a)
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
+                                     linear_solver=lx.Normal(lx.Cholesky()))
+    is_log, dref, lo = _log_info(lay, a)
+    per_round = max(int(max_steps) // ROUNDS, 1)
+
+    def cost(theta):
+        r = fn(theta, a)
+        return jnp.sum(r * r)
+
+    def solve(theta, scale):
+        def scaled(u, args):
+            return fn(theta + scale * u, args)
+
+        sol = optx.least_squares(scaled, solver, jnp.zeros_like(theta), args=a,
+                                 max_steps=per_round, throw=False)
+        th = theta + scale * sol.value
+        th = jnp.where(is_log, jnp.maximum(th, lo), th)
+        # a round that ends non-finite or above its start is not taken (its code says so)
+        c0, c1 = cost(theta), cost(th)
+        keep = jnp.all(jnp.isfinite(th)) & jnp.isfinite(c1) & ~(c1 > c0)
+        code = result_where(keep, _result_code(sol.result), FIT_RESULTS.failed)
+        return jnp.where(keep, th, theta), sol.stats["num_steps"], code
+
+    # first each run's own coordinates with the shared ones held at the start: a run whose
+    # single fit was poor gets a start consistent with the shared constants
+    local_only = jnp.concatenate([jnp.zeros(len(lay.shared)), jnp.ones(size - len(lay.shared))])
+    theta0, steps0, _ = solve(jnp.zeros(size), local_only)
+
+    def one(carry, _):
+        theta, scale, steps, code, redo = carry
+        again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
+        theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),
+                                            theta, scale)
+        J, r = jax.jacfwd(lambda th: (_residuals(th, a, lay, opts),) * 2, has_aux=True)(theta)
+        # Gauss-Newton step in the physical damping constants: one it sends to <= 0 goes to
+        # its lower bound (the single fit's rounds, ``_core._lm_rounds``)
+        p = dref * jnp.exp(theta)
+        Jx = jnp.where(is_log, J / p, J)
+        step = jnp.linalg.lstsq(Jx, -r)[0]
+        snap = is_log & (p + step <= 0.0) & (theta > lo + 1.0)
+        theta = jnp.where(snap, lo + 1.0, theta)
+        cn = jnp.sqrt(jnp.sum(J * J, axis=0))
+        ref = jnp.max(jnp.where(~is_log, cn, 0.0))
+        safe = jnp.where(cn > 0.0, cn, 1.0)
+        new = jnp.where(is_log & (cn > 0.0), jnp.clip(ref / safe, 1.0, 1e15), 1.0)
+        ratio = new / scale
+        redo = jnp.any(snap) | jnp.any((ratio > 10.0) | (ratio < 0.1))
+        return (theta, new, steps + n_steps, code, redo), None
+
+    init = (theta0, jnp.ones(size), jnp.asarray(steps0), FIT_RESULTS.successful,
+            jnp.array(True))
+    (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=ROUNDS)
+    P, k3 = params_of(theta, lay, a)
+    q, _ = coords_of(theta, lay, a)
+    p = _physical_vector(P, k3, lay)
+
+    def rows(pv):
+        r = physical_residuals(pv, a, lay, opts)
+        return r * a.weight, r
+
+    J, r = jax.jacfwd(rows, has_aux=True)(p)
+    curve = r + a.x
+    return JointCore(p=p, P=P, q=q, k3=k3, code=code, steps=steps, jac=J,
+                     resid=r * a.weight, curve=curve)
+
+
+def run_joint_core(a: JointArrays, **static) -> JointCore:
+    """:func:`joint_core` through a kept program (``_cache.call_cached_tree``) when eager."""
+    a = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), a)
+    if is_concrete(a):
+        return call_cached_tree("fit-joint", sorted(static.items()),
+                                functools.partial(joint_core, **static), a)
+    return joint_core(a, **static)
+
+
+def run_joint_batch(batch: JointArrays, **static) -> JointCore:
+    """:func:`joint_core` vmapped over a batch of starts (every leaf of ``batch`` with a
+    leading batch axis), through a kept program when eager."""
+    batch = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), batch)
+    fn = jax.vmap(functools.partial(joint_core, **static))
+    if is_concrete(batch):
+        return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
+    return fn(batch)
+
+
+def best_start(out: JointCore) -> int:
+    """Index of the best start of a batch: the lowest weighted cost among the converged
+    ones with finite values (else among the finite ones; else the first)."""
+    cost = np.sum(np.asarray(out.resid, dtype=float) ** 2, axis=1).sum(axis=1)
+    finite = np.isfinite(cost) & np.all(np.isfinite(np.asarray(out.p)), axis=1)
+    ok = finite & (np.asarray(out.code._value) == FIT_RESULTS.successful._value)
+    for pick in (ok, finite):
+        if pick.any():
+            return int(np.argmin(np.where(pick, cost, np.inf)))
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------
+# intervals: the runs' score covariances summed
+
+
+def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.ndarray:
+    """S of the AR(1)-prewhitened HAC sandwich of one run (``_intervals.hac_covariance``,
+    whose H^-1 S H^-1 it completes): the scores of the prewhitened residuals, with the
+    Bartlett kernel only where those are not white.
+
+    Arguments:
+        J, r: the run's rows of the joint Jacobian (n x p) and its residuals (n).
+        period_samples: samples per oscillation period.
+    """
+    n = r.size
+    phi = float(np.dot(r[1:], r[:-1]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
+    phi = min(max(phi, -0.99), 0.999)
+    e = np.empty_like(r)
+    e[0] = math.sqrt(1.0 - phi * phi) * r[0]
+    e[1:] = r[1:] - phi * r[:-1]
+    K = _intervals._backward_ar1(np.ascontiguousarray(J), phi)
+    K[0] = K[0] / math.sqrt(1.0 - phi * phi)
+    g = K * e[:, None]
+    if _intervals.whiteness_p(e, period_samples) >= _intervals.WHITE_P:
+        L = 0
+    else:
+        L = _intervals.bandwidth(g, period_samples)
+    L = min(L, g.shape[0] - 1)
+    G = _intervals._autocov(g, L)
+    w = 1.0 - np.arange(L + 1) / (L + 1.0)
+    return w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1)))
+
+
+def _inverse(H):
+    if not np.all(np.isfinite(H)):  # a Jacobian with NaN in it: no intervals (named failure)
+        return np.full_like(H, np.nan)
+    d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
+    return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
+

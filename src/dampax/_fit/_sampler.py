@@ -1,0 +1,300 @@
+"""The sampler of the posterior (``_posterior``): the log density of any residual function
+(AR(1) noise, the priors of :data:`PRIORS`), the mode search and Laplace preconditioning, and
+NUTS with blackjax's window adaptation vmapped over chains (:func:`sample`). The model, the
+priors and the sampler are described in ``_posterior``."""
+
+from __future__ import annotations
+
+import functools
+import math
+import time
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+#: the posterior uses every s-th sample of the fit window, at most this many (the AR(1) noise
+#: model holds for the thinned residuals too, with coefficient phi^s)
+MAX_SAMPLES = 4096
+#: the most doublings of a NUTS trajectory (2^7 = 128 leapfrog steps)
+MAX_DOUBLINGS = 7
+#: the acceptance rate the window adaptation aims at
+TARGET_ACCEPT = 0.8
+#: tolerances of the reference integrator inside the posterior (well below any noise level)
+REFERENCE_RTOL, REFERENCE_ATOL = 1e-9, 1e-12
+#: how each fit model's log density is differentiated ("reverse": jax.grad; "forward": one
+#: jacfwd over the parameters, as a custom JVP). For the reference, forward mode through the
+#: plain loop took 1.8 ms per value and gradient (2 chains, 750 samples, 7 parameters) against
+#: 8.6 ms in reverse mode through the checkpointed loop (adjoint="recursive"), and compiled in
+#: half the time
+GRADIENTS = {"ansatz": "reverse", "reference": "forward"}
+
+#: the priors, for the docs and the report
+PRIORS = {
+    "damping constant c (free)": "log c ~ Normal(log c_guess, 3), c_guess from the turning points",
+    "w0": "Normal(w_turn, 0.05 w_turn), w_turn the turning points' frequency",
+    "offset": "Normal(offset of the least-squares fit, A)",
+    "x0, y = A sin(phi) (ansatz) or v0 (reference)":
+        "Normal(least-squares value, 2 A) (v0: 2 A w0)",
+    "sigma (AR(1) innovation sd)": "log sigma ~ Normal(log rms of the fit, 2)",
+    "phi_n (AR(1) coefficient)": "atanh phi_n ~ Normal(0, 2)",
+    "k3 (free)": "k3 A^2/(m w0^2) ~ Normal(0, 0.5) (|k3| A^2/(m w0^2) ~ 1 is far beyond the "
+                 "harmonic balance of docs/cubic_stiffness.md)",
+}
+#: the variables of the sample_stats group (ArviZ's names)
+SAMPLE_STATS = ("lp", "diverging", "energy", "step_size", "tree_depth", "acceptance_rate",
+                "n_steps")
+
+
+
+# ----------------------------------------------------------------------------------------------
+# the log density of any residual function
+
+
+class Layout(NamedTuple):
+    """The entries of the physical parameter vector p of a residual function (static).
+
+    Attributes:
+        names: the name of each entry, in order.
+        log: per entry, whether it is sampled as its logarithm (a positive constant).
+        noise: the number of independent noise series, each with its own sigma and phi_n:
+            1 (every row of the residual shares them) or the residual's number of rows (one
+            per row, e.g. per run of a joint fit).
+    """
+
+    names: tuple
+    log: tuple
+    noise: int = 1
+
+    @property
+    def dim(self) -> int:
+        """Entries of theta: the layout's, then log sigma and atanh phi_n of each series."""
+        return len(self.names) + 2 * self.noise
+
+
+class _Data(NamedTuple):
+    """What the log posterior needs besides theta (traced: one compilation per shape)."""
+
+    args: Any  # the residual's arguments (a pytree)
+    centre: jax.Array  # prior centres and widths of theta (the layout's entries, then noise)
+    width: jax.Array
+    theta_map: jax.Array
+    L: jax.Array
+    mask: Any = None  # (rows, n) booleans: the samples that count (None: all)
+
+
+def ar1_loglik(r, sigma, phi, mask=None):
+    """Exact log likelihood of a stationary AR(1) series r (along the last axis; rows of a
+    2-D r are independent series).
+
+    Arguments:
+        r: residuals, shape (n,) or (rows, n).
+        sigma: innovation standard deviation: one, or one per row (rows,).
+        phi: lag-1 coefficient, |phi| < 1: one, or one per row.
+        mask: None, or booleans of r's shape: the samples that are data (padding left out of
+            the likelihood; each unbroken stretch of data is a stationary series of its own).
+
+    Returns:
+        sum_rows [-1/2 sum_t e_t^2 / sigma^2 - r_1^2 (1 - phi^2) / (2 sigma^2) - n log sigma
+        + 1/2 log(1 - phi^2)] with e_t = r_t - phi r_(t-1), n the samples of the row that count
+        (the constant -n/2 log 2 pi left out).
+    """
+    r = jnp.atleast_2d(r)
+    sigma = jnp.reshape(sigma, (-1, 1))
+    phi = jnp.reshape(phi, (-1, 1))
+    if mask is None:
+        mask = jnp.ones(r.shape, dtype=bool)
+    mask = jnp.broadcast_to(jnp.atleast_2d(mask), r.shape)
+    prev = jnp.concatenate([jnp.zeros_like(mask[:, :1]), mask[:, :-1]], axis=1)
+    lagged = jnp.concatenate([jnp.zeros_like(r[:, :1]), r[:, :-1]], axis=1)
+    inner = mask & prev                 # innovations e_t = r_t - phi r_(t-1)
+    first = mask & ~prev                # the first sample of a stretch: stationary
+    e = jnp.where(inner, r - phi * lagged, 0.0)
+    r1 = jnp.where(first, r, 0.0)
+    quad = (jnp.sum(e * e, axis=-1, keepdims=True)
+            + (1 - phi ** 2) * jnp.sum(r1 * r1, axis=-1, keepdims=True)) / sigma ** 2
+    n = jnp.sum(mask, axis=-1, keepdims=True)
+    starts = jnp.sum(first, axis=-1, keepdims=True)
+    per_row = -0.5 * quad - n * jnp.log(sigma) + 0.5 * starts * jnp.log1p(-phi ** 2)
+    return jnp.sum(per_row)
+
+
+def physical(theta, layout: Layout):
+    """p of the layout from the unconstrained theta (exp of the log entries), then sigma and
+    phi_n from the last entries (scalars for one noise series, else one per series)."""
+    n, k = len(layout.names), layout.noise
+    p = jnp.stack([jnp.exp(theta[i]) if lg else theta[i] for i, lg in enumerate(layout.log)])
+    sigma, phi = jnp.exp(theta[n:n + k]), jnp.tanh(theta[n + k:n + 2 * k])
+    if k == 1:
+        return p, sigma[0], phi[0]
+    return p, sigma, phi
+
+
+def _logpost(theta, data: _Data, residual: Callable, layout: Layout):
+    """log prior (independent normals on theta) + AR(1) log likelihood of residual(p)."""
+    p, sigma, phi = physical(theta, layout)
+    out = ar1_loglik(residual(p, data.args), sigma, phi, data.mask) \
+        - 0.5 * jnp.sum(((theta - data.centre) / data.width) ** 2)
+    return jnp.where(jnp.isfinite(out), out, -jnp.inf)
+
+
+def _density(residual: Callable, layout: Layout, mode: str):
+    """The log posterior f(theta, data), differentiated in ``mode`` ("reverse" or
+    "forward": the gradient by jacfwd inside a custom JVP, for models whose loops have no
+    reverse mode)."""
+    f = functools.partial(_logpost, residual=residual, layout=layout)
+    if mode == "reverse":
+        return f
+    if mode != "forward":
+        raise ValueError(f"mode must be 'reverse' or 'forward', got {mode!r}")
+
+    @jax.custom_jvp
+    def g(theta, data):
+        return f(theta, data)
+
+    @g.defjvp
+    def g_jvp(primals, tangents):
+        theta, data = primals
+        grad, value = jax.jacfwd(lambda th: (f(th, data),) * 2, has_aux=True)(theta)
+        return value, grad @ tangents[0]
+
+    return g
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode"))
+def _neg_value_and_grad(theta, data, residual, layout, mode):
+    f = _density(residual, layout, mode)
+    return jax.value_and_grad(lambda th: -f(th, data))(theta)
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode"))
+def _neg_hessian(theta, data, residual, layout, mode):
+    f = _density(residual, layout, mode)
+    return jax.jacfwd(jax.grad(lambda th: -f(th, data)))(theta)
+
+
+@functools.partial(jax.jit, static_argnames=("residual", "layout", "mode", "num_warmup",
+                                             "num_samples"))
+def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
+    """Window adaptation then NUTS sampling of every chain, vmapped over the chains (keys,
+    u0: one row per chain); returns the draws of u and the sample stats."""
+    import blackjax
+    from blackjax.adaptation.base import get_filter_adapt_info_fn
+
+    f = _density(residual, layout, mode)
+
+    def logdensity(u):
+        return f(data.theta_map + data.L @ u, data)
+
+    def one_chain(key, u):
+        k_warm, k_draw = jax.random.split(key)
+        warmup = blackjax.window_adaptation(
+            blackjax.nuts, logdensity, target_acceptance_rate=TARGET_ACCEPT,
+            adaptation_info_fn=get_filter_adapt_info_fn(), max_num_doublings=MAX_DOUBLINGS)
+        (state, params), _ = warmup.run(k_warm, u, num_warmup)
+        step = blackjax.nuts(logdensity, step_size=params["step_size"],
+                             inverse_mass_matrix=params["inverse_mass_matrix"],
+                             max_num_doublings=MAX_DOUBLINGS).step
+
+        def draw(st, k):
+            st, info = step(k, st)
+            return st, (st.position, {
+                "lp": st.logdensity, "diverging": info.is_divergent, "energy": info.energy,
+                "tree_depth": info.num_trajectory_expansions,
+                "acceptance_rate": info.acceptance_rate,
+                "n_steps": info.num_integration_steps})
+
+        _, (pos, stats) = jax.lax.scan(draw, state, jax.random.split(k_draw, num_samples))
+        stats["step_size"] = jnp.broadcast_to(params["step_size"], (num_samples,))
+        return pos, stats
+
+    return jax.vmap(one_chain)(keys, u0)
+
+
+class Draws(NamedTuple):
+    """What :func:`sample` returns: theta (chain, draw, dim), the sample stats (each (chain,
+    draw)), the mode and the Laplace factor, and the seconds of the mode search and of the
+    compiled chains."""
+
+    theta: np.ndarray
+    stats: dict
+    theta_map: np.ndarray
+    L: np.ndarray
+    seconds_mode: float
+    seconds_chains: float
+
+
+def sample(residual: Callable, args, layout: Layout, centre, width, theta0, *,
+           mode: str = "reverse", num_samples: int = 1000, num_chains: int = 4,
+           num_warmup: int = 500, seed: int = 0, mask=None) -> Draws:
+    """NUTS draws of theta = (the layout's entries, log sigma and atanh phi_n of each noise
+    series) for any residual.
+
+    The posterior: independent normal priors N(centre, width) on theta, AR(1) noise on
+    ``residual(p, args)`` (:func:`ar1_loglik`, the samples of ``mask``), p = :func:`physical`
+    (theta). Mode by L-BFGS from theta0, Laplace preconditioning, window adaptation and
+    sampling vmapped over chains.
+
+    Arguments:
+        residual: ``residual(p, args) -> r`` (data minus model, shape (n,) or (rows, n)),
+            hashable (a frozen dataclass: it is a static argument of the compiled programs).
+        args: its arrays (a pytree; traced).
+        layout: the names of p and which are sampled as logarithms.
+        centre, width, theta0: prior centres, widths and the start, ``layout.dim`` entries.
+        mode: "reverse" or "forward" differentiation of the log density.
+        num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
+        seed: random seed.
+        mask: None, or booleans of the residual's shape: the samples in the likelihood (the
+            padding of runs of different lengths left out).
+
+    Returns:
+        :class:`Draws`.
+    """
+    from scipy.optimize import minimize
+
+    dim = layout.dim
+    for name, v in (("centre", centre), ("width", width), ("theta0", theta0)):
+        if np.shape(v) != (dim,):
+            raise ValueError(f"{name} must have {dim} entries (the layout's and 2 per noise "
+                             f"series), got shape {np.shape(v)}")
+    began = time.perf_counter()
+    data = _Data(args=args, centre=jnp.asarray(centre, dtype=float),
+                 width=jnp.asarray(width, dtype=float), theta_map=jnp.zeros(dim),
+                 L=jnp.eye(dim), mask=None if mask is None else jnp.asarray(mask, dtype=bool))
+    static = dict(residual=residual, layout=layout, mode=mode)
+
+    def fun(th):
+        v, gr = _neg_value_and_grad(jnp.asarray(th), data, **static)
+        v = float(v)
+        return (v, np.asarray(gr, dtype=float)) if math.isfinite(v) else (1e300, np.zeros_like(th))
+
+    opt = minimize(fun, np.asarray(theta0, dtype=float), jac=True, method="L-BFGS-B",
+                   options={"maxiter": 500})
+    theta_map = np.asarray(opt.x, dtype=float)
+    H = np.asarray(_neg_hessian(jnp.asarray(theta_map), data, **static), dtype=float)
+    H = 0.5 * (H + H.T)
+    if not np.all(np.isfinite(H)):
+        H = np.diag(1.0 / np.asarray(width, dtype=float) ** 2)
+    ev, V = np.linalg.eigh(H)
+    ev = np.clip(ev, max(ev.max(), 1e-300) * 1e-12, None)
+    L = np.linalg.cholesky((V / ev) @ V.T + 1e-300 * np.eye(dim))
+    data = data._replace(theta_map=jnp.asarray(theta_map), L=jnp.asarray(L))
+    mid = time.perf_counter()
+    k_init, k_chains = jax.random.split(jax.random.PRNGKey(int(seed)))
+    nch = int(num_chains)
+    u0 = 0.5 * jax.random.normal(k_init, (nch, dim))
+    U, stats = _chains(jax.random.split(k_chains, nch), u0, data, num_warmup=int(num_warmup),
+                       num_samples=int(num_samples), **static)
+    U = np.asarray(U)  # (chain, draw, dim)
+    stats = {k: np.asarray(v) for k, v in stats.items()}
+    done = time.perf_counter()
+    theta = theta_map[None, None, :] + U @ L.T
+    return Draws(theta=theta, stats=stats, theta_map=theta_map, L=L,
+                 seconds_mode=mid - began, seconds_chains=done - mid)
+
+
+def _base(name: str) -> str:
+    """The parameter of a layout name: "x0" of "x0[1]"."""
+    return name.split("[")[0]

@@ -1,0 +1,755 @@
+"""Fitting damping constants (dampax._fit): synthetic truth, coverage, scipy agreement, real data.
+
+Compilation dominates the run time (10-30 s per compiled fit on 2 cores), so the tests share
+shapes: the synthetic trace has 8192 samples, the same padded length as the torsion file, and
+fit() pads every trace to a power of two.
+"""
+
+import json
+import math
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dampax as dp
+from dampax._cli.fit import add_arguments, run
+from dampax._fit import (
+    PARAMS,
+    compare_envelope_models,
+    compare_models,
+    example_trace,
+    fit,
+    fit_arrays,
+    fit_envelope,
+    initial_guess,
+    residual_function,
+)
+from dampax._trace import Trace, load_trace
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+needs_data = pytest.mark.skipif(
+    not DATA.is_dir(), reason=f"measured data not found at {DATA} (the shared data folder "
+                              "beside the checkout); skipping the real-data fits")
+
+# the synthetic oscillator: m = 0.2 kg, k = 15 N/m, Coulomb + quadratic drag, 5 cm start
+M, K = 0.2, 15.0
+TRUTH = dict(mu=0.0005, b=0.0, D=0.02)
+X0, V0, OFFSET, NOISE = 0.05, 0.0, 0.4, 2e-4
+RATE, N = 100.0, 8192
+KNOWN = dp.Oscillator(m=M, k=K)
+
+
+def ansatz_trace(n=N, *, noise=NOISE, seed=0, offset=OFFSET, rate=RATE, truth=TRUTH):
+    """x(t) of the matched ansatz (the fitted model itself) plus Gaussian noise."""
+    sol = dp.solve(dp.Oscillator(m=M, k=K, **truth), X0, V0)
+    t = np.arange(n) / rate
+    x = np.asarray(sol.x(t)) + offset
+    return t, x + noise * np.random.default_rng(seed).standard_normal(n)
+
+
+@pytest.fixture(scope="module")
+def synthetic():
+    t, x = ansatz_trace()
+    res = fit(t, x, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True,
+              window=dp.Window(start="data"))
+    return t, x, res
+
+
+def test_synthetic_truth_within_3_stderr_and_5_percent(synthetic):
+    t, x, res = synthetic
+    assert res.success, res.message
+    assert res.varied == ["mu", "D", "w0", "offset", "x0", "v0"]
+    truth = {**TRUTH, "w0": math.sqrt(K / M), "offset": OFFSET, "x0": X0, "v0": V0}
+    for name in res.varied:
+        est, err = res.params[name], res.stderr[name]
+        assert abs(est - truth[name]) < 3 * err, (name, est, err, truth[name])
+    for name in ("mu", "D"):
+        assert abs(res.params[name] / truth[name] - 1) < 0.05
+        assert res.stderr[name] / res.params[name] < 0.05
+    assert res.params["b"] == 0.0 and math.isnan(res.stderr["b"])  # not free
+    assert res.rms == pytest.approx(NOISE, rel=0.05)
+    assert res.ndata == N and res.nvarys == 6
+    assert res.redchi == pytest.approx(NOISE ** 2, rel=0.1)
+    assert res.bic > res.aic  # ln(n) > 2
+    np.testing.assert_allclose(res.correlation, res.correlation.T)
+    np.testing.assert_allclose(np.diag(res.correlation), 1.0)
+    # the pure core on the same (padded, weight 0) arrays: the same optimum, and the same
+    # compiled function as fit()
+    p0 = initial_guess(t, x, free=("mu", "D"), oscillator=KNOWN, fit_omega0=True)
+    pad = 2 * N
+    tp, xp = np.full(pad, t[-1]), np.full(pad, x[-1])
+    tp[:N], xp[:N] = t, x
+    core = fit_arrays(tp, xp, p0, free=("mu", "D"), fit_omega0=True, m=M,
+                      weights=(np.arange(pad) < N).astype(float))
+    assert bool(core.success)
+    # (v0 is near 0: compared on the scale of the swing's velocity, X0 w0)
+    ours = np.array([res.params[p] for p in PARAMS])
+    np.testing.assert_allclose(np.asarray(core.params)[:6], ours[:6], rtol=1e-7, atol=1e-12)
+    assert abs(float(core.params[6]) - ours[6]) <= 1e-9 * X0 * math.sqrt(K / M), \
+        (float(core.params[6]), ours[6])
+    np.testing.assert_allclose(np.asarray(core.stderr)[[0, 2]],
+                               [res.stderr["mu"], res.stderr["D"]], rtol=1e-6)
+
+
+def test_report_and_plot(synthetic, tmp_path):
+    _, _, res = synthetic
+    text = res.report()
+    for needle in ("[[Fit Statistics]]", "# data points      = 8192", "# variables        = 6",
+                   "chi-square", "reduced chi-square", "Akaike info crit",
+                   "Bayesian info crit", "[[Variables]]", "mu:", "+/-", "b:", "(fixed)",
+                   "[[Correlations]]", "C(mu, D)"):
+        assert needle in text, needle
+    path = res.plot(tmp_path / "fit.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = res.to_dict()
+    json.dumps(summary)
+    assert summary["params"]["mu"] == res.params["mu"]
+
+
+def test_same_optimum_as_scipy_least_squares(synthetic):
+    from scipy.optimize import least_squares
+
+    t, x, res = synthetic
+    fun, jac, names = residual_function(t, x, free=("mu", "D"), oscillator=KNOWN,
+                                        fit_omega0=True)
+    assert names == res.varied
+    start = np.array([res.init[n] for n in names])
+    ref = least_squares(fun, start, jac=jac, x_scale="jac", xtol=1e-15, ftol=1e-15,
+                        gtol=1e-15, max_nfev=200)
+    ours = np.array([res.params[n] for n in names])
+    assert 0.5 * np.sum(fun(ours) ** 2) <= ref.cost * (1 + 1e-9)
+    for name, a, b in zip(names, ours, ref.x, strict=True):
+        scale = abs(b) if name != "v0" else X0 * math.sqrt(K / M)  # v0 is ~0
+        assert abs(a - b) <= 1e-6 * scale, (name, a, b)
+
+
+def test_coverage_of_vmapped_fits():
+    """50 noisy repeats fitted at once by jax.vmap of the pure core: the 1-sigma intervals
+    cover the truth in about 68 % of the cases (the model is exact for the data)."""
+    n, reps = 1024, 50
+    t = np.arange(n) / RATE
+    xs = np.stack([ansatz_trace(n, seed=500 + i)[1] for i in range(reps)])
+    p0 = np.stack([initial_guess(t, xi, free=("mu", "D"), oscillator=KNOWN) for xi in xs])
+
+    batched = jax.vmap(lambda xi, pi: fit_arrays(t, xi, pi, free=("mu", "D"), m=M))
+    out = batched(jnp.asarray(xs), jnp.asarray(p0))
+    assert out.params.shape == (reps, 7) and out.stderr.shape == (reps, 7)
+    assert bool(jnp.all(out.success))
+    params, stderr = np.asarray(out.params), np.asarray(out.stderr)
+    for i, name in ((0, "mu"), (2, "D")):
+        z = (params[:, i] - TRUTH[name]) / stderr[:, i]
+        covered = float(np.mean(np.abs(z) < 1.0))
+        assert 0.55 <= covered <= 0.80, (name, covered)
+        assert abs(np.mean(z)) < 0.5 and 0.7 < np.std(z) < 1.35, (name, np.mean(z), np.std(z))
+
+
+def test_soft_l1_resists_outliers(synthetic):
+    t, x, clean = synthetic
+    rng = np.random.default_rng(7)
+    bad = x.copy()
+    idx = rng.choice(N, size=N // 50, replace=False)  # 2 % glitches of 1-3 cm
+    bad[idx] += rng.choice([-1, 1], idx.size) * rng.uniform(0.01, 0.03, idx.size)
+    kw = dict(oscillator=KNOWN, free=("mu", "D"), fit_omega0=True,
+              window=dp.Window(start="data"))
+    linear = fit(t, bad, **kw)
+    robust = fit(t, bad, **kw, solver=dp.LeastSquares(loss="soft_l1"))
+    assert robust.success and robust.loss == "soft_l1"
+    assert robust.f_scale == pytest.approx(NOISE, rel=0.5)  # MAD of the residuals
+    for name in ("mu", "D"):
+        err = clean.stderr[name]
+        assert abs(robust.params[name] - TRUTH[name]) < 4 * err
+        assert abs(robust.params[name] - TRUTH[name]) < abs(linear.params[name] - TRUTH[name])
+        assert robust.stderr[name] < linear.stderr[name]
+
+
+def test_constant_not_in_the_data_goes_to_zero_gracefully(synthetic):
+    t, x, _ = synthetic
+    res = fit(t, x, oscillator=KNOWN, free=("mu", "b", "D"), fit_omega0=True,
+              window=dp.Window(start="data"))
+    assert res.success, res.message
+    assert res.params["b"] < 3 * res.stderr["b"] and math.isfinite(res.stderr["b"])
+    for name in ("mu", "D"):
+        assert abs(res.params[name] - TRUTH[name]) < 3 * res.stderr[name]
+
+
+@pytest.mark.parametrize("optimizer, tol", [("lbfgs", 1e-4), ("adam", 0.02)])
+def test_optax_optimizers_reach_the_lm_optimum(synthetic, optimizer, tol):
+    t, x, lm = synthetic
+    res = fit(t, x, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True,
+              window=dp.Window(start="data"), solver=dp.LeastSquares(optimizer=optimizer))
+    assert res.success, res.message
+    for name in ("mu", "D"):
+        assert res.params[name] == pytest.approx(lm.params[name], rel=tol)
+    assert res.chisqr == pytest.approx(lm.chisqr, rel=10 * tol)
+
+
+def test_auto_start_skips_the_release():
+    # a hand release: the block is held off centre, pushed out, then swings freely
+    t, x = ansatz_trace(6000)
+    hold = np.full(300, x[0] - 0.01)
+    ramp = np.linspace(x[0] - 0.01, x[0], 100)
+    tt = np.arange(400 + t.size) / RATE
+    xx = np.concatenate([hold, ramp, x])
+    res = fit(tt, xx, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True)
+    w0 = math.sqrt(K / M)
+    # the first extreme after the largest excursion: half a period after the release
+    assert res.t_start == pytest.approx(4.0 + math.pi / w0, abs=0.02)
+    for name in ("mu", "D"):
+        assert abs(res.params[name] - TRUTH[name]) < 3 * res.stderr[name]
+
+
+def test_input_errors():
+    t, x = ansatz_trace(1024)  # 10 s, 6 periods (a fit needs two)
+    with pytest.raises(ValueError, match="free must name"):
+        fit(t, x, free=("mu", "c"))
+    with pytest.raises(ValueError, match="model must be"):
+        fit(t, x, model="exact")
+    with pytest.raises(ValueError, match="loss must be"):
+        fit(t, x, solver=dp.LeastSquares(loss="huber"))
+    with pytest.raises(ValueError, match="at least 10"):
+        fit(t[:5], x[:5])
+    with pytest.raises(ValueError, match="same length"):
+        fit(t, x[:-1])
+    with pytest.raises(ValueError, match="p0: unknown"):
+        fit(t, x, solver=dp.LeastSquares(p0={"k": 1.0}))
+    with pytest.raises(ValueError, match="sets free itself"):
+        compare_models((t, x), free=("mu",))
+    with pytest.raises(ValueError, match="fit_omega0=False needs an oscillator"):
+        fit(t, x, fit_omega0=False)
+    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
+        fit(t, x, solver=dp.LeastSquares(max_steps=0))
+    with pytest.raises(ValueError, match="starts must be a positive integer"):
+        fit(t, x, solver=dp.LeastSquares(starts=0))
+    with pytest.raises(ValueError, match="units must be"):
+        fit(t, x, window=dp.Window(units=""))
+
+
+def test_cli(tmp_path, capsys, monkeypatch):
+    import argparse
+
+    from dampax import _cli
+
+    t, x = ansatz_trace(N)
+    path = tmp_path / "trace.csv"
+    rows = "".join(f"{a:.4f};{b:.6f}\r\n" for a, b in zip(t, x, strict=True))
+    path.write_text("time;position\r\n" + rows)
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    out = tmp_path / "out"
+    assert _cli.main(["fit", str(path), "--m", str(M), "--k", str(K), "--fit-omega0",
+                      "--free", "mu,D", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "[[Variables]]" in text and "Model ranking by BIC" in text
+    assert "the data support: mu + D" in text
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["fit"]["free"] == ["mu", "D"]
+    assert abs(summary["fit"]["params"]["D"] / TRUTH["D"] - 1) < 0.05
+    assert summary["ranking"]["ranking"][0]["free"] == ["mu", "D"]
+    assert (out / "fit.png").read_bytes()[:4] == b"\x89PNG"
+    # errors: one line, status 2
+    assert _cli.main(["fit", str(tmp_path / "missing.csv"), "--out", str(out)]) == 2
+    assert "dampax: error:" in capsys.readouterr().err
+    assert _cli.main(["fit", str(path), "--free", "mu,q"]) == 2
+    assert "free must name" in capsys.readouterr().err
+    assert _cli.main(["fit"]) == 2
+    assert "PATH or --example" in capsys.readouterr().err
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = parser.parse_args([str(path), "--rate", "fast"])
+    with pytest.raises(ValueError, match="--rate"):
+        run(args)
+
+
+# ----------------------------------------------------------------------------------------------
+# real data
+
+
+@needs_data
+def test_spring_runs_1_and_2_agree():
+    osc = dp.Oscillator(m=0.2016, k=14.91945)
+    fits = [fit(load_trace(DATA / "spring_mass_airdrag" / f"run{i}.csv"), oscillator=osc,
+                free=("b", "D"), fit_omega0=True) for i in (1, 2)]
+    for res in fits:
+        assert res.success, res.message
+        assert 8.40 < res.params["w0"] < 8.50 < math.sqrt(14.91945 / 0.2016)  # spring mass
+        assert res.rms < 0.004  # m, on a 7 cm swing
+    for name in ("b", "D"):
+        a, b = fits[0].params[name], fits[1].params[name]
+        assert abs(a - b) / (0.5 * (a + b)) < 0.10, (name, a, b)
+    # issue 11: the intervals that allow for correlated residuals overlap. Run 3 (glitches,
+    # robust loss) starts at 8.2 cm instead of 7.0-7.2 cm, and the split between b and D
+    # (correlation -0.9) follows the amplitude range: from t = 5.5 s, where its swing is 7.1
+    # cm like the others', its b lies inside both intervals and its D inside their union
+    # (0.1 % below run 1's lower end); from the automatic start it does not (benchmarks/README)
+    ci = [res.conf_interval(0.95) for res in fits]
+    run3 = fit(load_trace(DATA / "spring_mass_airdrag" / "run3.csv"), oscillator=osc,
+               free=("b", "D"), fit_omega0=True, window=dp.Window(start=5.5),
+               solver=dp.LeastSquares(loss="soft_l1"))
+    assert run3.success, run3.reason
+    assert run3.derived["A"] == pytest.approx(0.0708, abs=0.001)
+    for name in ("b", "D"):
+        (lo1, hi1), (lo2, hi2) = ci[0][name], ci[1][name]
+        assert max(lo1, lo2) < min(hi1, hi2), (name, ci[0][name], ci[1][name])
+        assert min(lo1, lo2) < run3.params[name] < max(hi1, hi2), (name, run3.params[name])
+    assert max(ci[0]["b"][0], ci[1]["b"][0]) < run3.params["b"] < min(ci[0]["b"][1],
+                                                                      ci[1]["b"][1])
+
+
+@needs_data
+def test_torsion_release_60_friction():
+    trace = load_trace(DATA / "torsion_pendulum_friction" / "release_60deg.txt",
+                       time="Time_Elapsed(s)", position="Angle(deg)", rate="auto")
+    ranking = compare_models(trace, fit_omega0=True)
+    assert ranking.best.success
+    assert "mu" in ranking.best.free  # a friction model first
+    assert [row["free"] for row in ranking.table][0] == ranking.ranking[0]
+    res = ranking.results[("mu", "b")]
+    assert res.success and res.rms < 1.0  # degrees
+    assert res.params["mu"] > 5 * res.stderr["mu"] and res.params["b"] > 5 * res.stderr["b"]
+    assert res.t_start > trace.t[0]  # the release is skipped
+    text = ranking.report()
+    assert "Model ranking by BIC" in text and "the data support" in text
+
+
+@needs_data
+def test_pendulum_maxima_envelope_ranks_drag_first():
+    peaks = load_trace(DATA / "pendulum_airdrag" / "AAAtopPts.txt")
+    ranking = compare_envelope_models(peaks.t, peaks.x)
+    assert ranking.best.success and "D" in ranking.best.free
+    assert ranking.table[0]["delta"] == 0.0
+    best = ranking.best
+    assert best.kind == "envelope" and best.rms < 0.003  # rad
+    assert best.params["D"] > 10 * best.stderr["D"]
+    single = fit_envelope(peaks.t, peaks.x, free=("D",))
+    assert single.success and single.params["D"] > 0
+
+
+# ----------------------------------------------------------------------------------------------
+# the reference model (compiles the diffrax integrator inside the optimizer: the heavy test)
+
+
+@pytest.mark.slow
+def test_reference_model_on_the_example_trace():
+    trace, truth = example_trace()
+    assert isinstance(trace, Trace) and len(trace) == 5000
+    osc = dp.Oscillator(m=truth["m"], k=truth["k"])
+    res = fit(trace, oscillator=osc, free=("mu", "D"), model="reference")
+    assert res.success, res.message
+    assert "started from the ansatz fit" in res.message
+    for name in ("mu", "D"):
+        assert abs(res.params[name] - truth[name]) < 3 * res.stderr[name]
+        assert abs(res.params[name] / truth[name] - 1) < 0.05
+    assert res.rms == pytest.approx(truth["noise"], rel=0.1)
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 11: identifiable defaults, global starts, named failures, intervals
+
+
+def test_per_unit_mass_default_and_units(synthetic):
+    """Without an oscillator w0 is fitted and the fit is per unit mass: D/m = 0.1 1/m for the
+    synthetic truth D = 0.02 kg/m, m = 0.2 kg; mu (a deceleration over g) is unchanged."""
+    t, x, known = synthetic
+    res = fit(t, x, free=("mu", "D"), window=dp.Window(start="data"))
+    assert res.success and res.adequate and res.per_mass, res.reason
+    assert res.varied == ["mu", "D", "w0", "offset", "x0", "v0"]
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"] / M, "w0": math.sqrt(K / M)}
+    for name, value in truth.items():
+        assert abs(res.params[name] - value) < 3 * res.stderr[name], (name, res.params[name])
+    # the same optimum as with the known mass, rescaled by m
+    assert res.params["D"] == pytest.approx(known.params["D"] / M, rel=1e-5)
+    assert res.params["mu"] == pytest.approx(known.params["mu"], rel=1e-5)
+    assert res.derived["D/m"] == res.params["D"] and res.derived["mu_g"] > 0
+    text = res.report()
+    assert "per unit mass" in text and "1/m (D/m, per unit mass)" in text
+    assert "kg/m" not in text and "kg/s" not in text
+    known_text = known.report()
+    assert "kg/m" in known_text and "per unit mass" not in known_text
+    deg = fit(t, x * 100.0, free=("mu", "D"), window=dp.Window(start="data", units="deg"))
+    text = deg.report()
+    assert "1/deg (D/m, per unit mass)" in text and "deg/s^2" in text and "kg/" not in text
+    assert deg.to_dict()["units"] == "deg" and deg.to_dict()["per_mass"] is True
+
+
+def test_global_starts_reach_the_optimum_of_an_independent_multistart(synthetic):
+    from scipy.optimize import least_squares
+
+    t, x, res = synthetic
+    assert res.starts is not None and res.starts.n == 32
+    assert 1 <= res.starts.reached <= 32 and np.isfinite(res.starts.costs).sum() >= 16
+    assert "jittered starts reached the best optimum" in res.report()
+    # numpy / scipy multi-start on the same residuals: 6 log-uniform starts of mu, D over
+    # two decades each side of the truth, from the data's offset, phase and frequency
+    fun, jac, names = residual_function(t, x, free=("mu", "D"), oscillator=KNOWN,
+                                        fit_omega0=True)
+    rng = np.random.default_rng(3)
+    best = math.inf
+    for _ in range(6):
+        start = np.array([TRUTH["mu"] * 10 ** rng.uniform(-2, 2),
+                          TRUTH["D"] * 10 ** rng.uniform(-2, 2), res.init["w0"],
+                          res.init["offset"], res.init["x0"], res.init["v0"]])
+        sol = least_squares(fun, start, jac=jac, x_scale="jac", max_nfev=100,
+                            bounds=([0, 0, 0, -np.inf, -np.inf, -np.inf], np.inf))
+        best = min(best, sol.cost)
+    ours = 0.5 * np.sum(fun(np.array([res.params[n] for n in names])) ** 2)
+    assert ours <= best * (1 + 1e-7)
+
+
+def _undamped(n=N):
+    t = np.arange(n) / RATE
+    noise = NOISE * np.random.default_rng(2).standard_normal(n)
+    return t, OFFSET + X0 * np.cos(math.sqrt(K / M) * t) + noise
+
+
+@pytest.mark.parametrize("case, reason", [
+    ("constant", "the trace is constant"),
+    ("noise", "no free oscillation"),
+    ("growing", "the amplitude grows"),
+    ("reversed", "the amplitude grows"),
+    ("constant time", "constant time"),
+    # 1.6 periods: fitted, and refused with the true reason (issue 25: no longer for being
+    # short, which a trace that halts after one swing is too)
+    ("short", "mu and D are not separately identifiable"),
+])
+def test_degenerate_input_raises_a_named_value_error(case, reason):
+    t, x = ansatz_trace(2048)
+    rng = np.random.default_rng(1)
+    data = {"constant": (t, np.full_like(t, 0.4)),
+            "noise": (t, rng.standard_normal(t.size)),
+            "growing": (t, OFFSET + (x - OFFSET) * np.exp(0.1 * t)),
+            "reversed": (t, x[::-1]),
+            "constant time": (np.full_like(t, 3.0), x),
+            "short": (t[:120], x[:120])}[case]
+    with pytest.raises(ValueError, match=reason):
+        fit(*data, free=("mu", "D"))
+
+
+def test_named_failures_undamped_and_max_steps(synthetic):
+    t, x = _undamped()
+    res = fit(t, x, free=("mu", "D"), window=dp.Window(start="data"))
+    # no decay to measure: a right answer (intervals from 0), named in a note, not a failure
+    assert res.success, res.reason
+    assert "[[Note]] no measurable decay" in res.report()
+    ci = res.conf_interval(0.99)
+    assert ci["mu"][0] == 0.0 and ci["D"][0] == 0.0
+    t, x, _ = synthetic
+    res = fit(t, x, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True,
+              window=dp.Window(start="data"), solver=dp.LeastSquares(max_steps=1, starts=1))
+    assert not res.success and not res.converged and res.n_iterations <= 1
+    assert "did not converge" in res.reason and "maximum number of steps" in res.reason
+
+
+def test_ranking_leaves_failed_fits_out(synthetic):
+    import dataclasses
+
+    from dampax._fit._result import rank
+
+    _, _, res = synthetic
+    broken = dataclasses.replace(res, success=False, reason="the optimizer did not converge",
+                                 bic=res.bic - 100.0, free=("D",))
+    ranking = rank({("mu", "D"): res, ("D",): broken}, "bic")
+    assert ranking.ranking == [("mu", "D")] and list(ranking.failed) == [("D",)]
+    assert ranking.best is res
+    assert "left out (fit failed): D: the optimizer did not converge" in ranking.report()
+    none = rank({("D",): broken}, "bic")
+    assert none.best is None and "no candidate fit succeeded" in none.report()
+
+
+def test_conf_interval_covers_and_widens_for_correlated_noise(synthetic):
+    t, x, res = synthetic
+    ci = res.conf_interval(0.95)
+    assert set(ci) == set(res.varied)
+    truth = {"mu": TRUTH["mu"], "D": TRUTH["D"], "w0": math.sqrt(K / M), "offset": OFFSET}
+    for name, value in truth.items():
+        lo, hi = ci[name]
+        assert lo < value < hi, (name, lo, value, hi)
+        # white noise: the HAC sd is the delta-method stderr, within its sampling error
+        assert res.hac_stderr[name] == pytest.approx(res.stderr[name], rel=0.35), name
+    assert "[[Intervals]] 95 %" in res.report()
+    with pytest.raises(ValueError, match="level"):
+        res.conf_interval(1.5)
+    # AR(1) noise (coefficient 0.9): the HAC sd exceed the delta-method stderr ~3-4 times
+    e = np.zeros(N)
+    z = np.random.default_rng(4).standard_normal(N) * NOISE * math.sqrt(1 - 0.81)
+    for i in range(1, N):
+        e[i] = 0.9 * e[i - 1] + z[i]
+    red = fit(t, x - (x - ansatz_trace(N, noise=0.0)[1]) + e, oscillator=KNOWN, free=("mu", "D"),
+              fit_omega0=True, window=dp.Window(start="data"))
+    for name in ("mu", "D"):
+        assert 2.0 < red.hac_stderr[name] / red.stderr[name] < 6.0, name
+
+
+def test_cli_help_documents_every_option():
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for action in parser._actions:
+        assert action.help and action.help != argparse.SUPPRESS, action.option_strings
+    text = parser.format_help()
+    for needle in ("exit status", "per unit mass", "--units", "--intervals", "--posterior",
+                   "--starts", "--g", "--model", "--optimizer"):
+        assert needle in text, needle
+
+
+def test_cli_per_mass_and_exit_status(tmp_path, capsys, monkeypatch):
+    from dampax import _cli
+
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    t, x = ansatz_trace(N)
+    path = tmp_path / "trace.csv"
+    path.write_text("time;position\n" + "".join(f"{a:.4f};{b:.6f}\n"
+                                                for a, b in zip(t, x, strict=True)))
+    out = tmp_path / "out"
+    assert _cli.main(["fit", str(path), "--free", "mu,D", "--no-compare", "--intervals",
+                      "--start", "data", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "per unit mass" in text and "confidence intervals at 0.95" in text
+    summary = json.loads((out / "fit.json").read_text())
+    assert summary["fit"]["per_mass"] and summary["fit"]["success"]
+    assert abs(summary["fit"]["params"]["D"] / (TRUTH["D"] / M) - 1) < 0.05
+    assert set(summary["fit"]["conf_interval"]["intervals"]) >= {"mu", "D"}
+    # a failed fit: exit status 3, the reason on stderr and first in the report
+    assert _cli.main(["fit", str(path), "--m", str(M), "--k", str(K), "--fit-omega0",
+                      "--start", "data", "--no-compare", "--max-steps", "1", "--starts", "1",
+                      "--out", str(out)]) == 3
+    captured = capsys.readouterr()
+    assert "FIT FAILED: the optimizer did not converge" in captured.out
+    assert "fit failed" in captured.err
+    # degenerate input: one line, status 2, no traceback
+    flat = tmp_path / "flat.csv"
+    flat.write_text("time;position\n" + "".join(f"{a:.4f};0.4\n" for a in t[:500]))
+    assert _cli.main(["fit", str(flat), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "the trace is constant" in err and "Traceback" not in err
+    assert _cli.main(["fit", str(path), "--k", "15", "--out", str(out)]) == 2
+    assert "--k needs --m" in capsys.readouterr().err
+
+
+@needs_data
+def test_torsion_releases_reach_their_best_optimum():
+    """Every release, per unit mass with Coulomb + viscous damping: the global starts agree
+    and the rms is the best the constant-frequency model allows (benchmarks/README.md, issue
+    11); 100 deg is named a failure: the model halts ~13 s before the data stop swinging."""
+    rms = {60: 0.683, 70: 1.007, 80: 0.466, 90: 1.186, 100: 4.349}  # deg
+    for deg, expected in rms.items():
+        trace = load_trace(DATA / "torsion_pendulum_friction" / f"release_{deg}deg.txt",
+                           time=1, position=2, rate="auto")
+        res = fit(trace, free=("mu", "b"))
+        assert res.units == "deg" and res.per_mass
+        assert res.rms == pytest.approx(expected, rel=0.01), (deg, res.rms)
+        assert res.starts.reached >= res.starts.n // 2, (deg, res.starts.summary())
+        if deg < 100:
+            assert res.success and res.adequate, (deg, res.reason, res.inadequacy)
+        else:
+            assert not res.success and not res.adequate
+            assert "stops moving" in res.reason and "before the data" in res.reason
+            assert res.report().startswith("FIT FAILED: the model stops moving")
+
+
+def test_inadequate_model_is_named_and_exits_with_status_4(tmp_path, capsys, monkeypatch):
+    """A decay whose frequency rises 1.5 % over the window (as the torsion releases'): the fit
+    converges, but its residuals are 40 times the noise and 18 % of the amplitude (a phase
+    drift of 1.3 rad): adequate is False, the report says so, ``dampax fit`` exits with
+    status 4."""
+    from dampax import _cli
+
+    t = np.arange(N) / RATE
+    w = math.sqrt(K / M) * (1.0 + 0.015 * t / t[-1])
+    x = OFFSET + X0 * np.exp(-0.01 * t) * np.cos(np.cumsum(w) / RATE)
+    x = x + NOISE * np.random.default_rng(6).standard_normal(N)
+    res = fit(t, x, free=("b",), window=dp.Window(start="data"))
+    assert res.success, res.reason
+    assert not res.adequate and any("times the noise level" in s for s in res.inadequacy)
+    assert res.diagnostics["phase_drift"] > 1.0 and res.diagnostics["rms/A"] > 0.1
+    assert "MODEL DOES NOT DESCRIBE THE DATA: " in res.report().splitlines()[0]
+    monkeypatch.setitem(_cli.SUBCOMMANDS, "fit", (add_arguments, run))
+    path = tmp_path / "chirp.csv"
+    path.write_text("".join(f"{a:.4f} {b:.6f}\n" for a, b in zip(t, x, strict=True)))
+    assert _cli.main(["fit", str(path), "--free", "b", "--start", "data", "--no-compare",
+                      "--starts", "8", "--out", str(tmp_path / "out")]) == 4
+    assert "does not describe the data" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# issue 25, item 1: checks that hold in general (traces of an independent scipy integrator)
+
+ISSUE25 = [(0.04, 3.0), (0.03, 2.0), (0.035, 2.8), (0.04, 0.5), (0.01, 3.0)]
+
+
+@pytest.mark.parametrize("mu, D", ISSUE25)
+def test_issue25_strongly_damped_traces_fit_with_the_truth_inside(mu, D):
+    """The table of issue 25: m = 1 kg, k = 30 N/m, x0 = 0.2 m at rest, 3 s at 500 Hz, white
+    noise of 1 mm, oscillator given, free mu and D, the reference model. The block halts after
+    two to four swings (the first three were refused as "pure noise", the fourth failed on the
+    zero-crossing frequency that friction moves): each fits, with the truth inside its 99 %
+    intervals."""
+    from helpers import evaluate, scipy_stick_slip
+
+    t = np.arange(0.0, 3.0, 1.0 / 500.0)
+    segments, _, rest = scipy_stick_slip(1.0, 30.0, mu, 0.0, D, 0.2, 0.0, 3.0, rtol=1e-11,
+                                         atol=1e-13)
+    x = evaluate(segments, rest, t)[0] + 1e-3 * np.random.default_rng(0).standard_normal(t.size)
+    res = fit(t, x, oscillator=dp.Oscillator(m=1, k=30), free=("mu", "D"), model="reference")
+    assert res.success, res.reason
+    ci = res.conf_interval(0.99)
+    for name, value in (("mu", mu), ("D", D)):
+        assert ci[name][0] < value < ci[name][1], (name, value, ci[name])
+    assert "zero-crossing" not in res.report()
+
+
+def test_issue25_generated_family_sample(benchmark_module):
+    """A fixed-seed sample of the generated family (benchmarks/fit_calibration.py: scipy DOP853
+    with exact stick-slip, random damping ratios, phase, AR(1) or white noise, windows of a few
+    swings, w0 given or fitted), fitted as a user would: no refusal without a true reason, no
+    failure of a right fit, no confident wrong answer."""
+    cal = benchmark_module("fit_calibration")
+    rng = np.random.default_rng(25)
+    picked = []
+    while len(picked) < 3:  # short windows, linear spring: the programs of the test above
+        spec = cal.draw(rng)
+        if spec["half_swings"] <= 5.0 and spec["k3"] == 0.0:
+            picked.append(spec)
+    for spec in picked:
+        t, x = cal.simulate(spec)
+        rec = cal.run_case(spec, t, x, "reference", max_swings=None)
+        rec.pop("_res", None)
+        assert rec["status"] != "refused", rec.get("error")
+        assert not rec["confident_wrong"], rec
+        assert not rec["false_failure"], rec
+
+
+def test_distribution_functions_equal_scipy_stats():
+    """dampax._fit._dist (scipy.special, no scipy.stats import on the fit's path) against
+    scipy.stats over the arguments the checks use."""
+    from scipy import stats
+
+    from dampax._fit import _dist
+
+    for p in (1e-6, 0.005, 0.05, 0.5, 0.95, 0.999):
+        assert _dist.norm_ppf(p) == pytest.approx(stats.norm.ppf(p), rel=1e-12, abs=1e-12)
+    for k in (1, 2, 3, 7, 150, 600):
+        for x in (0.0, 0.3, 2.0, k, 3.0 * k + 10.0):
+            assert _dist.chi2_sf(x, k) == pytest.approx(stats.chi2.sf(x, k), rel=1e-10,
+                                                        abs=1e-300)
+        for p in (0.01, 0.05, 0.5):
+            assert _dist.chi2_isf(p, k) == pytest.approx(stats.chi2.isf(p, k), rel=1e-10)
+    for d1, d2 in ((3.7, 120.5), (40.0, 2000.0), (1.0, 8.0)):
+        for x in (0.0, 0.5, 1.0, 2.5, 10.0):
+            assert _dist.f_sf(x, d1, d2) == pytest.approx(stats.f.sf(x, d1, d2), rel=1e-10,
+                                                          abs=1e-300)
+
+
+def test_collinear_damping_constants_no_crash_truth_inside_or_named(benchmark_module):
+    """Draw 71 of the generated family's ansatz part (7 swings fading into 80 s, per unit mass):
+    at the optimum the batch of starts used to pick the Jacobian's columns of mu and b cancel
+    exactly and nothing else takes part: the fit crashed with StopIteration, then named the
+    pair. The batch now takes the start of less than half the cost (a converged start had
+    stopped at a stationary point above it): a fit with the truth (per unit mass) inside its
+    99 % intervals; a refusal must still name the pair."""
+    cal = benchmark_module("fit_calibration")
+    spec = dict(m=0.12761251161962178, k=1.6130472964426226, mu=0.0014224739747641655,
+                b=0.053917411224241256, D=0.9700329642297716, k3=0.0,
+                x0=-0.07921651611736243, v0=0.1506794349947874, offset=-0.05122024099373079,
+                noise=0.0024437569832596725, phi=0.0, span=81.40487382929874, n=2998,
+                noise_seed=1504832035)
+    t, x = cal.simulate(spec)
+    try:
+        res = fit(t, x, free=("mu", "b", "D"))
+    except ValueError as err:
+        assert "mu and b are not separately identifiable" in str(err)
+        return
+    assert res.success, res.reason
+    ci = res.conf_interval(0.99)
+    truth = {"mu": spec["mu"], "b": spec["b"] / spec["m"], "D": spec["D"] / spec["m"]}
+    for name, value in truth.items():
+        assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
+
+
+def test_two_swings_with_two_optima_fail_with_the_reason(benchmark_module):
+    """Draw 125 of the generated family (2 swings, AR(1) noise phi = 0.53, free mu and b, w0
+    fitted): the least-squares optimum halts one turning point later than the truth, with mu
+    22 interval sd off; the truth's motion costs more (the noise prefers the other). The fit
+    finds the motion that halts at the truth's turning point, which fits nearly as well, and
+    fails with that reason instead of a confident wrong answer."""
+    cal = benchmark_module("fit_calibration")
+    spec = dict(m=3.9487683026199956, k=18.404073353633393, mu=0.006694468208940884,
+                b=1.3420153648176687, D=0.0, k3=0.0, x0=-0.007420987492392991,
+                v0=-0.12879634536655088, offset=0.012813652961777442,
+                noise=0.0001153023673501254, phi=0.5297550982206217, span=3.8470327015659804,
+                n=2992, noise_seed=994447306)
+    t, x = cal.simulate(spec)
+    res = fit(t, x, free=("mu", "b"), model="reference")
+    lo, hi = res.conf_interval(0.99)["mu"]
+    assert not lo <= spec["mu"] <= hi  # the optimum is the wrong one ...
+    assert not res.success and "two motions fit nearly as well" in res.reason, res.reason
+    other = res.diagnostics["other_halt_mu"]  # ... and the other one is named
+    assert abs(other - spec["mu"]) < abs(res.params["mu"] - spec["mu"])
+
+
+@pytest.mark.parametrize("power, scale", [(2, 3.0), (4, 2.5), (1, 5.0), (3, 7.0)])
+def test_profile_side_finds_where_the_cost_reaches_the_interval(power, scale):
+    """_checks.profile_side on exact profiles rise(d) = (d / (scale d0))^power: the side ends
+    where the rise reaches 1, at d = scale d0 (effective c = 1/scale^2); a flat profile is
+    unbounded (0: the fit fails), one that reaches the parameter's bound ends there."""
+    from dampax._fit._checks import PROFILE_FAIL, profile_side
+
+    d0 = 0.7
+
+    def rise(d):
+        return (d / (scale * d0)) ** power
+
+    c = profile_side(rise, d0, rise(d0))
+    # a power law is found exactly (the steps follow the power law through the last points)
+    assert c == pytest.approx(1.0 / scale ** 2, rel=1e-9)
+    assert c >= PROFILE_FAIL
+    assert profile_side(lambda d: 1e-4 * d, d0, 1e-4 * d0) == 0.0
+    beyond = 9.0  # beyond PROFILE_REACH = 8: not measured, the fit fails
+    assert profile_side(lambda d: (d / (beyond * d0)) ** 2, d0, beyond ** -2) == 0.0
+    limit = 2.0 * d0  # a damping constant 2 d0 above 0: the side reaches 0
+    assert profile_side(rise, d0, rise(d0), limit=limit) == pytest.approx(0.25)
+    assert profile_side(rise, d0, 0.5) == 0.5  # measured by one point: unchanged
+
+
+def test_transferred_start_keeps_the_decay_rate():
+    """_checks.transferred_start: the held constant's decay rate at A/2 (eq. 21's envelope
+    dA/dt = -(d0 + d1 A + d2 A^2)) is split equally among the others."""
+    from dampax._fit._checks import transferred_start
+
+    scale, A = {"mu": 2.4, "b": 0.5, "D": 1.1}, 0.46
+    params = {"mu": 0.01, "b": 3.0, "D": 0.2}
+    start = transferred_start("b", params, ("mu", "b", "D"), scale, A)
+    a = 0.5 * A
+    moved = 0.5 * params["b"] * scale["b"] * a
+    assert (start["mu"] - params["mu"]) * scale["mu"] == pytest.approx(moved, rel=1e-14)
+    assert (start["D"] - params["D"]) * scale["D"] * a * a == pytest.approx(moved, rel=1e-14)
+    assert transferred_start("b", params, ("b",), scale, A) is None
+
+
+def test_fit_options_are_objects_checked_when_made():
+    """dp.fit takes at most 10 keyword options (issue 27): the problem's keywords, and the
+    window and optimiser settings as dp.Window / dp.LeastSquares, which check their fields
+    when made (a ValueError naming the field) and are immutable."""
+    import inspect
+
+    keywords = [p.name for p in inspect.signature(dp.fit).parameters.values()
+                if p.kind is inspect.Parameter.KEYWORD_ONLY]
+    assert len(keywords) <= 10 and {"window", "solver"} <= set(keywords), keywords
+    for bad, field in [(dp.Window(start="later"), "Window.start"),
+                       (dp.Window(start=2.0, end=1.0), "Window.end"),
+                       (dp.Window(units=" "), "Window.units"),
+                       (dp.LeastSquares(rtol=0.0), "LeastSquares.rtol"),
+                       (dp.LeastSquares(starts=2.5), "LeastSquares.starts"),
+                       (dp.LeastSquares(max_swings=0), "LeastSquares.max_swings"),
+                       (dp.LeastSquares(p0=[1.0]), "LeastSquares.p0"),
+                       (dp.LeastSquares(optimizer="newton"), "LeastSquares.optimizer")]:
+        with pytest.raises(ValueError, match=field.replace(".", r"\.")):
+            bad.checked()
+    with pytest.raises(ValueError, match="window must be a dp.Window"):
+        dp.fit(np.arange(20.0), np.zeros(20), window={"start": "data"})
+    with pytest.raises(AttributeError):
+        dp.Window().start = 1.0  # immutable
+    ok = dp.LeastSquares(starts=np.int64(8), p0={"mu": 0.1}).checked()
+    assert ok.starts == 8 and isinstance(ok.starts, int) and ok.p0 == {"mu": 0.1}
