@@ -23,8 +23,8 @@ import sys
 import threading
 from collections.abc import Callable
 
-import dampax_cli
 from dampax_cli._arguments import COMMANDS
+from dampax_cli._parser import build_parser as _build_parser
 
 from .._cache import keep_every_program
 from ._common import PROG, silenced
@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
         ``add_arguments`` of :data:`SUBCOMMANDS`); parsed arguments name the subcommand in
         ``command``.
     """
-    return dampax_cli.build_parser({name: add for name, (add, _) in SUBCOMMANDS.items()})
+    return _build_parser({name: add for name, (add, _) in SUBCOMMANDS.items()})
 
 
 @contextlib.contextmanager
