@@ -109,15 +109,19 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
 
     Returns:
         (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
-        point; both when the motion does not halt inside the window).
+        point). A motion that does not halt inside the window has one neighbour: the motion
+        that halts at the window's last turning point (th_(h-1) = its threshold, th_h NaN);
+        none without a turning point inside the window.
     """
     from types import SimpleNamespace
 
     p = params if isinstance(params, dict) else params._asdict()
     ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
     th, halts = thresholds(ns, m, g, k3)
-    if not halts or th.size == 0:
+    if th.size == 0:
         return math.nan, math.nan
+    if not halts:  # it halts after the window: the neighbour halts at its last turning point
+        return float(th[-1]), math.nan
     h = th.size - 1
     return (float(th[h - 1]) if h >= 1 else math.nan), float(th[h])
 
