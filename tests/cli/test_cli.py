@@ -131,7 +131,7 @@ def _fake_reference(monkeypatch, behaviour):
     """Replace the DOP853 reference by the exact half-swings, or make it fail."""
     import dampax._studies._summary as summary
 
-    real = summary.solve
+    real = summary.solve_checked  # run_models checked its input; the reference's solve
     seen = {}
 
     def solve(osc, x0, v0, **options):
@@ -142,7 +142,7 @@ def _fake_reference(monkeypatch, behaviour):
             raise ValueError("the reference ran out of its budget (a stand-in failure)")
         return real(osc, x0, v0, method="coulomb_exact")
 
-    monkeypatch.setattr(summary, "solve", solve)
+    monkeypatch.setattr(summary, "solve_checked", solve)
     return seen
 
 

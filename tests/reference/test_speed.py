@@ -248,7 +248,8 @@ def test_run_models_is_kept_compiled_and_equals_the_traced_path():
     as the traced route, a second oscillator compiles nothing, the programs are on disk."""
     import equinox as eqx
 
-    from dampax import _cache, _summary
+    from dampax import _cache
+    from dampax._studies import _summary
 
     osc = dp.Oscillator(m=1.0, k=30.0, mu=0.0288, D=2.95)
     run = _summary.run_models(osc, 0.2, 0.0, models=["matched", "matched_tail"])
