@@ -691,10 +691,10 @@ def test_two_swings_with_two_optima_fail_with_the_reason(benchmark_module):
 
 @pytest.mark.parametrize("power, scale", [(2, 3.0), (4, 2.5), (1, 5.0), (3, 7.0)])
 def test_profile_side_finds_where_the_cost_reaches_the_interval(power, scale):
-    """_checks.profile_side on exact profiles rise(d) = (d / (scale d0))^power: the side ends
+    """_profile.profile_side on exact profiles rise(d) = (d / (scale d0))^power: the side ends
     where the rise reaches 1, at d = scale d0 (effective c = 1/scale^2); a flat profile is
     unbounded (0: the fit fails), one that reaches the parameter's bound ends there."""
-    from dampax._fit._checks import PROFILE_FAIL, profile_side
+    from dampax._fit._profile import PROFILE_FAIL, profile_side
 
     d0 = 0.7
 
@@ -714,9 +714,9 @@ def test_profile_side_finds_where_the_cost_reaches_the_interval(power, scale):
 
 
 def test_transferred_start_keeps_the_decay_rate():
-    """_checks.transferred_start: the held constant's decay rate at A/2 (eq. 21's envelope
+    """_profile.transferred_start: the held constant's decay rate at A/2 (eq. 21's envelope
     dA/dt = -(d0 + d1 A + d2 A^2)) is split equally among the others."""
-    from dampax._fit._checks import transferred_start
+    from dampax._fit._profile import transferred_start
 
     scale, A = {"mu": 2.4, "b": 0.5, "D": 1.1}, 0.46
     params = {"mu": 0.01, "b": 3.0, "D": 0.2}

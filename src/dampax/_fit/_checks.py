@@ -49,6 +49,7 @@ from ._core import FIT_RESULTS
 from ._dist import chi2_isf, chi2_sf, f_sf
 from ._guess import Analysis, despike
 from ._intervals import hac_covariance
+from ._profile import LR_CHI2, PROFILE_FAIL, PROFILE_REACH, bound_tests, profile_ratios
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
 ABSURD = 10.0
@@ -70,21 +71,6 @@ END_PERIODS = 4.0
 #: its delta-method standard error otherwise, where the decrement in noise variances bounds
 #: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
-#: with a parameter held 2 interval sd from its value and the others refitted, the cost rises
-#: c times what the intervals assume (c = 1 where the model is linear in its parameters): the
-#: bound of the interval on that side lies at 1/sqrt(c) of the reported distance, and for
-#: c < 1 ``conf_interval`` widens that side by 1/sqrt(c) (c > 1: conservative, kept). Below
-#: c = 1/4 (the bound beyond twice the reported one) one profile point no longer measures it:
-#: the side is followed out (:func:`profile_side`) to where the cost rises as much as the
-#: interval assumes, at most PROFILE_REACH times the reported distance; a side whose bound
-#: lies farther (the cost flat: the data do not bound the parameter there) fails the fit
-PROFILE_MEASURE = 0.25
-PROFILE_REACH = 8.0
-#: profile fits at most spent on following one side out
-PROFILE_EVALS = 4
-#: c of a side whose bound lies beyond PROFILE_REACH (the failure)
-PROFILE_FAIL = 1.0 / PROFILE_REACH ** 2
-
 
 def check_sampling(t: np.ndarray, x: np.ndarray) -> None:
     """ValueError for constant time, mostly repeated time stamps or a constant trace (the
@@ -398,164 +384,6 @@ def null_directions(jac, names) -> list:
     return out
 
 
-#: the Wald test of a damping constant = 0 and the likelihood-ratio test must agree at this
-#: level: z = 2.576 and chi2(1) = 6.63 (1 %)
-LR_LEVEL = 0.01
-LR_Z = 2.5758293035489004
-LR_CHI2 = LR_Z * LR_Z
-
-
-#: which power of the amplitude each damping constant's decay rate carries (eq. 21: the
-#: envelope falls as dA/dt = -(d0 + d1 A + d2 A^2))
-_POWER = {"mu": 0, "b": 1, "D": 2}
-
-
-def transferred_start(name: str, params: dict, others, d_scale: dict, amplitude: float):
-    """A start for the fit with ``name`` held at 0: its decay rate handed to the other damping
-    constants. At the motion's mean amplitude A/2 the held term's rate d_i (A/2)^i is split
-    equally among the other terms j (d_j += d_i (A/2)^(i-j) / their number): where the others
-    explain the same decay, which a refit from the fit's own values (where they may lie near
-    0, far in the optimizer's log-coordinates) does not reach.
-
-    Arguments:
-        d_scale: d per unit of each constant at the fitted w0 (eq. 21).
-        amplitude: the fitted initial amplitude A.
-    Returns:
-        {constant: start}, or None where nothing can take the decay over.
-    """
-    others = [o for o in others if o != name and d_scale.get(o, 0.0) > 0.0]
-    if not others or not (amplitude > 0.0 and math.isfinite(amplitude)):
-        return None
-    a = 0.5 * amplitude
-    rate = params[name] * d_scale[name] * a ** _POWER[name] / len(others)
-    return {o: params[o] + rate / (a ** _POWER[o] * d_scale[o]) for o in others}
-
-
-def bound_tests(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
-                s2: float, *, d_scale: dict | None = None, amplitude: float = math.nan) -> dict:
-    """Wald against likelihood ratio at the bound: each damping constant of ``names`` whose
-    interval excludes 0 at 1 % (value / sd > :data:`LR_Z`) is held at 0 and the others are
-    fitted again (``profile(name, 0)``, from the fit's values, and where that rises beyond the
-    test's point ``profile(name, 0, start, batch=True)``: a batch of starts around
-    :func:`transferred_start`, as the fit's own; the lower cost kept); the rise of the cost,
-    in long-run noise variances (s2 (sd / stderr)^2: the intervals' own variance, which allows
-    for correlated noise), is the likelihood-ratio chi2(1) of the same hypothesis. Where the
-    model is linear in its parameters both tests agree (chi2 = z^2); a rise below chi2(1)'s
-    1 % point while the Wald z is beyond it means a valley in the cost: the decay the constant
-    explains is explained nearly as well by the others, far outside the intervals.
-
-    Returns:
-        {name: (Wald z, likelihood-ratio chi2)} for the constants tested.
-    """
-    out = {}
-    for name in names:
-        v, s, se = params[name], sd.get(name, math.nan), stderr.get(name, math.nan)
-        if not (math.isfinite(s) and s > 0 and math.isfinite(se) and se > 0):
-            continue
-        z = v / s
-        if not z > LR_Z:
-            continue
-        unit = s2 * (s / se) ** 2
-        c = profile(name, 0.0)
-        start = transferred_start(name, params, names, d_scale or {}, amplitude)
-        if start is not None and not (c - chisqr) / unit < LR_CHI2:
-            other = profile(name, 0.0, start, batch=True)
-            c = other if math.isfinite(other) and not other >= c else c
-        if math.isfinite(c):
-            out[name] = (z, (c - chisqr) / unit)
-    return out
-
-
-def profile_side(rise, d0: float, c0: float, *, limit: float = math.inf) -> float:
-    """Where a side of an interval ends, for a cost that is not near a quadratic: ``rise(d)``
-    is the profile's rise at distance d from the value over the rise the interval assumes
-    (c0 = rise(d0)); from c0 < :data:`PROFILE_MEASURE` the side is followed out to the point
-    where the rise reaches 1: each next distance from the power law through the last two
-    points (a quadratic from the first), at most :data:`PROFILE_REACH` d0, and once the point
-    is bracketed, interpolated by that power law (at most :data:`PROFILE_EVALS` profile fits;
-    exact for rise = c d^p).
-
-    Arguments:
-        limit: the distance to the parameter's bound (0 for a damping constant): a side whose
-            rise stays below 1 up to there reaches the bound.
-    Returns:
-        the effective c = (d0 / d_bound)^2 of the side (1/c^(1/2) is its widening);
-        c0 where c0 >= PROFILE_MEASURE; 0 where the bound lies beyond the reach.
-    """
-    if not (math.isfinite(c0) and c0 < PROFILE_MEASURE):
-        return c0
-    reach = min(PROFILE_REACH * d0, limit)
-    lo, hi = (d0, c0), None  # the farthest point below 1, the nearest at or above 1
-
-    def power_law(p1, p2, target=1.0):  # the d where the power law through both is target
-        (d1, c1), (d2, c2) = p1, p2
-        if c1 > 0 and c2 > 0 and c1 != c2 and d1 != d2:
-            p = min(max(math.log(c2 / c1) / math.log(d2 / d1), 0.5), 4.0)
-            return d2 * (target / c2) ** (1.0 / p)
-        return None
-
-    prev = None
-    for _ in range(PROFILE_EVALS):
-        if hi is not None:
-            d = power_law(lo, hi)
-            d = 0.5 * (lo[0] + hi[0]) if d is None or not lo[0] < d < hi[0] else d
-        else:
-            d = power_law(prev, lo) if prev is not None else None
-            if d is None:
-                d = lo[0] / math.sqrt(lo[1]) if lo[1] > 0 else 4.0 * lo[0]
-            d = min(max(d, 1.25 * lo[0]), reach)
-        c = rise(d)
-        if not math.isfinite(c):
-            break
-        if abs(c - 1.0) < 0.05:
-            return (d0 / d) ** 2
-        if c >= 1.0:
-            hi = (d, c)
-        else:
-            prev, lo = lo, (d, c)
-            if d >= reach and hi is None:
-                break
-    if hi is not None:  # the bracket's power-law point
-        d = power_law(lo, hi)
-        d = 0.5 * (lo[0] + hi[0]) if d is None or not lo[0] <= d <= hi[0] else d
-        return (d0 / d) ** 2
-    if lo[0] >= limit:  # the side reaches the parameter's bound (its interval is clipped)
-        return (d0 / limit) ** 2
-    return 0.0
-
-
-def profile_ratios(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
-                   s2: float, z: float = 2.0) -> dict:
-    """The intervals against the cost itself: each parameter of ``names`` is held at its
-    value -+ z interval sd and the others are fitted again (``profile(name, value)`` returns
-    that fit's chi-square); the rise of the cost over the rise the intervals assume (z^2
-    times (sd / stderr)^2 noise variances) is 1 where the model is linear in its parameters.
-    A side that rises less than :data:`PROFILE_MEASURE` is followed out
-    (:func:`profile_side`): its value is then the effective ratio of where it ends.
-
-    Returns:
-        {name: (ratio below, ratio above)} (NaN where a side leaves the allowed range).
-    """
-    out = {}
-    for name in names:
-        v, s, se = params[name], sd.get(name, math.nan), stderr.get(name, math.nan)
-        if not (math.isfinite(s) and s > 0 and math.isfinite(se) and se > 0):
-            continue
-        pred = z * z * (s / se) ** 2 * s2
-        sides = []
-        for sgn in (-1.0, 1.0):
-            limit = v if (sgn < 0 and name in ("mu", "b", "D", "w0")) else math.inf
-
-            def rise(d, sgn=sgn, limit=limit, name=name, v=v, pred=pred):
-                c = profile(name, v + sgn * d) if d < limit else profile(name, 0.0)
-                return (c - chisqr) / pred if math.isfinite(c) else math.nan
-
-            if z * s >= limit:
-                sides.append(math.nan)
-                continue
-            sides.append(profile_side(rise, z * s, rise(z * s), limit=limit))
-        out[name] = tuple(sides)
-    return out
 
 
 def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an: Analysis,

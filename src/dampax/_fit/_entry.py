@@ -71,9 +71,11 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
             or a window that fixes the combined decay of some damping terms but not their
             split ("mu and D are not separately identifiable ...: fix all but one of them").
     """
+    joint = isinstance(trace_or_t, (list, tuple)) and x is None
     kwargs = dict(oscillator=oscillator, free=free, model=model, k3=k3, mu_s=mu_s,
-                  fit_omega0=fit_omega0, offset=offset, **options(window, solver))
-    if isinstance(trace_or_t, (list, tuple)) and x is None:
+                  fit_omega0=fit_omega0, offset=offset,
+                  **options(window, solver, check=not joint))  # fit_joint checks its own
+    if joint:
         kwargs["shared"] = shared
     elif shared is not None:
         raise ValueError("shared: names constants common to several runs; it needs a list of "

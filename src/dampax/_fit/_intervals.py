@@ -176,7 +176,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
 def normal_intervals(values: dict, sd: dict, level: float, nonneg=(), scale=None) -> dict:
     """{name: (lo, hi)} = value -+ z sd at the two-sided ``level`` (clipped at 0 for
     ``nonneg``); ``scale``: {name: (below, above)} factors of the two sides (the profile's
-    correction, ``_checks.PROFILE_FAIL``)."""
+    correction, ``_profile.PROFILE_FAIL``)."""
     if not 0.0 < level < 1.0:
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     z = NormalDist().inv_cdf(0.5 + 0.5 * level)

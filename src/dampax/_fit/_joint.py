@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._trace import Trace
-from ._api import _bucket, _check_max_steps, _pad, _swings_bucket, _units_of, fit
+from ._api import _bucket, _pad, _swings_bucket, _units_of, fit
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -65,6 +65,7 @@ from ._joint_problem import (
     run_joint_core,
 )
 from ._joint_result import JointResult, _result
+from ._options import LeastSquares, Window
 from ._params import (
     DAMPING,
     Constants,
@@ -167,7 +168,12 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
         raise ValueError(f"loss: a joint fit is least squares ('linear'), got {loss!r}")
     if optimizer != "lm":
         raise ValueError(f"optimizer: a joint fit uses 'lm', got {optimizer!r}")
-    max_steps = _check_max_steps(max_steps)
+    # the settings checked once, here (dp.fit hands a list of runs over unchecked)
+    checked = LeastSquares(loss=loss, optimizer=optimizer, rtol=rtol, atol=atol,
+                           max_steps=max_steps, starts=starts, seed=seed,
+                           max_swings=max_swings).checked()
+    max_steps, starts, max_swings = checked.max_steps, checked.starts, checked.max_swings
+    units = Window(units=units).checked().units
     per_mass = oscillator is None
     if fit_omega0 is None:
         fit_omega0 = per_mass

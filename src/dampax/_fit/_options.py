@@ -124,9 +124,10 @@ class LeastSquares(NamedTuple):
             _positive_int("LeastSquares.max_swings", self.max_swings, allow_none=True))
 
 
-def options(window, solver) -> dict:
+def options(window, solver, *, check: bool = True) -> dict:
     """The keyword arguments of the fit's implementation from a :class:`Window` and a
-    :class:`LeastSquares` (each checked here, at the edge)."""
+    :class:`LeastSquares`, each checked here, at the edge (``check=False``: by the callee,
+    ``fit_joint``, which checks them itself)."""
     window = Window() if window is None else window
     solver = LeastSquares() if solver is None else solver
     if not isinstance(window, Window):
@@ -135,4 +136,6 @@ def options(window, solver) -> dict:
     if not isinstance(solver, LeastSquares):
         raise ValueError(f"solver must be a dp.LeastSquares(loss=..., rtol=..., "
                          f"max_steps=..., starts=...), got {type(solver).__name__}")
-    return {**window.checked()._asdict(), **solver.checked()._asdict()}
+    if check:
+        window, solver = window.checked(), solver.checked()
+    return {**window._asdict(), **solver._asdict()}

@@ -146,7 +146,7 @@ class FitResult:
         (``dampax._fit._intervals``: why this method), normal intervals value +- z sd,
         clipped at 0 for the damping constants; a side over which the profile of the cost
         rises c < 1 times what the interval assumes is widened by 1/sqrt(c)
-        (``diagnostics["interval_scale"]``, ``_checks.PROFILE_FAIL``).
+        (``diagnostics["interval_scale"]``, ``_profile.PROFILE_FAIL``).
 
         Arguments:
             level: two-sided coverage, in (0, 1).

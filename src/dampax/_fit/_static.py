@@ -34,8 +34,8 @@ import numpy as np
 
 from .._oscillator import Oscillator
 from .._solve import solve
-from ._checks import LR_CHI2, LR_Z
 from ._params import PARAMS, oscillator_values
+from ._profile import LR_CHI2, LR_Z
 
 #: fits at fixed mu_s of the best-screening candidates, and the most fits at fixed mu_s in all
 REFINE = 2
@@ -178,9 +178,9 @@ def other_halt_check(res, others: dict):
     with mu outside its interval (``_static.other_halts``): with mu held at each value of
     ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
     the fit,
-    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_checks.bound_tests``),
-    below :data:`~dampax._fit._checks.LR_CHI2` (1 %) while mu differs by more than
-    :data:`~dampax._fit._checks.LR_Z` interval sd: the data hold two answers, and the
+    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``),
+    below :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
+    :data:`~dampax._fit._profile.LR_Z` interval sd: the data hold two answers, and the
     interval of one of them is no interval."""
 
     sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)

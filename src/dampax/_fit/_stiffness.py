@@ -12,9 +12,9 @@ import math
 
 import numpy as np
 
-from ._checks import PROFILE_FAIL, PROFILE_REACH, profile_side
 from ._dist import norm_ppf
 from ._params import PARAMS, oscillator_values
+from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
 
 
 def fit_k3(fit, trace_or_t, x, *, free, options):
@@ -77,10 +77,10 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
     g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
     if np.all(np.isfinite(g)) and math.isfinite(sd_e):
         extra = np.outer(g, g) * sd_e * sd_e
-    # k3's interval against the cost itself (as _checks.profile_ratios for the others): S at
+    # k3's interval against the cost itself (as _profile.profile_ratios for the others): S at
     # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
     # c < 1 times that is widened by 1/sqrt(c) (followed out where c < 1/4:
-    # _checks.profile_side); where its bound lies beyond the reach (S is flat: where the block
+    # _profile.profile_side); where its bound lies beyond the reach (S is flat: where the block
     # sticks moves with k3 and changes the cost by steps) the interval does not hold
     success, reason = best.success, best.reason
     if math.isfinite(sd_e) and sd_e > 0 and best.success:
