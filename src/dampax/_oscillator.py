@@ -44,7 +44,11 @@ def known_linear(osc) -> bool:
 def check_finite(name: str, value) -> None:
     """Raise ValueError naming ``name`` when a concrete ``value`` holds NaN or inf."""
     if is_concrete(value):
-        arr = np.asarray(value, dtype=float)
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            raise ValueError(f"{name} must be a finite real number (or an array of them), "
+                             f"got {value!r}") from None
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{name} must be finite, got {value!r}")
 

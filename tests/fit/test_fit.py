@@ -737,16 +737,17 @@ def test_fit_options_are_objects_checked_when_made():
     keywords = [p.name for p in inspect.signature(dp.fit).parameters.values()
                 if p.kind is inspect.Parameter.KEYWORD_ONLY]
     assert len(keywords) <= 10 and {"window", "solver"} <= set(keywords), keywords
-    for bad, field in [(dp.Window(start="later"), "Window.start"),
-                       (dp.Window(start=2.0, end=1.0), "Window.end"),
-                       (dp.Window(units=" "), "Window.units"),
-                       (dp.LeastSquares(rtol=0.0), "LeastSquares.rtol"),
-                       (dp.LeastSquares(starts=2.5), "LeastSquares.starts"),
-                       (dp.LeastSquares(max_swings=0), "LeastSquares.max_swings"),
-                       (dp.LeastSquares(p0=[1.0]), "LeastSquares.p0"),
-                       (dp.LeastSquares(optimizer="newton"), "LeastSquares.optimizer")]:
+    for bad, field in [(lambda: dp.Window(start="later"), "Window.start"),
+                       (lambda: dp.Window(start=2.0, end=1.0), "Window.end"),
+                       (lambda: dp.Window(units=" "), "Window.units"),
+                       (lambda: dp.LeastSquares(rtol=0.0), "LeastSquares.rtol"),
+                       (lambda: dp.LeastSquares(starts=2.5), "LeastSquares.starts"),
+                       (lambda: dp.LeastSquares(max_swings=0), "LeastSquares.max_swings"),
+                       (lambda: dp.LeastSquares(p0=[1.0]), "LeastSquares.p0"),
+                       (lambda: dp.LeastSquares(optimizer="newton"),
+                        "LeastSquares.optimizer")]:
         with pytest.raises(ValueError, match=field.replace(".", r"\.")):
-            bad.checked()
+            bad()  # refused when made (issue 37), not later
     with pytest.raises(ValueError, match="window must be a dp.Window"):
         dp.fit(np.arange(20.0), np.zeros(20), window={"start": "data"})
     with pytest.raises(AttributeError):

@@ -181,6 +181,8 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     n_runs = len(traces)
     starts_at = _per_run(start, n_runs, "start")
     ends_at = _per_run(end, n_runs, "end")
+    for s_at, e_at in zip(starts_at, ends_at, strict=True):  # finite, ordered, as a single fit
+        Window(start=s_at, end=e_at)
     spec = FIT_MODELS[model]
     first = spec.start_from or model
     osc = oscillator_values(oscillator)

@@ -33,63 +33,114 @@ def _positive_float(name: str, value) -> float:
     return float(value)
 
 
-class Window(NamedTuple):
-    """Which samples of a trace are fitted, and the unit of its positions.
+def _time(name: str, value, *, words=()) -> Any:
+    """A window time: a finite real number as a float, one of ``words`` or None."""
+    if value is None or (isinstance(value, str) and value in words):
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or \
+            not math.isfinite(value):
+        allowed = ", ".join([repr(w) for w in words] + ["None", "a finite time [s]"])
+        raise ValueError(f"{name} must be {allowed}, got {value!r}")
+    return float(value)
+
+
+def _window_values(start, end, units) -> tuple:
+    """The checked, normalised fields of a :class:`Window` (ValueError naming the field).
+
+    ``start`` and ``end`` may also be lists of one value per run (a joint fit), each checked.
+    """
+    def times(name, value, words):
+        if isinstance(value, (list, tuple)):
+            if not value:
+                raise ValueError(f"{name}: an empty list (give one value, or one per run)")
+            return [_time(f"{name}[{i}]", v, words=words) for i, v in enumerate(value)]
+        return _time(name, value, words=words)
+
+    start = times("Window.start", start, ("auto", "data"))
+    end = times("Window.end", end, ())
+    n = max(len(v) if isinstance(v, list) else 1 for v in (start, end))
+    starts = start if isinstance(start, list) else [start] * n
+    ends = end if isinstance(end, list) else [end] * n
+    for s, e in zip(starts, ends, strict=False):  # unequal lists: _per_run names them
+        if isinstance(s, float) and isinstance(e, float) and e <= s:
+            raise ValueError(f"Window.end ({e}) must lie after Window.start ({s})")
+    if units is not None and (not isinstance(units, str) or not units.strip()):
+        raise ValueError(f"Window.units must be a non-empty string such as 'm' or 'deg', "
+                         f"got {units!r}")
+    return start, end, None if units is None else units.strip()
+
+
+def check_p0(p0, name: str = "LeastSquares.p0") -> dict | None:
+    """Initial values of a fit, by parameter name, checked: a mapping of names among
+    ``PARAMS`` to finite real numbers; mu, b, D >= 0 (damping constants) and w0 > 0.
+
+    Arguments:
+        p0: None or the mapping.
+        name: the option named in errors.
+
+    Returns:
+        None or a dict of floats.
+
+    Raises:
+        ValueError: naming ``name``, the parameter and the reason.
+    """
+    if p0 is None:
+        return None
+    if not isinstance(p0, Mapping):
+        raise ValueError(f"{name} must be a mapping of parameter name to value, got "
+                         f"{type(p0).__name__}")
+    unknown = sorted(str(k) for k in set(p0) - set(PARAMS))
+    if unknown:
+        raise ValueError(f"{name}: unknown parameter(s) {unknown}; allowed: {list(PARAMS)}")
+    out = {}
+    for key, value in p0.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or \
+                not math.isfinite(value):
+            raise ValueError(f"{name}[{key!r}] must be a finite real number, got {value!r}")
+        value = float(value)
+        if key in ("mu", "b", "D") and value < 0:
+            raise ValueError(f"{name}[{key!r}] must be >= 0 (a damping constant), got {value!r}")
+        if key == "w0" and value <= 0:
+            raise ValueError(f"{name}['w0'] must be > 0 (the angular frequency), got {value!r}")
+        out[key] = value
+    return out
+
+
+class _WindowFields(NamedTuple):
+    start: Any = "auto"
+    end: Any = None
+    units: str | None = None
+
+
+class Window(_WindowFields):
+    """Which samples of a trace are fitted, and the unit of its positions; checked when made
+    (a ValueError naming the field: ``Window.start``, ``Window.end``, ``Window.units``).
 
     Arguments:
         start: where the window begins: "auto" (the first clear extreme after the largest
-            excursion, which skips a hand release), "data" / None (the first sample) or a time
-            [s].
-        end: the window's end time [s] (default None: the last sample).
+            excursion, which skips a hand release), "data" / None (the first sample) or a
+            finite time [s]; for a joint fit also a list of these, one per run.
+        end: the window's end, a finite time [s] after ``start`` (default None: the last
+            sample); for a joint fit also a list, one per run.
         units: the unit of the positions, for the report ("m", "deg", ...); default None: from
             the position column's name of a Trace ("Angle(deg)"), else "m".
     """
 
-    start: Any = "auto"
-    end: float | None = None
-    units: str | None = None
+    __slots__ = ()
+
+    def __new__(cls, start="auto", end=None, units=None):
+        return super().__new__(cls, *_window_values(start, end, units))
+
+    def _replace(self, **changes) -> Window:
+        """A copy with some fields changed, checked as when made."""
+        return type(self)(**{**self._asdict(), **changes})
 
     def checked(self) -> Window:
-        """This window with its values checked (ValueError naming the field)."""
-        start, end, units = self
-        if isinstance(start, str):
-            if start not in ("auto", "data"):
-                raise ValueError(f"Window.start must be 'auto', 'data', None or a time, got "
-                                 f"{start!r}")
-        elif start is not None:
-            if isinstance(start, bool) or not isinstance(start, numbers.Real) or \
-                    not math.isfinite(start):
-                raise ValueError(f"Window.start must be 'auto', 'data', None or a finite time, "
-                                 f"got {start!r}")
-            start = float(start)
-        if end is not None:
-            if isinstance(end, bool) or not isinstance(end, numbers.Real) or \
-                    not math.isfinite(end):
-                raise ValueError(f"Window.end must be a finite time or None, got {end!r}")
-            end = float(end)
-            if isinstance(start, float) and end <= start:
-                raise ValueError(f"Window.end ({end}) must lie after Window.start ({start})")
-        if units is not None and (not isinstance(units, str) or not units.strip()):
-            raise ValueError(f"Window.units must be a non-empty string such as 'm' or 'deg', "
-                             f"got {units!r}")
-        return Window(start, end, None if units is None else units.strip())
+        """This window (its values were checked when it was made)."""
+        return self
 
 
-class LeastSquares(NamedTuple):
-    """How the least-squares problem is solved.
-
-    Arguments:
-        loss: "linear" or "soft_l1" (robust to outliers; its scale from the MAD of a linear
-            fit's residuals).
-        optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
-        rtol, atol: the optimizer's tolerances.
-        max_steps: its step budget (honoured: at most max_steps steps per optimisation;
-            default None: the optimizer's own, continued once where it runs out).
-        starts: global starts (1: the turning-point guess alone); ``seed``: of their jitter.
-        p0: initial values (a mapping by parameter name) overriding the automatic guess.
-        max_swings: the reference model's budget of half-swings (default: from the window).
-    """
-
+class _LeastSquaresFields(NamedTuple):
     loss: str = "linear"
     optimizer: str = "lm"
     rtol: float = 1e-8
@@ -100,28 +151,47 @@ class LeastSquares(NamedTuple):
     p0: Mapping | None = None
     max_swings: int | None = None
 
+
+class LeastSquares(_LeastSquaresFields):
+    """How the least-squares problem is solved; checked when made (a ValueError naming the
+    field, ``LeastSquares.rtol`` ..., and the reason).
+
+    Arguments:
+        loss: "linear" or "soft_l1" (robust to outliers; its scale from the MAD of a linear
+            fit's residuals).
+        optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
+        rtol, atol: the optimizer's tolerances, finite and > 0.
+        max_steps: its step budget (honoured: at most max_steps steps per optimisation;
+            default None: the optimizer's own, continued once where it runs out).
+        starts: global starts (1: the turning-point guess alone); ``seed``: of their jitter,
+            an integer >= 0.
+        p0: initial values (a mapping by parameter name, finite; mu, b, D >= 0, w0 > 0)
+            overriding the automatic guess.
+        max_swings: the reference model's budget of half-swings (default: from the window).
+    """
+
+    __slots__ = ()
+
+    def __new__(cls, loss="linear", optimizer="lm", rtol=1e-8, atol=1e-10, max_steps=None,
+                starts=32, seed=0, p0=None, max_swings=None):
+        check_choice("LeastSquares.loss", loss, LOSSES)
+        check_choice("LeastSquares.optimizer", optimizer, OPTIMIZERS)
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+            raise ValueError(f"LeastSquares.seed must be an integer >= 0, got {seed!r}")
+        return super().__new__(
+            cls, loss, optimizer, _positive_float("LeastSquares.rtol", rtol),
+            _positive_float("LeastSquares.atol", atol),
+            _positive_int("LeastSquares.max_steps", max_steps, allow_none=True),
+            _positive_int("LeastSquares.starts", starts), int(seed), check_p0(p0),
+            _positive_int("LeastSquares.max_swings", max_swings, allow_none=True))
+
+    def _replace(self, **changes) -> LeastSquares:
+        """A copy with some fields changed, checked as when made."""
+        return type(self)(**{**self._asdict(), **changes})
+
     def checked(self) -> LeastSquares:
-        """These settings with their values checked (ValueError naming the field)."""
-        check_choice("LeastSquares.loss", self.loss, LOSSES)
-        check_choice("LeastSquares.optimizer", self.optimizer, OPTIMIZERS)
-        p0 = self.p0
-        if p0 is not None:
-            if not isinstance(p0, Mapping):
-                raise ValueError(f"LeastSquares.p0 must be a mapping of parameter name to "
-                                 f"value, got {type(p0).__name__}")
-            unknown = sorted(set(p0) - set(PARAMS))
-            if unknown:
-                raise ValueError(f"LeastSquares.p0: unknown parameter(s) {unknown}; "
-                                 f"allowed: {list(PARAMS)}")
-            p0 = dict(p0)
-        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral):
-            raise ValueError(f"LeastSquares.seed must be an integer, got {self.seed!r}")
-        return LeastSquares(
-            self.loss, self.optimizer, _positive_float("LeastSquares.rtol", self.rtol),
-            _positive_float("LeastSquares.atol", self.atol),
-            _positive_int("LeastSquares.max_steps", self.max_steps, allow_none=True),
-            _positive_int("LeastSquares.starts", self.starts), int(self.seed), p0,
-            _positive_int("LeastSquares.max_swings", self.max_swings, allow_none=True))
+        """These settings (their values were checked when they were made)."""
+        return self
 
 
 def options(window, solver, *, check: bool = True) -> dict:
@@ -138,4 +208,8 @@ def options(window, solver, *, check: bool = True) -> dict:
                          f"max_steps=..., starts=...), got {type(solver).__name__}")
     if check:
         window, solver = window.checked(), solver.checked()
+        for name in ("start", "end"):
+            if isinstance(getattr(window, name), list):
+                raise ValueError(f"Window.{name}: a list of one value per run is for a joint "
+                                 f"fit of several runs, not a single trace")
     return {**window._asdict(), **solver._asdict()}
