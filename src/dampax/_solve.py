@@ -141,7 +141,44 @@ def check_options(osc, x0, v0, *, method, phase="matched", tail=None, back=0, ka
     else:
         check_finite("x0", x0)
         check_finite("v0", v0)
+    check_amplitude(osc, x0, v0)
     return kappa, back, options
+
+
+#: the smallest and largest start amplitude hypot(x0, v0/w0) [m] the models take: beyond them
+#: the squares the models form (A^2, the energy) underflow or overflow float64 (near 1e-154,
+#: 1e154) and a start of amplitude 1e-155 came out as x(0) = 0 with valid = True (issue 37)
+AMPLITUDE_RANGE = (1e-150, 1e150)
+
+
+def check_amplitude(osc, x0, v0) -> None:
+    """ValueError naming x0, v0 when a concrete start's amplitude A0 = hypot(x0, v0/w0) is
+    neither 0 nor inside :data:`AMPLITUDE_RANGE` (a start at rest inside the sticking band,
+    exact for every model, is always taken).
+
+    Arguments:
+        osc: the Oscillator.
+        x0, v0: the start (scalars or arrays; traced values are not checked).
+    """
+    if not is_concrete(osc, x0, v0):
+        return
+    with np.errstate(all="ignore"):
+        x = np.asarray(x0, dtype=float)
+        v = np.asarray(v0, dtype=float)
+        m, k = np.asarray(osc.m, dtype=float), np.asarray(osc.k, dtype=float)
+        w0 = np.sqrt(k / m)
+        a0 = np.hypot(x, v / w0)
+        band = (v == 0) & (k * np.abs(x) <= np.asarray(osc.mu, dtype=float) * m
+                           * np.asarray(osc.g, dtype=float))
+        low, high = AMPLITUDE_RANGE
+        bad = (a0 != 0) & ~band & ((a0 < low) | (a0 > high))
+    if np.any(bad):
+        value = float(np.asarray(np.broadcast_to(a0, bad.shape))[bad].flat[0])
+        raise ValueError(
+            f"x0, v0: the start's amplitude hypot(x0, v0/w0) = {value:.3g} m is outside "
+            f"[{low:g}, {high:g}] m, where the squares the models form (A^2, the energy) "
+            f"leave float64's range; solve the scaled problem instead (x = s u: x0/s, v0/s "
+            f"with mu/s, D s, k3 s^2) and multiply the positions by s")
 
 
 def solve_checked(osc, x0, v0, *, method, phase="matched", tail=None, back=0, kappa=KAPPA,
@@ -218,6 +255,7 @@ def _solve_auto(osc, x0, v0, *, tolerance, throw, options):
                          "choice differs from point to point): loop over them, or name the "
                          "method")
     reference = check_reference_options(x0, v0, **options)  # x0, v0 too; before either runs
+    check_amplitude(osc, x0, v0)
     try:
         sol = solve_checked(osc, x0, v0, method="ansatz", throw=throw)
     except ValueError:  # the ansatz does not exist here: the reference does

@@ -40,17 +40,77 @@ def rows_per_swing(rtol: float) -> int:
     return max(8, math.ceil(2.0 * steps) + 2)
 
 
+#: the most half-swings a reference solve takes (from t_end, or given as max_swings): about
+#: 12 table rows of 96 bytes each, a few microseconds per step; beyond it a window is refused
+#: with its estimate instead of allocating and integrating for minutes (issue 37)
+MAX_SWINGS = 100_000
+#: the smallest rtol: DOP853 cannot deliver a relative error near float64's epsilon (2.2e-16),
+#: and the step budget grows as rtol^(-1/8) (rtol = 1e-300 overflowed it)
+MIN_RTOL = 1e-14
+
+
+def halt_swings(osc, x0, v0) -> np.ndarray:
+    """An upper bound on the half-swings before the halt (inf where the motion need not halt).
+
+    Sliding friction takes at least mu m g (|x_n| + |x_n+1|) of energy per half-swing, so the
+    amplitude falls by at least 2 mu m g / (k + max(k3, 0) A^2) each time (viscous and
+    quadratic drag, and mu_s >= mu, only make it halt sooner); A is bounded by the start's
+    energy. With mu = 0, or a softening spring the start's energy escapes, the bound is inf.
+
+    Arguments:
+        osc: the Oscillator (concrete).
+        x0, v0: the start (concrete).
+
+    Returns:
+        The bound (an array broadcast over the inputs).
+    """
+    with np.errstate(all="ignore"):
+        k = np.asarray(osc.k, dtype=float)
+        k3 = np.asarray(osc.k3, dtype=float)
+        friction = (np.asarray(osc.mu, dtype=float) * np.asarray(osc.m, dtype=float)
+                    * np.asarray(osc.g, dtype=float))
+        energy = np.asarray(osc.energy(jnp.asarray(x0), jnp.asarray(v0)), dtype=float)
+        # the turning amplitude of this energy: k A^2/2 + k3 A^4/4 = E
+        disc = k * k / 4.0 + k3 * energy
+        soft = np.where(disc > 0, (k / 2.0 - np.sqrt(np.maximum(disc, 0.0)))
+                        / np.where(k3 < 0, -k3 / 2.0, 1.0), np.inf)
+        a_sq = np.where(k3 < 0, soft, 2.0 * energy / k)
+        amp = np.sqrt(np.abs(a_sq))
+        bound = amp * (k + np.maximum(k3, 0.0) * amp * amp) / (2.0 * friction) + 2.0
+        return np.where((friction > 0) & np.isfinite(bound), bound, np.inf)
+
+
 def default_swings(osc, x0, v0, t_end) -> int:
     """max_swings for a concrete window: the swings of the fastest motion in [0, t_end]
-    (w_hi t_end / pi, w_hi the frequency bound of `_engine`) with a margin, rounded up."""
+    (w_hi t_end / pi, w_hi the frequency bound of `_engine`) with a margin, rounded up; at most
+    those before the halt (:func:`halt_swings`), so a t_end long past the halt costs nothing.
+
+    Raises:
+        ValueError: naming t_end when the window needs more than :data:`MAX_SWINGS` swings
+            (a motion that does not halt, integrated over a very long t_end).
+    """
     w0 = np.sqrt(np.asarray(osc.k, dtype=float) / np.asarray(osc.m, dtype=float))
     k3 = np.maximum(np.asarray(osc.k3, dtype=float), 0.0)
     k = np.asarray(osc.k, dtype=float)
     energy = np.asarray(osc.energy(jnp.asarray(x0), jnp.asarray(v0)), dtype=float)
-    w_hi = w0 * np.sqrt(1.0 + 6.0 * k3 * energy / (k * k))
-    swings = np.asarray(t_end, dtype=float) * w_hi / math.pi
+    with np.errstate(all="ignore"):
+        w_hi = w0 * np.sqrt(1.0 + 6.0 * k3 * energy / (k * k))
+        swings = np.asarray(t_end, dtype=float) * w_hi / math.pi
+        swings = np.minimum(swings, halt_swings(osc, x0, v0))
     swings = np.where(np.isfinite(swings), swings, 0.0)
-    return _round_up(int(math.ceil(1.1 * float(np.max(swings)))) + 4)
+    need = 1.1 * float(np.max(swings)) + 4
+    if need > MAX_SWINGS:
+        b = float(np.max(np.asarray(osc.b, dtype=float) / np.asarray(osc.m, dtype=float)))
+        halts = float(np.max(halt_swings(osc, x0, v0)))
+        why = ("the motion does not halt: mu = 0 or a start that escapes" if halts == math.inf
+               else f"sliding friction halts it only after up to {halts:.3g} half-swings")
+        decay = (f"; its amplitude decays as exp(-b t/(2m)), below 1e-12 of the start after "
+                 f"about {2.0 * math.log(1e12) / b:.3g} s" if b > 0 else "")
+        raise ValueError(
+            f"t_end = {float(np.max(np.asarray(t_end, dtype=float))):.3g} s needs about "
+            f"{need:.3g} half-swings of the reference integrator, more than its limit of "
+            f"{MAX_SWINGS} ({why}{decay}); choose a shorter t_end")
+    return _round_up(int(math.ceil(need)))
 
 
 def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoint):
@@ -143,6 +203,14 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
     return solve_reference_checked(osc, x0, v0, **options)
 
 
+def _whole(value, low: int, high: int) -> bool:
+    """Whether ``value`` is a whole number (int, numpy integer or integral float) in
+    [low, high]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        return False
+    return math.isfinite(value) and float(value).is_integer() and low <= value <= high
+
+
 def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: float = 1e-12,
                             max_swings: int | None = None,
                             max_steps_per_swing: int | None = None, ts=None,
@@ -160,14 +228,17 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
     if jnp.asarray(0.0, dtype=float).dtype != jnp.float64:
         raise ValueError("solve_reference needs float64: call "
                          "jax.config.update('jax_enable_x64', True) first")
-    rtol = check_real("rtol", rtol, low=0.0, low_open=True, high=1.0, high_open=True,
-                      hint=" (the relative tolerance of the step-size control)")
+    rtol = check_real("rtol", rtol, low=MIN_RTOL, high=1.0, high_open=True,
+                      hint=" (the relative tolerance of the step-size control; DOP853 cannot"
+                      " deliver less in float64)")
     atol = check_real("atol", atol, low=0.0,
                       hint=" (the absolute tolerance of the step-size control)")
-    if max_swings is not None and (isinstance(max_swings, bool) or int(max_swings) < 1):
-        raise ValueError(f"max_swings must be an int >= 1, got {max_swings!r}")
-    if max_steps_per_swing is not None and int(max_steps_per_swing) < 2:
-        raise ValueError(f"max_steps_per_swing must be an int >= 2, got {max_steps_per_swing!r}")
+    if max_swings is not None and not _whole(max_swings, 1, MAX_SWINGS):
+        raise ValueError(f"max_swings must be an int between 1 and {MAX_SWINGS}, got "
+                         f"{max_swings!r}")
+    if max_steps_per_swing is not None and not _whole(max_steps_per_swing, 2, 1000):
+        raise ValueError(f"max_steps_per_swing must be an int between 2 and 1000, got "
+                         f"{max_steps_per_swing!r}")
     check_finite("x0", x0)
     check_finite("v0", v0)
     if t_end is not None:  # None: the default span, from the oscillator
