@@ -22,7 +22,7 @@ from .._oscillator import Oscillator
 from .._reference import _uniform
 from .._solve import solve
 from .._trace import Trace, load_trace
-from ._checks import check_sampling, check_trace, looks_stuck
+from ._checks import check_gaps, check_sampling, check_time_axis, check_trace, looks_stuck
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -84,6 +84,7 @@ def _prepare(trace_or_t, x):
         raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
     ok = np.isfinite(t) & np.isfinite(x)
     t, x = t[ok], x[ok]
+    check_time_axis(t)
     order = np.argsort(t, kind="stable")
     t, x = t[order], x[order]
     if t.size < 10:
@@ -336,7 +337,10 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
     t, xw = t_all[i0:i1], x_all[i0:i1]
     if t.size < 10:
-        raise ValueError(f"the fit window [{t_all[i0]:g}, {end}] holds fewer than 10 samples")
+        raise ValueError(f"Window.start, Window.end: the fit window [{t_all[i0]:g}, {end}] "
+                         f"holds fewer than 10 samples (the trace runs from {t_all[0]:g} to "
+                         f"{t_all[-1]:g} s)")
+    check_gaps(t)
     an_w = analyse(t, xw, omega0=None if fit_omega0 else osc["w0"])
     check_trace(t, xw, an_w)
     if per_mass:

@@ -72,6 +72,79 @@ END_PERIODS = 4.0
 #: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
 
+#: the largest |time| [s] a fit takes (about 3e7 years; beyond it the time axis is not one of
+#: a free decay, and times near 1e300 overflowed the fit's sums)
+MAX_TIME = 1e15
+#: the median time step must exceed this many float64 spacings of the largest |time|: else
+#: the stamps are quantised by the float format itself (subtract the first stamp first)
+MIN_STEPS_PER_SPACING = 1e3
+#: one gap between samples longer than this share of the span (and this many median steps)
+#: is a stray time stamp, not a pause of the logger
+MAX_GAP_SHARE, MAX_GAP_STEPS = 0.5, 100.0
+
+
+def check_time_axis(t: np.ndarray) -> None:
+    """ValueError naming ``t`` for a time axis that is not one trace's: times that go back
+    (a clock that resets, runs put end to end), times beyond :data:`MAX_TIME`, steps below the
+    float format's resolution, or mostly repeated stamps (every sample twice). One gap over
+    most of the window is :func:`check_gaps`'s (on the window: ``Window.end`` can leave it
+    out).
+
+    Arguments:
+        t: the finite sample times, in the order given (not sorted).
+    """
+    t = np.asarray(t, dtype=float)
+    if t.size < 2:
+        return
+    top = float(np.max(np.abs(t)))
+    if top > MAX_TIME:
+        raise ValueError(f"t: times up to {top:.3g} s, beyond the {MAX_TIME:g} s a trace's "
+                         "clock can hold; give the times in seconds from the start")
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = int(back[0])
+        raise ValueError(f"t: the time column goes back {back.size} time(s), first after sample "
+                         f"{i} ({t[i]:g} s -> {t[i + 1]:g} s): a clock that resets or runs put "
+                         "end to end; fit each run alone (dp.fit([run1, run2, ...]) fits them "
+                         "jointly) or rebuild time from the sample rate (load_trace(rate=...), "
+                         "dampax fit --rate)")
+    steps = np.diff(t)
+    step = float(np.median(steps))
+    if not step > 0.0:
+        raise ValueError(f"t: at least half of the {t.size} time stamps repeat the one before "
+                         "(samples written twice, or buffered stamps); rebuild time from the "
+                         "sample rate (load_trace(rate=...), dampax fit --rate) or drop the "
+                         "repeated rows")
+    if step < MIN_STEPS_PER_SPACING * float(np.spacing(top)):
+        raise ValueError(f"t: the median time step ({step:.3g} s) is within "
+                         f"{MIN_STEPS_PER_SPACING:g} float64 spacings of the times ({top:.3g} "
+                         "s): the stamps are rounded by the number format; subtract the first "
+                         "time stamp before storing them")
+
+
+def check_gaps(t: np.ndarray) -> None:
+    """ValueError naming ``t`` when one gap between the (sorted) samples of a fit window covers
+    more than :data:`MAX_GAP_SHARE` of its span and :data:`MAX_GAP_STEPS` median steps: a stray
+    time stamp, not a pause of the logger.
+
+    Arguments:
+        t: the window's sorted sample times.
+    """
+    t = np.asarray(t, dtype=float)
+    if t.size < 3:
+        return
+    steps = np.diff(t)
+    step = float(np.median(steps))
+    span = float(t[-1] - t[0])
+    i = int(np.argmax(steps))
+    gap = float(steps[i])
+    if span > 0 and gap > MAX_GAP_SHARE * span and gap > MAX_GAP_STEPS * step:
+        raise ValueError(f"t: one gap of {gap:.3g} s between samples {i} and {i + 1} "
+                         f"({t[i]:g} s -> {t[i + 1]:g} s) covers {100 * gap / span:.0f} % of "
+                         f"the trace's span (median step {step:.3g} s): a stray time stamp? "
+                         "Drop it, or end the window before it (Window(end=...), --end)")
+
+
 def check_sampling(t: np.ndarray, x: np.ndarray) -> None:
     """ValueError for constant time, mostly repeated time stamps or a constant trace (the
     checks that must come before any analysis)."""
@@ -162,13 +235,14 @@ def phase_drift(t: np.ndarray, x: np.ndarray, model: np.ndarray, w0: float, offs
     period: the angle of sum (x - offset) e^(-i w0 t) over sum (model - offset) e^(-i w0 t)
     on each whole period where the model swings above ``level``, minus its median."""
     period = 2.0 * math.pi / w0
-    k = np.floor((t - t[0]) / period).astype(int)
+    k = np.floor((t - t[0]) / period).astype(np.int64)
     phases = []
     rot = np.exp(-1j * w0 * (t - t[0]))
-    for j in range(int(k[-1])):  # whole periods only
+    # only the periods that hold samples (at most t.size of them, however long the gaps
+    # between them: a loop over every period ran 1e9 times after one stray time stamp)
+    periods, counts = np.unique(k[k < k[-1]], return_counts=True)  # whole periods only
+    for j in periods[counts >= 8]:
         sel = k == j
-        if np.sum(sel) < 8:
-            continue
         ym = model[sel] - offset
         if 0.5 * float(np.ptp(ym)) <= level:
             continue
