@@ -31,8 +31,17 @@ def run(args: argparse.Namespace) -> int:
     check_digits(args.digits)
     if args.plot:
         check_plot_path(args.plot)
+    if args.t_end is not None and not (math.isfinite(args.t_end) and args.t_end > 0):
+        raise ValueError(f"--t-end must be a finite time > 0 [s], got {args.t_end:g}")
     osc = oscillator_from(args)
+    check_start(osc, args)
     models = applicable_models(osc, reference=not args.no_reference)
+    if "matched" not in models:
+        limit = 2.0 * math.sqrt(args.k * args.m)
+        raise ValueError(f"--b {args.b:g}: the oscillator is not underdamped (b >= 2 sqrt(k m) "
+                         f"= {limit:.4g} kg/s); the matched ansatz and this table need "
+                         f"b < {limit:.4g}; for the overdamped motion use "
+                         f"dp.solve(osc, x0, v0, method='reference')")
     run = run_models(osc, args.x0, args.v0, models=models, n_turning=max(args.turning, 1),
                      t_end=args.t_end)
     matched = run.results["matched"]
@@ -48,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{PROG}: note: mu_s > mu: the matched ansatz's amplitude, phase and turning "
               "points are those of mu_s = mu (before the halt)", file=sys.stderr)
     if matched.error is not None:
-        raise ValueError(matched.error)
+        raise ValueError(f"the matched ansatz does not exist for {_flags(args)}: "
+                         f"{matched.error}")
     for note in run.notes:
         print(f"{PROG}: note: {note}", file=sys.stderr)
 
@@ -107,3 +117,26 @@ def run(args: argparse.Namespace) -> int:
         print()
         print(f"  plot written to {path}")
     return 0
+
+
+def _flags(args: argparse.Namespace) -> str:
+    """The options that shape the start and its damping, as given: "--x0 0.2, --D 15"."""
+    named = [("--x0", args.x0), ("--v0", args.v0), ("--mu", args.mu), ("--b", args.b),
+             ("--D", args.D)]
+    return ", ".join(f"{flag} {value:g}" for flag, value in named
+                     if value != 0 or flag == "--x0")
+
+
+def check_start(osc, args: argparse.Namespace) -> None:
+    """ValueError naming --x0 / --v0 for a start that is not finite or whose amplitude is
+    outside the models' range (``dampax._solve.AMPLITUDE_RANGE``)."""
+    from .._solve import check_amplitude
+
+    for flag, value in (("--x0", args.x0), ("--v0", args.v0)):
+        if not math.isfinite(value):
+            raise ValueError(f"{flag} must be a finite number, got {value:g}")
+    try:
+        check_amplitude(osc, args.x0, args.v0)
+    except ValueError as err:
+        raise ValueError(f"--x0 {args.x0:g}, --v0 {args.v0:g}: "
+                         f"{str(err).removeprefix('x0, v0: ')}") from None
