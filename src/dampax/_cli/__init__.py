@@ -127,7 +127,9 @@ def run_parsed(args: argparse.Namespace) -> int:
     Returns:
         The exit status: 0 on success, 2 on invalid input (one line on stderr), 130 when
         interrupted (Ctrl-C; no half-written file is left); a subcommand may return others
-        (``dampax fit``: 3, 4). With ``--quiet`` only error lines are printed.
+        (``dampax fit``: 3, 4); 1 for any other exception (one line naming its type: no
+        traceback reaches the user unless ``DAMPAX_TRACEBACK=1``). With ``--quiet`` only
+        error lines are printed.
     """
     run = SUBCOMMANDS[args.command][1]
     try:
@@ -141,6 +143,13 @@ def run_parsed(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:  # SIGINT raised in Python where no watcher could be installed
         print(f"\n{PROG}: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # an input no check caught, or a bug: one line, no traceback
+        if os.environ.get("DAMPAX_TRACEBACK"):
+            raise
+        message = " ".join(str(err).split()) or "(no message)"
+        print(f"{PROG}: error: unexpected {type(err).__name__}: {message} (set "
+              f"DAMPAX_TRACEBACK=1 for the traceback, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":
