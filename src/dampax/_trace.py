@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import re
-from pathlib import Path
+import stat
 
 import jax
 import numpy as np
@@ -25,6 +26,54 @@ _DELIMITERS = (";", "\t", ",", None)
 _SEPARATOR_LINE = re.compile(r"^[\s\-=_*~+|#.:]{3,}$")
 _CLOCK = re.compile(r"^(\d{1,2}):(\d{2}):(\d{2}(?:\.\d*)?)$")
 _SAMPLE_LINES = 200  # lines used to choose the delimiter and the header
+#: the largest trace file read (64 MiB, about 3 million rows of two columns, a minute or two of
+#: parsing): a larger file, a FIFO, a device such as /dev/zero or a folder is refused at once
+MAX_TRACE_BYTES = 64 * 1024 * 1024
+
+
+def read_regular_file(path, *, max_bytes: int = MAX_TRACE_BYTES, what: str = "trace") -> bytes:
+    """The bytes of a regular file of at most ``max_bytes``, without blocking.
+
+    The file is opened non-blocking (a FIFO would wait for a writer forever) and checked on
+    the open descriptor (no race with a file swapped in between): a FIFO, a device
+    (``/dev/zero`` raised MemoryError), a socket or a folder, and a file larger than the limit,
+    are refused with a ValueError naming the path.
+
+    Arguments:
+        path: the file.
+        max_bytes: the size limit.
+        what: what the file should hold, for the message.
+
+    Returns:
+        The file's contents.
+
+    Raises:
+        ValueError: not a regular file, or larger than ``max_bytes``.
+        OSError: the file cannot be opened or read.
+    """
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0)
+    fd = os.open(path, flags)
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            kind = ("a FIFO (named pipe)" if stat.S_ISFIFO(info.st_mode) else
+                    "a folder" if stat.S_ISDIR(info.st_mode) else
+                    "a device" if stat.S_ISCHR(info.st_mode) or stat.S_ISBLK(info.st_mode)
+                    else "a socket" if stat.S_ISSOCK(info.st_mode) else "not a regular file")
+            raise ValueError(f"{path}: {kind}, not a {what} file: give a regular file")
+        if info.st_size > max_bytes:
+            raise ValueError(f"{path}: {info.st_size} bytes, more than the {max_bytes} "
+                             f"({max_bytes / 2**20:.3g} MiB) a {what} file may hold here; cut "
+                             f"it to the decay of interest (or decimate it)")
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as f:
+        data = f.read(max_bytes + 1)
+    if len(data) > max_bytes:  # it grew while being read
+        raise ValueError(f"{path}: more than the {max_bytes} bytes a {what} file may hold "
+                         f"here (it grew while being read)")
+    return data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,13 +246,17 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
         A :class:`Trace` with float64 ``t`` and ``x``; ``n_dropped`` counts the rows left out.
 
     Raises:
-        ValueError: the file has no data, only one column (and no ``rate``), no usable rows
+        ValueError: not a regular file or larger than :data:`MAX_TRACE_BYTES`; the file has
+            no data, only one column (and no ``rate``), no usable rows
             (every row has text or nothing in the chosen columns), an unknown column name,
             an index out of range, or a bad ``rate``. The message names the file.
         OSError: the file cannot be read.
+
+    A FIFO, a device, a folder or a file larger than :data:`MAX_TRACE_BYTES` is refused before
+    reading (ValueError naming the file).
     """
     path_str = str(path)
-    raw = Path(path).read_bytes()
+    raw = read_regular_file(path)
     text = raw.decode("utf-8-sig", errors="replace")
     lines = _content_lines(text)
     if not lines:
