@@ -6,7 +6,7 @@ them (issue 12). Here the argument is reduced by multiples of pi/2 (subtracted i
 parts, as Cephes does) and the functions are polynomials on [-pi/4, pi/4], which the compiler
 vectorizes:
 
-- :func:`sincos`: (sin u, cos u) within 2 ulp of the libm values for |u| < 8e8 rad;
+- :func:`sincos`: (sin u, cos u) within 2 ulp of the true values for |u| < 8e8 rad;
   beyond, and for inf/NaN, ``jnp.sin``/``jnp.cos`` themselves (a branch taken only when some
   argument of the call is that large). Derivatives are exact: d sin = cos, d cos = -sin, from
   the same values.
@@ -75,7 +75,7 @@ def sincos(u):
         u: angles in radians (any shape).
 
     Returns:
-        (sin u, cos u), within 2 ulp of ``jnp.sin``/``jnp.cos``; those themselves when some
+        (sin u, cos u), within 2 ulp of the true values; ``jnp.sin``/``jnp.cos`` when some
         |u| of the call (of the whole vmapped batch) reaches 8e8 or is not finite.
     """
     u = jnp.asarray(u, dtype=float)
@@ -93,7 +93,7 @@ def _sincos_jvp(primals, tangents):
 def _tan_fraction(u):
     """(num, den) with num/den = tan(u), for |u| < 8e8 (f(t) needs 0 <= u < pi/2); den != 0.
 
-    Within 3 ulp of the libm value, derivative within 2e-15.
+    Within 3 ulp of the true value, derivative within 2e-15.
     """
     n, z = _reduce(u)
     zz = z * z
