@@ -33,6 +33,9 @@ LOSSES = ("linear", "soft_l1")
 #: of ``--quick`` (a smoke run). The grids include d0 = 0 and d2 = 0 for the summary table.
 ERRORMAP_DEFAULTS = dict(d0="0:0.1:16", d1="0", d2="0:0.75:16", phi0="0:7*pi/8:8",
                          periods=20.0, samples_per_period=64, chunk_size=128)
+#: ``dampax errormap``: a grid of more points (about 10 minutes at the default window on a
+#: 2-core machine) runs only with ``--yes``
+ERRORMAP_CONFIRM_POINTS = 100_000
 ERRORMAP_QUICK = dict(d0="0:0.1:4", d1="0", d2="0:0.75:4", phi0="0,pi/2",
                       periods=10.0, samples_per_period=32, chunk_size=32)
 
@@ -104,6 +107,9 @@ def add_errormap_arguments(parser: argparse.ArgumentParser) -> None:
                       help=f"viscous ratio d1/w0 (default: {d['d1']})")
     grid.add_argument("--quick", action="store_true",
                       help="a 4 x 4 x 2 smoke run over 10 periods (explicit options win)")
+    grid.add_argument("--yes", action="store_true",
+                      help=f"run a grid of more than {ERRORMAP_CONFIRM_POINTS} points (without "
+                           "it such a grid is refused with its memory and time estimate)")
     run = parser.add_argument_group("models and reference")
     run.add_argument("--models", default=",".join(DEFAULT_MODELS),
                      help=f"comma list of {', '.join(ANALYTIC)} (default: %(default)s)")

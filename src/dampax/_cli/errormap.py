@@ -9,7 +9,12 @@ import sys
 
 import numpy as np
 
-from dampax_cli._arguments import ERRORMAP_DEFAULTS, ERRORMAP_PLOTS, ERRORMAP_QUICK
+from dampax_cli._arguments import (
+    ERRORMAP_CONFIRM_POINTS,
+    ERRORMAP_DEFAULTS,
+    ERRORMAP_PLOTS,
+    ERRORMAP_QUICK,
+)
 from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
 from .._models._registry import ANALYTIC, MODELS, check_models
@@ -107,7 +112,14 @@ def run(args: argparse.Namespace) -> int:
 
     from .._io import write_netcdf
     from .._studies._distributed import DistributedError, check_processes, check_timeout, initialize
-    from .._studies._maps import _axis, error_map, parse_axis
+    from .._studies._maps import (
+        _axis,
+        check_map_size,
+        duration_text,
+        error_map,
+        map_cost,
+        parse_axis,
+    )
 
     preset = ERRORMAP_QUICK if args.quick else ERRORMAP_DEFAULTS
 
@@ -127,6 +139,16 @@ def run(args: argparse.Namespace) -> int:
                              ("--chunk-size", chunk, 0)):
         if not (math.isfinite(value) and value > low):
             raise ValueError(f"{flag} must be > {low:g}, got {value}")
+    # the size first: a grid beyond the memory is refused, a long one needs --yes (issue 37)
+    sizes = {flag: axes[name].size for flag, name in
+             (("--d0", "d0"), ("--d1", "d1"), ("--d2", "d2"), ("--phi0", "phi0"))}
+    n = check_map_size(sizes, len(models), periods, spp)
+    need, seconds = map_cost(n, len(models), periods, spp)
+    if n > ERRORMAP_CONFIRM_POINTS and not args.yes:
+        raise ValueError(f"{', '.join(sizes)}: a grid of {n} points needs about "
+                         f"{need / 2**20:.0f} MiB of memory and about {duration_text(seconds)} "
+                         f"on a 2-core machine; pass --yes to run it (more than "
+                         f"{ERRORMAP_CONFIRM_POINTS} points), or use coarser axes")
     processes = check_processes(args.processes, "--processes")
     timeout = check_timeout(args.timeout, "--timeout")
     explicit = (args.coordinator, args.process_id, args.num_processes)
@@ -148,10 +170,10 @@ def run(args: argparse.Namespace) -> int:
         except DistributedError as err:
             error(f"{PROG}: error: {err}")
             return 3
-    n = int(np.prod([a.size for a in axes.values()]))
     if rank == 0:
         print(f"{PROG} errormap: {n} points ({axes['d0'].size} d0 x {axes['d1'].size} d1 x "
-              f"{axes['d2'].size} d2 x {axes['phi0'].size} phi0), models "
+              f"{axes['d2'].size} d2 x {axes['phi0'].size} phi0; about "
+              f"{duration_text(seconds)}, {need / 2**20:.2g} MiB), models "
               f"{', '.join(models)}; reference: {args.reference}; window <= {periods:g} "
               f"periods, {spp} samples/period" + (f"; {size} processes" if size > 1 else ""))
     start = time.perf_counter()

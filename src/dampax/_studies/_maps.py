@@ -380,6 +380,81 @@ def _window_estimate(grid, periods: float) -> np.ndarray:
 #: points per step (and device) of the longest windows (see `_tail_count`)
 TAIL_CHUNK = 8
 
+#: host memory a grid point takes [bytes], measured (issue 37): the window estimate's
+#: (points, 129) arrays (5.2 KB), the grid, the outputs and the dataset
+MAP_BYTES_PER_POINT = 6_000
+#: seconds a grid point takes at the default window (20 periods x 64 samples, 4 models),
+#: measured on an idle 2-core machine (the default 2048-point map in 12.9 s, compilation
+#: loaded from the cache): a rough guide for the size checks, not a promise
+MAP_SECONDS_PER_POINT = 6e-3
+#: the share of the machine's memory a map may need before it is refused
+MAP_MEMORY_SHARE = 0.5
+
+
+def physical_memory() -> float:
+    """The machine's memory [bytes] (inf where the platform does not say)."""
+    import os
+
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE")) * float(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return math.inf
+
+
+def map_cost(n_points: int, n_models: int, periods: float,
+             samples_per_period: int) -> tuple[float, float]:
+    """Rough host memory [bytes] and time [s] of an error map of ``n_points`` points (the
+    measured :data:`MAP_BYTES_PER_POINT` and :data:`MAP_SECONDS_PER_POINT`, the time scaled
+    with the samples per point and the models).
+
+    Arguments:
+        n_points: grid points.
+        n_models: analytic models compared.
+        periods, samples_per_period: the window.
+
+    Returns:
+        (bytes, seconds).
+    """
+    samples = min(float(periods) * float(samples_per_period), float(MAX_SAMPLES))
+    seconds = (float(n_points) * MAP_SECONDS_PER_POINT * (samples / 1280.0)
+               * (n_models + 1) / 5.0)
+    return float(n_points) * MAP_BYTES_PER_POINT, seconds
+
+
+def check_map_size(sizes: dict, n_models: int, periods: float,
+                   samples_per_period: int) -> int:
+    """The grid's number of points; ValueError naming the axes when its memory estimate
+    (:func:`map_cost`) exceeds :data:`MAP_MEMORY_SHARE` of the machine's memory.
+
+    Arguments:
+        sizes: the axes' names (or flags) and lengths.
+        n_models, periods, samples_per_period: as in :func:`map_cost`.
+
+    Returns:
+        The number of points.
+    """
+    n_points = math.prod(int(v) for v in sizes.values())
+    need, seconds = map_cost(n_points, n_models, periods, samples_per_period)
+    have = physical_memory()
+    if need > MAP_MEMORY_SHARE * have:
+        shape = " x ".join(f"{v} {k}" for k, v in sizes.items())
+        raise ValueError(
+            f"{', '.join(sizes)}: a grid of {n_points:.4g} points ({shape}) needs about "
+            f"{need / 2**30:.0f} GiB of memory (this machine has {have / 2**30:.0f} GiB) and "
+            f"about {duration_text(seconds)} on a 2-core machine; use coarser axes, or split "
+            f"the grid into maps of a part of an axis each")
+    return n_points
+
+
+def duration_text(seconds: float) -> str:
+    """A duration in the unit that suits it: "40 s", "12 min", "3.5 h", "69 days"."""
+    for unit, size, below in (("s", 1.0, 120.0), ("min", 60.0, 7200.0), ("h", 3600.0, 172800.0),
+                              ("days", 86400.0, math.inf)):
+        if seconds < below:
+            value = seconds / size
+            return f"{value:.2g} {unit}" if value < 10 else f"{value:.0f} {unit}"
+    return "forever"
+
 
 def _tail_count(estimate, step: int, tail_step: int) -> int:
     """How many of the points (sorted by estimated window, longest first) form the tail: those
@@ -491,7 +566,9 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     Raises:
         ValueError: naming the argument, for an empty, non-finite or negative axis, an unknown
             model or reference, chunk_size < 1, periods <= 0, samples_per_period < 2 or
-            more than ``MAX_SAMPLES`` samples per point; processes < 1, or >= 2 in a process
+            more than ``MAX_SAMPLES`` samples per point; a grid whose memory estimate
+            (``map_cost``) exceeds half the machine's memory (its points, memory and time
+            named); processes < 1, or >= 2 in a process
             that already joined a ``jax.distributed`` run; timeout <= 0.
         dampax._studies._distributed.DistributedError: a multi-process run failed: a process died,
             failed or timed out (nothing is returned).
@@ -521,6 +598,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
 
+    check_map_size({k: a.size for k, a in axes.items()}, len(models), periods,
+                   samples_per_period)
     processes = check_processes(processes)
     timeout = check_timeout(timeout)
     cfg = _config(models, reference, periods, samples_per_period, rtol, atol, cubic)
@@ -687,6 +766,10 @@ def _store(pending, step, out_metrics, out_valid, out_info):
 # helpers for the command line and the plots
 
 
+#: the most values one axis of the command line takes ("START:STOP:N")
+MAX_AXIS_POINTS = 1_000_000
+
+
 def parse_axis(text: str, name: str) -> np.ndarray:
     """Grid axis from the command line: "START:STOP:N" (linspace, both ends), "a,b,c" or "a".
 
@@ -696,13 +779,14 @@ def parse_axis(text: str, name: str) -> np.ndarray:
         parts = text.split(":")
         if len(parts) == 3:
             n = int(parts[2])
-            if n < 1:
-                raise ValueError("N must be >= 1")
+            if not 1 <= n <= MAX_AXIS_POINTS:
+                raise ValueError(f"N must be between 1 and {MAX_AXIS_POINTS}")
             return np.linspace(_number(parts[0]), _number(parts[1]), n)
         if len(parts) == 1:
             return np.array([_number(p) for p in parts[0].split(",")], dtype=float)
         raise ValueError("expected START:STOP:N, a,b,c or a single number")
-    except (ValueError, SyntaxError, TypeError, ZeroDivisionError) as err:
+    except (ValueError, SyntaxError, TypeError, ArithmeticError, MemoryError,
+            RecursionError) as err:
         raise ValueError(f"{name}: cannot read {text!r} ({err}); use START:STOP:N, "
                          "a comma list or a number (pi allowed, e.g. 0:7*pi/8:8)") from None
 
