@@ -8,7 +8,9 @@ without importing dampax and JAX; it hands a parsed command to :func:`run_parsed
 Each subcommand module has ``add_arguments(parser)`` and ``run(args) -> exit status`` and is
 registered in :data:`SUBCOMMANDS`. A ValueError from dampax (bad input, a model that does not
 exist) is reported as one line, ``dampax: error: <message>``, with exit status 2 (as argparse
-does for bad syntax); Ctrl-C ends any command with one line and exit status 130. ``--quiet``
+does for bad syntax); Ctrl-C (SIGTERM) ends any command with one line and exit status 130
+(143), removing what it was writing; a command's output files replace the earlier ones together,
+once all are complete. ``--quiet``
 (every subcommand) prints nothing but errors.
 """
 
@@ -27,6 +29,7 @@ from dampax_cli._arguments import COMMANDS
 from dampax_cli._parser import build_parser as _build_parser
 
 from .._cache import keep_every_program
+from .._io import all_or_nothing
 from ._common import PROG, silenced
 
 
@@ -63,7 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 @contextlib.contextmanager
 def _exit_on_interrupt():
-    """Ctrl-C (SIGINT) ends the process at once: one line, exit status 130, partial files gone.
+    """Ctrl-C (SIGINT) or SIGTERM ends the process at once: one line, exit status 130 / 143,
+    partial files and temporary folders gone (``dampax._io.PARTIAL``).
 
     Python raises KeyboardInterrupt only when the main thread runs Python code again (not
     during a long XLA compilation), may raise it inside a garbage-collector callback where it is
@@ -86,22 +90,26 @@ def _exit_on_interrupt():
                 return
             if not data:
                 return  # the pipe was closed: the command is over
-            if signal.SIGINT in data:
-                from .._io import remove_partial_files
+            for signum, word in ((signal.SIGINT, "interrupted"), (signal.SIGTERM, "terminated")):
+                if signum in data:
+                    from .._io import remove_partial_files
 
-                remove_partial_files()
-                with contextlib.suppress(OSError):
-                    os.write(2, f"\n{PROG}: interrupted\n".encode())
-                os._exit(130)
+                    remove_partial_files()
+                    with contextlib.suppress(OSError):
+                        os.write(2, f"\n{PROG}: {word}\n".encode())
+                    os._exit(128 + signum)
 
-    old_handler = signal.signal(signal.SIGINT, lambda signum, frame: None)
+    handled = (signal.SIGINT, signal.SIGTERM)
+    old_handlers = {signum: signal.signal(signum, lambda signum, frame: None)
+                    for signum in handled}
     old_fd = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
-    threading.Thread(target=watch, name="dampax-sigint", daemon=True).start()
+    threading.Thread(target=watch, name="dampax-signals", daemon=True).start()
     try:
         yield
     finally:
         signal.set_wakeup_fd(old_fd)
-        signal.signal(signal.SIGINT, old_handler)
+        for signum, handler in old_handlers.items():
+            signal.signal(signum, handler)
         os.close(write_fd)  # the watcher reads end-of-file and returns
 
 
@@ -134,7 +142,9 @@ def run_parsed(args: argparse.Namespace) -> int:
     run = SUBCOMMANDS[args.command][1]
     try:
         # keep_every_program: a repeated command compiles nothing, not even small programs
-        with _exit_on_interrupt(), keep_every_program(), silenced(getattr(args, "quiet", False)):
+        # all_or_nothing: a command's outputs replace the earlier ones together, when complete
+        with _exit_on_interrupt(), keep_every_program(), all_or_nothing(), \
+                silenced(getattr(args, "quiet", False)):
             return run(args)
     except (ValueError, OSError) as err:
         message = " ".join(str(err).split())

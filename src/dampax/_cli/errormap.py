@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     """Error maps of the analytic models against the reference over a grid of damping ratios."""
     import time
 
-    from .._io import write_netcdf
+    from .._io import all_or_nothing, write_netcdf
     from .._studies._distributed import DistributedError, check_processes, check_timeout, initialize
     from .._studies._maps import (
         _axis,
@@ -195,12 +195,13 @@ def run(args: argparse.Namespace) -> int:
     if bad_ref:
         print(f"{PROG}: note: the reference is not valid at {bad_ref} of {n} points (budget or "
               "not defined there); their metrics are NaN", file=sys.stderr)
-    written = [write_netcdf(ds, out / "errormap.nc")]
     metrics = ERRORMAP_PLOTS[args.plots]
-    if metrics:  # matplotlib is imported only here
-        from .._plot import plot_error_map
+    with all_or_nothing():  # the whole new set of outputs, or the whole earlier one
+        written = [write_netcdf(ds, out / "errormap.nc")]
+        if metrics:  # matplotlib is imported only here
+            from .._plot import plot_error_map
 
-        written += [plot_error_map(ds, metric, out / f"{metric}.png") for metric in metrics]
+            written += [plot_error_map(ds, metric, out / f"{metric}.png") for metric in metrics]
     print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "
           + ", ".join(str(p) for p in written))
     print()

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._io import atomic_path, write_text
+from .._io import atomic_file, write_text
 from .._oscillator import damping_coefficients
 from .._solve import solve
 from ._cases import (
@@ -340,7 +340,7 @@ def write_numbers(rows: Sequence[Number], out: Path) -> tuple[Path, Path]:
     """
     out = Path(out)
     csv_path, md_path = out / "numbers.csv", out / "numbers.md"
-    with atomic_path(csv_path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+    with atomic_file(csv_path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
         writer.writerow(NUMBER_FIELDS)
         for r in rows:

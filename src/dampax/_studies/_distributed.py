@@ -39,13 +39,23 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
-from .._cache import _dump_tree, _source_digest, _TreeUnpickler, compile_cached, exported_dir
+from .._cache import (
+    _digest,
+    _load_tree,
+    _program_text,
+    _read_entry,
+    _write_entry,
+    compile_cached,
+    executable_header,
+    exported_dir,
+    load_executable_bytes,
+)
+from .._io import private_folder
 
 #: Seconds to wait for the processes to connect, and at the gather for the others.
 DEFAULT_TIMEOUT = 300.0
@@ -212,21 +222,6 @@ def gather(arrays, *, timeout: float):
     return multihost_utils.process_allgather(arrays, tiled=False)
 
 
-def _load_trees(data: bytes):
-    """The (in_tree, out_tree) of a kept executable: ``dampax._cache._load_tree``, which also
-    allows the registry of traced calls (a compiled call's argument tree names it)."""
-    import io
-    import pickle
-
-    class Unpickler(_TreeUnpickler):
-        def find_class(self, module, name):
-            if (module, name) == ("jax._src.tree_util", "tracing_registry"):
-                return pickle.Unpickler.find_class(self, module, name)
-            return super().find_class(module, name)
-
-    return Unpickler(io.BytesIO(data)).load()
-
-
 def compile_cached_here(name: str, key, fn, *specs):
     """``dampax._cache.compile_cached`` for a process other than 0 of a ``jax.distributed`` run.
 
@@ -234,10 +229,10 @@ def compile_cached_here(name: str, key, fn, *specs):
     elsewhere), and on a CPU a program's cache key names its devices, which differ from
     process to process: without this, every other process would compile the step again on
     every run (about 10 s for the default map, longer than its share of the work). So the
-    compiled executable of this process is kept too, serialized
-    (``jax.experimental.serialize_executable``), in dampax's ``exported/`` folder, one file per
-    program and process index; a damaged file is compiled again. Like JAX's own cache the file
-    holds machine code: the cache folder must be the user's own.
+    compiled executable of this process is kept too, in dampax's ``exported/`` folder, one file
+    per program and process index, written and verified as every cache file is
+    (``dampax._cache._write_entry`` / ``_read_entry``: the user's own folder, a digest of
+    what shaped the program, an HMAC); a refused or damaged file is compiled again.
 
     Arguments:
         name, key, fn, specs: as for ``compile_cached``.
@@ -245,41 +240,29 @@ def compile_cached_here(name: str, key, fn, *specs):
     Returns:
         The compiled executable.
     """
-    import hashlib
-    import pickle
-
     import jax
-    from jax.experimental import serialize_executable
 
     folder = exported_dir()
     if folder is None:
         return compile_cached(name, key, fn, *specs)
-    text = repr((key, [(s.shape, str(s.dtype), str(getattr(s, "sharding", None)))
-                       for s in specs], jax.process_index(), jax.process_count(),
-                 [(d.id, d.platform, d.device_kind) for d in jax.local_devices()],
-                 jax.config.jax_enable_x64, _source_digest()))
-    path = folder / f"{name}-{hashlib.sha256(text.encode()).hexdigest()[:32]}.jaxexe"
+    digest = _digest(_program_text(key, specs) + repr((
+        jax.process_index(), jax.process_count(),
+        [(d.id, d.platform, d.device_kind) for d in jax.local_devices()])))
+    path = folder / f"{name}-{digest[:32]}.jaxexe"
     devices = list(specs[0].sharding.mesh.devices.flat) if specs and hasattr(
         specs[0], "sharding") else jax.local_devices()
-    if path.exists():
+    entry = _read_entry(path, digest)
+    if entry is not None:
+        header, payload = entry
         try:
-            data = path.read_bytes()
-            size = int.from_bytes(data[:8], "little")
-            in_tree, out_tree = _load_trees(data[8:8 + size])
-            return serialize_executable.deserialize_and_load(
-                data[8 + size:], in_tree, out_tree, execution_devices=devices)
-        except Exception:  # noqa: BLE001 - a damaged or foreign file: compile again
+            in_tree, out_tree, _ = _load_tree(header["trees"].encode())
+            return load_executable_bytes(payload, in_tree, out_tree, devices)
+        except Exception:  # noqa: BLE001 - verified, yet not loadable here: compile again
             pass
     compiled = compile_cached(name, key, fn, *specs)
-    try:
-        payload, in_tree, out_tree = serialize_executable.serialize(compiled)
-        trees = _dump_tree((in_tree, out_tree))
-        folder.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_bytes(len(trees).to_bytes(8, "little") + trees + payload)
-        os.replace(tmp, path)  # atomic: a concurrent process never reads half a file
-    except (OSError, ValueError, NotImplementedError, pickle.PicklingError):
-        pass  # not serializable, or a read-only cache: compiled every time
+    kept = executable_header(compiled)
+    if kept is not None:
+        _write_entry(path, digest, *kept)
     return compiled
 
 
@@ -343,8 +326,7 @@ def run_local(kwargs: dict, processes: int, *, timeout: float = DEFAULT_TIMEOUT,
                   else list(value) if isinstance(value, tuple) else value)
             for key, value in kwargs.items()}
     address = f"127.0.0.1:{free_port()}"
-    with tempfile.TemporaryDirectory(prefix="dampax-map-") as folder:
-        folder = Path(folder)
+    with private_folder("dampax-map-") as folder:
         result = folder / "map.pickle"
         procs, logs = [], []
         try:

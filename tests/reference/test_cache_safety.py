@@ -1,0 +1,234 @@
+"""The kept programs cannot be turned against the user (issue 37, item 1).
+
+A planted file runs no code; a file kept for other options, under another name, or by another
+version is refused; a folder or file that is not the user's own, or that others can write, is
+refused with a warning; a damaged file (a flipped byte, a truncated file, a FIFO, a link) is
+set aside and the program built again, never fatal and never a hang. Each check compares the
+result with the one computed without any cache (the independent number) and looks for the
+planted code's marker file.
+
+One tiny program (``3 x + 1`` over three floats) serves every test: the mechanism, not the
+program, is tested, and it compiles in milliseconds.
+"""
+
+import os
+import pickle
+import stat
+import warnings
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dampax import _cache
+
+
+def _fn(x):
+    return {"y": 3.0 * x + 1.0, "n": jnp.sum(x)}
+
+
+X = jnp.asarray([0.5, 1.5, -2.0])
+EXPECTED = 3.0 * np.asarray(X) + 1.0
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """A fresh private cache folder for this test, and an empty in-process memo."""
+    folder = tmp_path / "cache"
+    monkeypatch.setenv("DAMPAX_CACHE_DIR", str(folder))
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})
+    _cache._key.cache_clear()
+    _cache._WARNED.clear()
+    yield folder
+    _cache._key.cache_clear()
+
+
+def _call(key="k"):
+    _cache._EXECUTABLES.clear()  # as a new process would
+    out = _cache.call_cached("safety", key, _fn, X)
+    np.testing.assert_array_equal(np.asarray(out["y"]), EXPECTED)
+    return out
+
+
+def _kept(folder, suffix):
+    files = sorted((folder / "exported").glob(f"safety-*{suffix}"))
+    assert len(files) == 1, files
+    return files[0]
+
+
+class _Bomb:
+    """Pickled, it runs a shell command when unpickled."""
+
+    def __init__(self, marker):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def _aside(folder):
+    return list((folder / "exported" / "rejected").glob("*"))
+
+
+def _only_program(folder, suffix):
+    """Where ``suffix`` is the program (.jaxcall), its executable goes: the program is read
+    only when no executable was kept."""
+    if suffix == ".jaxcall":
+        _kept(folder, ".jaxexe").unlink()
+
+
+@pytest.mark.parametrize("suffix", [".jaxcall", ".jaxexe"])
+@pytest.mark.parametrize("layout", ["old", "new"])
+def test_planted_pickle_runs_nothing(cache, tmp_path, suffix, layout):
+    """A pickle that runs a shell command, planted under a kept program's name (in the old
+    layout: length + pickle + payload; in the new one: a header and a wrong checksum), is
+    refused before anything of it is read; the result is the computed one."""
+    _call()
+    _only_program(cache, suffix)
+    marker = tmp_path / "pwned"
+    bomb = pickle.dumps(_Bomb(marker))
+    if layout == "old":
+        data = len(bomb).to_bytes(8, "little") + bomb + b"\0" * 64
+    else:
+        head = b'{"digest": "x", "trees": ""}'
+        data = _cache._MAGIC + len(head).to_bytes(8, "little") + head + bomb + b"\0" * 32
+    _kept(cache, suffix).write_bytes(data)
+    with pytest.warns(_cache.CacheWarning, match="checksum does not verify"):
+        _call()
+    assert not marker.exists()
+    assert _aside(cache)
+
+
+def test_a_program_kept_for_other_options_is_not_taken_for_the_default(cache):
+    """A verified file of another key (another rtol, say), copied under the default's name, is
+    refused (its header names another program); the default's numbers come back."""
+    _call("default")
+    default = _kept(cache, ".jaxcall")
+    for f in (cache / "exported").glob("safety-*"):
+        f.rename(f.with_name("other-" + f.name))  # keep the default's files out of the way
+    _cache._EXECUTABLES.clear()
+    other = _cache.call_cached("safety", "rtol=1e-3", lambda x: {"y": 0.0 * x, "n": x[0]}, X)
+    assert float(other["y"][0]) == 0.0
+    _kept(cache, ".jaxcall").rename(default)
+    with pytest.warns(_cache.CacheWarning, match="other settings or versions"):
+        _call("default")
+
+
+def test_digest_covers_the_versions_of_what_shapes_the_program(monkeypatch):
+    """Another equinox (or optimistix, lineax, jaxlib) gives another digest, so another file."""
+    import importlib.metadata as metadata
+
+    real = metadata.version
+    before = _cache._digest("p")
+    for package in ("equinox", "optimistix", "lineax", "jaxlib"):
+        monkeypatch.setattr(metadata, "version",
+                            lambda name, p=package: "9.9.9" if name == p else real(name))
+        _cache._source_digest.cache_clear()
+        assert _cache._digest("p") != before, package
+    monkeypatch.setattr(metadata, "version", real)
+    _cache._source_digest.cache_clear()
+    assert _cache._digest("p") == before
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "fifo", "link", "empty", "huge"])
+@pytest.mark.parametrize("suffix", [".jaxcall", ".jaxexe"])
+def test_damaged_files_are_set_aside_and_rebuilt(cache, tmp_path, damage, suffix, monkeypatch):
+    """A flipped byte, a truncated file, a FIFO (would block a plain read), a link to another
+    file, an empty file, a file over the size limit: set aside with a warning, rebuilt, same
+    numbers; the next call reads the rebuilt file without a warning."""
+    _call()
+    _only_program(cache, suffix)
+    path = _kept(cache, suffix)
+    data = path.read_bytes()
+    path.unlink()
+    if damage == "flip":
+        path.write_bytes(data[:100] + bytes([data[100] ^ 1]) + data[101:])
+    elif damage == "truncate":
+        path.write_bytes(data[: len(data) // 2])
+    elif damage == "fifo":
+        os.mkfifo(path)
+    elif damage == "link":
+        target = tmp_path / "elsewhere"
+        target.write_bytes(data)
+        path.symlink_to(target)
+    elif damage == "empty":
+        path.write_bytes(b"")
+    else:
+        path.write_bytes(data)
+        monkeypatch.setattr(_cache, "MAX_FILE_BYTES", len(data) - 1)
+    with pytest.warns(_cache.CacheWarning, match="set aside"):
+        _call()
+    assert _aside(cache)
+    monkeypatch.setattr(_cache, "MAX_FILE_BYTES", 1 << 30)
+    rebuilt = _kept(cache, suffix)
+    assert stat.S_ISREG(os.lstat(rebuilt).st_mode)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", _cache.CacheWarning)
+        _call()
+
+
+@pytest.mark.skipif(os.name == "nt", reason="POSIX owners and modes")
+def test_folder_others_can_write_is_not_used(cache):
+    """A cache folder that the group can write (a DAMPAX_CACHE_DIR on a shared file system):
+    a warning, no file read or written there, the right numbers."""
+    cache.mkdir(mode=0o700)
+    os.chmod(cache, 0o770)
+    with pytest.warns(_cache.CacheWarning, match="other users can write"):
+        assert _cache.exported_dir() is None
+        _call()
+    assert not (cache / "exported").exists() and not (cache / "key").exists()
+
+
+@pytest.mark.skipif(os.name == "nt", reason="POSIX owners and modes")
+def test_files_of_another_user_are_refused(cache, monkeypatch):
+    """Files that belong to another user id (here: this process pretends to be another user
+    after the files were written) are refused; so is their folder."""
+    _call()
+    monkeypatch.setattr(os, "getuid", lambda: os.stat(cache).st_uid + 1)
+    with pytest.warns(_cache.CacheWarning, match="belongs to user id"):
+        _call()
+
+
+@pytest.mark.skipif(os.name == "nt", reason="POSIX owners and modes")
+def test_key_readable_by_others_is_replaced(cache):
+    """The HMAC key must be private (0600): one that others can read is set aside and a new
+    one made; files signed with the old key are then refused and rebuilt."""
+    _call()
+    key = cache / "key"
+    old = key.read_bytes()
+    os.chmod(key, 0o644)
+    _cache._key.cache_clear()
+    with pytest.warns(_cache.CacheWarning):
+        _call()
+    assert key.read_bytes() != old and stat.S_IMODE(os.stat(key).st_mode) == 0o600
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
+def test_jax_cache_folder_is_swept_of_fifos_and_links(cache):
+    """JAX reads its own cache entries without a check: a FIFO there would hang every later
+    compile and a link could point anywhere. Turning the cache on sets both aside."""
+    jax_dir = cache / "jax"
+    jax_dir.mkdir(parents=True, mode=0o700)
+    os.chmod(cache, 0o700)
+    os.mkfifo(jax_dir / "jit_f-0123-cache")
+    (jax_dir / "jit_g-4567-cache").symlink_to("/etc/passwd")
+    with pytest.warns(_cache.CacheWarning, match="not a regular file"):
+        _cache._sweep(jax_dir)
+    assert sorted(p.name for p in jax_dir.iterdir()) == ["rejected"]
+
+
+def test_tree_structures_round_trip_as_json_without_pickle():
+    """The kept tree structure of a real output (a solution: equinox modules, an enumeration,
+    None leaves) survives its JSON form; a class outside dampax/equinox is refused."""
+    import jax
+
+    import dampax as dp
+
+    sol = dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=0.02, D=1.5), 0.2, 0.0, phase="undamped")
+    kept = (jax.tree_util.tree_structure((sol, 1)), {3: "name", 5: 2.5, 7: None}, (True,))
+    blob = _cache._dump_tree(kept)
+    assert b"pickle" not in blob and _cache._load_tree(blob) == kept
+    with pytest.raises(ValueError, match="names the class"):
+        _cache._load_tree(b'{"c": ["os", "system"]}')
+    with pytest.raises(ValueError, match="not a class"):
+        _cache._load_tree(b'{"c": ["dampax", "solve"]}')
