@@ -14,6 +14,7 @@ import jax as _jax
 
 _jax.config.update("jax_enable_x64", True)
 
+from ._cache import CacheWarning as CacheWarning  # noqa: E402
 from ._cache import enable_compilation_cache as _enable_compilation_cache  # noqa: E402
 
 _enable_compilation_cache()
