@@ -163,6 +163,8 @@ def enable_compilation_cache() -> Path | None:
     if not (secure_folder(dampax_cache_dir()) and secure_folder(path)):
         return None
     _sweep(path)
+    if secure_folder(dampax_cache_dir() / "exported"):
+        _sweep(dampax_cache_dir() / "exported")
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", _MIN_COMPILE_S)
     return path
@@ -179,9 +181,13 @@ def _sweep(folder: Path) -> None:
         for entry in entries:
             with contextlib.suppress(OSError):
                 st = entry.stat(follow_symlinks=False)
+                if stat.S_ISDIR(st.st_mode):
+                    continue  # rejected/, or JAX's own
                 if stat.S_ISREG(st.st_mode):
                     problem = _owner_problem(st)
-                    if problem is None and ".tmp" in entry.name and now - st.st_mtime > 3600:
+                    stale = (".tmp" in entry.name or ".part" in entry.name) and (
+                        now - st.st_mtime > 3600)
+                    if problem is None and stale:  # its writer was killed mid-write
                         os.unlink(entry.path)
                         continue
                 else:

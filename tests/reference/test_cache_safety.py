@@ -14,6 +14,7 @@ program, is tested, and it compiles in milliseconds.
 import os
 import pickle
 import stat
+import time
 import warnings
 
 import jax.numpy as jnp
@@ -206,15 +207,23 @@ def test_key_readable_by_others_is_replaced(cache):
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs FIFOs")
 def test_jax_cache_folder_is_swept_of_fifos_and_links(cache):
     """JAX reads its own cache entries without a check: a FIFO there would hang every later
-    compile and a link could point anywhere. Turning the cache on sets both aside."""
+    compile and a link could point anywhere. Turning the cache on sets both aside and removes
+    temporary files that killed writers left; entries and folders stay."""
     jax_dir = cache / "jax"
     jax_dir.mkdir(parents=True, mode=0o700)
     os.chmod(cache, 0o700)
     os.mkfifo(jax_dir / "jit_f-0123-cache")
     (jax_dir / "jit_g-4567-cache").symlink_to("/etc/passwd")
+    stale = jax_dir / ".jit_h-89ab-cache.k2j4.part"  # a writer killed two hours ago
+    stale.write_bytes(b"half")
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
+    (jax_dir / "jit_i-cdef-cache").write_bytes(b"an entry")
     with pytest.warns(_cache.CacheWarning, match="not a regular file"):
         _cache._sweep(jax_dir)
-    assert sorted(p.name for p in jax_dir.iterdir()) == ["rejected"]
+    assert sorted(p.name for p in jax_dir.iterdir()) == ["jit_i-cdef-cache", "rejected"]
+    assert len(list((jax_dir / "rejected").iterdir())) == 2
+    _cache._sweep(jax_dir)  # rejected/ stays where it is
+    assert len(list((jax_dir / "rejected").iterdir())) == 2
 
 
 def test_tree_structures_round_trip_as_json_without_pickle():
