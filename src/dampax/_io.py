@@ -78,6 +78,19 @@ def _discard(tmp: Path) -> None:
 
 
 @contextlib.contextmanager
+def _removed_on_failure(tmp: Path, path: Path):
+    """If the block raises, remove ``tmp`` (an OSError is re-raised naming ``path``)."""
+    try:
+        yield
+    except OSError as err:
+        _discard(tmp)
+        raise _named(err, path) from None
+    except BaseException:
+        _discard(tmp)
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(path) -> Iterator[Path]:
     """A temporary path beside ``path`` that replaces it once the block completes.
 
@@ -95,14 +108,8 @@ def atomic_path(path) -> Iterator[Path]:
     path = Path(path)
     fd, tmp = _make_temp(path)
     os.close(fd)
-    try:
+    with _removed_on_failure(tmp, path):
         yield tmp
-    except OSError as err:
-        _discard(tmp)
-        raise _named(err, path) from None
-    except BaseException:
-        _discard(tmp)
-        raise
     _finish(tmp, path)
 
 
@@ -122,17 +129,10 @@ def atomic_file(path, mode: str = "wb", *, alone: bool = False, **kwargs):
     """
     path = Path(path)
     fd, tmp = _make_temp(path)
-    try:
-        with open(fd, mode, **kwargs) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-    except OSError as err:
-        _discard(tmp)
-        raise _named(err, path) from None
-    except BaseException:
-        _discard(tmp)
-        raise
+    with _removed_on_failure(tmp, path), open(fd, mode, **kwargs) as fh:
+        yield fh
+        fh.flush()
+        os.fsync(fh.fileno())
     _finish(tmp, path, alone)
 
 
