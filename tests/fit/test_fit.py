@@ -441,6 +441,26 @@ def test_named_failures_undamped_and_max_steps(synthetic):
     assert "did not converge" in res.reason and "maximum number of steps" in res.reason
 
 
+def test_covariance_of_nearly_collinear_columns_does_not_depend_on_the_last_bits():
+    """Damping constants at 0 have Jacobian columns that agree to ~1e-8 (the undamped trace
+    above): cond(J^T J) ~ 1e16, and inverting J^T J gave a variance of either sign by the last
+    bits of the data (issue 34, a GPU's verdict). The delta-method covariance comes from the
+    singular values of J: positive, and equal to a QR solution's whatever the last bits."""
+    from dampax._fit._core import _covariance
+
+    rng = np.random.default_rng(3)
+    a, b = rng.standard_normal((2, 4000))
+    J = np.stack([a, a + 1e-8 * b, rng.standard_normal(4000)], axis=1)
+    r = np.linalg.qr(J / np.linalg.norm(J, axis=0), mode="r")
+    inv_r = np.linalg.inv(r)
+    truth = np.sqrt(np.sum(inv_r * inv_r, axis=1)) / np.linalg.norm(J, axis=0)
+    cov = jax.jit(lambda J: _covariance(J, lambda th: th, jnp.zeros(3), jnp.ones(3, bool), 1.0))
+    for k in range(4):  # the columns moved by up to k ulp
+        Jk = J + np.spacing(J) * rng.integers(-k, k + 1, J.shape)
+        stderr = np.asarray(cov(Jk)[1])
+        np.testing.assert_allclose(stderr, truth, rtol=1e-6)
+
+
 def test_ranking_leaves_failed_fits_out(synthetic):
     import dataclasses
 

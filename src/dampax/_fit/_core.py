@@ -491,13 +491,23 @@ def _covariance(J, params_of, theta, vary, s2):
     eye = jnp.eye(L, dtype=G.dtype)
     G = jnp.where(vary[:, None], G, eye)
     Jp = jnp.linalg.solve(G.T, J.T).T  # J G^-1
-    H = Jp.T @ Jp
+    norm2 = jnp.sum(Jp * Jp, axis=0)
     # a constant at its bound with a zero Jacobian column (reference model) gets no stderr
-    active = vary & (jnp.diag(H) > 0.0)
+    active = vary & (norm2 > 0.0)
     pair = active[:, None] & active[None, :]
-    H = jnp.where(pair, H, eye)
-    d = jnp.sqrt(jnp.where(jnp.diag(H) > 0.0, jnp.diag(H), 1.0))
-    C = jnp.linalg.inv(H / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
+    d = jnp.sqrt(jnp.where(active, norm2, 1.0))
+    # (J^T J)^-1 from the singular values of the column-scaled Jacobian, not by inverting
+    # J^T J: forming J^T J squares the condition number, and a fit whose damping constants sit
+    # at 0 (no decay: their columns agree to 1e-8) has cond(J)^2 ~ 1e16, where the inverse's
+    # diagonal came out negative or positive by the last bits of the data (issue 34: a GPU's
+    # other rounding turned "no measurable decay" into "standard error not finite"). The
+    # singular values keep 1/s^2 accurate down to s ~ eps s_max; the fixed and inactive
+    # columns are unit columns (C = 1 there, dropped by `pair` below).
+    Jn = jnp.where(active[None, :], Jp / d[None, :], 0.0)
+    A = jnp.concatenate([Jn, jnp.diag(jnp.where(active, 0.0, 1.0)).astype(Jn.dtype)])
+    _, s, vt = jnp.linalg.svd(A, full_matrices=False)
+    w = vt / jnp.where(s > 0.0, s, jnp.nan)[:, None]  # V^T / s: C = w^T w
+    C = (w.T @ w) / (d[:, None] * d[None, :])
     cov = jnp.where(pair, s2 * C, 0.0)
     var = jnp.diag(cov)
     stderr = jnp.where(active, jnp.sqrt(jnp.where(var >= 0.0, var, jnp.nan)), jnp.nan)
