@@ -48,7 +48,7 @@ import numpy as np
 from ._core import FIT_RESULTS
 from ._dist import chi2_isf, chi2_sf, f_sf
 from ._guess import Analysis, despike
-from ._intervals import hac_covariance
+from ._intervals import ar1_coefficient, hac_covariance
 from ._profile import LR_CHI2, PROFILE_FAIL, PROFILE_REACH, bound_tests, profile_ratios
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
@@ -283,9 +283,7 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     size = int(max(round(math.pi / w0 / dt), 16))
     J = max(n // size, 1)
     edges = np.linspace(0, n, J + 1).astype(int)
-    den = float(r @ r)
-    phi = float(r[1:] @ r[:-1]) / den if den > 0 else 0.0
-    phi = min(max(phi, -0.99), 0.99)
+    phi = ar1_coefficient(r, clip=(-0.99, 0.99))
     q = np.zeros(J)
     rss, dof = 0.0, 0
     for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):

@@ -119,6 +119,68 @@ def whiteness_p(e: np.ndarray, period_samples: float) -> float:
     return chi2_sf(q, m)
 
 
+def ar1_coefficient(r: np.ndarray, *, clip: tuple[float, float] = (-0.99, 0.999),
+                    pearson: bool = False) -> float:
+    """The lag-1 autocorrelation phi of residuals ``r``, the coefficient of their AR(1) model:
+    sum r_t r_(t-1) / sum r_t^2 (``pearson``: numpy's correlation of r[:-1] with r[1:],
+    each centred on its own mean), clipped to ``clip``; 0 for fewer than 3 (``pearson``: 4)
+    residuals or all zero.
+
+    The one home of the estimate (issue 33). The callers keep the clips they had: the
+    sandwich (-0.99, 0.999), the residual tests (-0.99, 0.99), the k3 profile's variance
+    inflation (0, 0.99, Pearson); unifying them would change the reported numbers.
+    """
+    r = np.asarray(r, dtype=float)
+    n = r.size
+    if pearson:
+        phi = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
+    else:
+        phi = float(np.dot(r[1:], r[:-1]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
+    return min(max(phi, clip[0]), clip[1])
+
+
+def scaled_inverse(H: np.ndarray) -> np.ndarray:
+    """H^-1 by the pseudo-inverse of H scaled to a unit diagonal (NaN where H is not finite:
+    a Jacobian with NaN in it gives no interval, a named failure)."""
+    if not np.all(np.isfinite(H)):
+        return np.full_like(H, np.nan)
+    d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
+    return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
+
+
+def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
+                 lags: int | None = None):
+    """(S, L): the middle of the AR(1)-prewhitened HAC sandwich (:func:`hac_covariance`):
+    S = K^T A^T Cov(e) A K from the scores K_t e_t of the prewhitened residuals, with the
+    Bartlett kernel of bandwidth L only where those are not white.
+
+    Arguments:
+        J: residual Jacobian (n x p) at the optimum, rows of the data only.
+        r: residuals (n).
+        period_samples: samples per oscillation period (sets the bandwidth's floor).
+        lags: bandwidth L (default: 0 where the prewhitened residuals are white, else
+            :func:`bandwidth`).
+    """
+    r = np.asarray(r, dtype=float)
+    phi = ar1_coefficient(r)
+    e = np.empty_like(r)
+    e[0] = math.sqrt(1.0 - phi * phi) * r[0]
+    e[1:] = r[1:] - phi * r[:-1]
+    K = _backward_ar1(J, phi)
+    K[0] = K[0] / math.sqrt(1.0 - phi * phi)
+    g = K * e[:, None]
+    if lags is not None:
+        L = int(lags)
+    elif whiteness_p(e, period_samples) >= WHITE_P:
+        L = 0  # AR(1) noise: the prewhitened residuals are white, the sandwich is exact
+    else:
+        L = bandwidth(g, period_samples)
+    L = min(L, g.shape[0] - 1)
+    G = _autocov(g, L)
+    w = 1.0 - np.arange(L + 1) / (L + 1.0)
+    return w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1))), L
+
+
 def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
                    lags: int | None = None):
     """AR(1)-prewhitened HAC covariance of the parameters (columns of J): (cov, L).
@@ -143,32 +205,11 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     """
     r = np.asarray(r, dtype=float)
     J = np.asarray(J, dtype=float)
-    n = r.size
     if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
         # a fit without a finite Jacobian (it diverged): no interval
         return np.full((J.shape[1], J.shape[1]), np.nan), 0
-    phi = float(np.dot(r[1:], r[:-1]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
-    phi = min(max(phi, -0.99), 0.999)
-    e = np.empty_like(r)
-    e[0] = math.sqrt(1.0 - phi * phi) * r[0]
-    e[1:] = r[1:] - phi * r[:-1]
-    K = _backward_ar1(J, phi)
-    K[0] = K[0] / math.sqrt(1.0 - phi * phi)
-    g = K * e[:, None]
-    if lags is not None:
-        L = int(lags)
-    elif whiteness_p(e, period_samples) >= WHITE_P:
-        L = 0  # AR(1) noise: the prewhitened residuals are white, the sandwich is exact
-    else:
-        L = bandwidth(g, period_samples)
-    L = min(L, g.shape[0] - 1)
-    G = _autocov(g, L)
-    w = 1.0 - np.arange(L + 1) / (L + 1.0)
-    S = w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1)))
-    H = J.T @ J
-    d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
-    Hn = H / np.outer(d, d)
-    Hinv = np.linalg.pinv(Hn) / np.outer(d, d)
+    S, L = score_matrix(J, r, period_samples=period_samples, lags=lags)
+    Hinv = scaled_inverse(J.T @ J)
     cov = Hinv @ S @ Hinv
     return 0.5 * (cov + cov.T), L
 

@@ -6,7 +6,6 @@ intervals (docs/DESIGN.md, fitting; the method is described in ``_joint``)."""
 from __future__ import annotations
 
 import functools
-import math
 from typing import Any, NamedTuple
 
 import jax
@@ -366,36 +365,15 @@ def best_start(out: JointCore) -> int:
 
 
 def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.ndarray:
-    """S of the AR(1)-prewhitened HAC sandwich of one run (``_intervals.hac_covariance``,
-    whose H^-1 S H^-1 it completes): the scores of the prewhitened residuals, with the
-    Bartlett kernel only where those are not white.
+    """S of the AR(1)-prewhitened HAC sandwich of one run (``_intervals.score_matrix``,
+    whose H^-1 S H^-1 ``_intervals.hac_covariance`` completes).
 
     Arguments:
         J, r: the run's rows of the joint Jacobian (n x p) and its residuals (n).
         period_samples: samples per oscillation period.
     """
-    n = r.size
-    phi = float(np.dot(r[1:], r[:-1]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
-    phi = min(max(phi, -0.99), 0.999)
-    e = np.empty_like(r)
-    e[0] = math.sqrt(1.0 - phi * phi) * r[0]
-    e[1:] = r[1:] - phi * r[:-1]
-    K = _intervals._backward_ar1(np.ascontiguousarray(J), phi)
-    K[0] = K[0] / math.sqrt(1.0 - phi * phi)
-    g = K * e[:, None]
-    if _intervals.whiteness_p(e, period_samples) >= _intervals.WHITE_P:
-        L = 0
-    else:
-        L = _intervals.bandwidth(g, period_samples)
-    L = min(L, g.shape[0] - 1)
-    G = _intervals._autocov(g, L)
-    w = 1.0 - np.arange(L + 1) / (L + 1.0)
-    return w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1)))
+    return _intervals.score_matrix(np.ascontiguousarray(J), r,
+                                   period_samples=period_samples)[0]
 
 
-def _inverse(H):
-    if not np.all(np.isfinite(H)):  # a Jacobian with NaN in it: no intervals (named failure)
-        return np.full_like(H, np.nan)
-    d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
-    return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
-
+_inverse = _intervals.scaled_inverse
