@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._trace import Trace
+from .._trace import Trace, load_trace
 from ._api import _bucket, _pad, _swings_bucket, _units_of, fit
 from ._core import (
     FIT_MODELS,
@@ -87,6 +87,38 @@ def _per_run(value, n, name):
             raise ValueError(f"{name}: give one value or one per run ({n}), got {len(value)}")
         return list(value)
     return [value] * n
+
+
+def _loaded(item, j):
+    """A run's file read into a Trace (errors name ``traces[j]``); anything else as it is."""
+    if not isinstance(item, (str, Path)):
+        return item
+    try:
+        return load_trace(item)
+    except ValueError as err:
+        raise ValueError(f"traces[{j}]: {err}") from err
+
+
+def _common_unit(runs, units) -> str:
+    """The position unit of every run: ``units`` when given, else each run's own (the unit in
+    its position column's name); ValueError naming ``traces`` when the runs' units differ
+    (a shared D in kg/m, or mu, means one length unit: m and mm gave one D, wrong for one of
+    them).
+
+    Arguments:
+        runs: the runs (Trace objects or arrays).
+        units: Window.units (None: from each run).
+
+    Returns:
+        The unit.
+    """
+    found = [_units_of(tr, units) for tr in runs]
+    if len(set(found)) > 1:
+        listed = ", ".join(f"traces[{j}]: {u!r}" for j, u in enumerate(found))
+        raise ValueError(f"traces: the runs' positions are in different units ({listed}); "
+                         "shared constants need one unit: read them in one unit (load_trace("
+                         "scale=1e-3) turns mm into m) and pass Window(units=...)")
+    return found[0]
 
 
 def _run_input(item, j):
@@ -186,13 +218,14 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     spec = FIT_MODELS[model]
     first = spec.start_from or model
     osc = oscillator_values(oscillator)
-    singles, inputs = [], []
+    runs = [_run_input(item, j) for j, item in enumerate(traces)]
+    runs = [(_loaded(tr, j), x) for j, (tr, x) in enumerate(runs)]
+    unit = _common_unit([tr for tr, _ in runs], units)
+    singles = []
     # each run alone (its window, guesses, global starts): the starts of the joint fit
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        for j, item in enumerate(traces):
-            tr, x = _run_input(item, j)
-            inputs.append(tr)
+        for j, (tr, x) in enumerate(runs):
             try:
                 res = fit(tr, x, oscillator=oscillator, free=free, model=first,
                           fit_omega0=fit_omega0, offset=offset, start=starts_at[j],
@@ -202,7 +235,6 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
                 raise ValueError(f"traces[{j}]: {err}") from err
             singles.append(res)
     notes = sorted({str(w.message) for w in caught})
-    unit = _units_of(inputs[0], units)
     # each run's start: its single fit (where that is not finite, a start from its data)
     own, usable = _start_params(singles, osc)
     # the common start of the shared constants: the median of the single fits
