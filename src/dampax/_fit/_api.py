@@ -57,7 +57,13 @@ from ._params import (
 )
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
 from ._starts import run_starts
-from ._static import fit_mu_s, other_halt_check, search_other_halts, with_static_halt
+from ._static import (
+    above_mu_s,
+    fit_mu_s,
+    other_halt_check,
+    search_other_halts,
+    with_static_halt,
+)
 from ._stiffness import fit_k3
 
 # ----------------------------------------------------------------------------------------------
@@ -478,6 +484,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
     if mu_s is not None and not _inner:  # the halt of the motion with static friction
 
         res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
+        res = above_mu_s(res, mu_s)
     return res
 
 

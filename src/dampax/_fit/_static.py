@@ -205,6 +205,30 @@ def other_halt_check(res, others: dict):
     return res
 
 
+def above_mu_s(res, mu_s: float):
+    """A fit at a given mu_s whose fitted mu exceeds it, failed with the reason (issue 37):
+    the model's rule is mu_s >= mu, and a traced mu_s below mu acts as mu, so such a fit
+    described a motion without the given static friction and reported it as a success.
+
+    Arguments:
+        res: the fit's FitResult.
+        mu_s: the given static friction coefficient.
+
+    Returns:
+        ``res`` unchanged when mu <= mu_s (to 1e-9 relative) or mu was not fitted, else a
+        copy with ``success = False`` and the reason.
+    """
+    mu = res.params.get("mu")
+    if mu is None or not float(mu) > float(mu_s) * (1.0 + 1e-9):
+        return res
+    reason = (f"the fitted mu = {float(mu):.4g} exceeds the given mu_s = {float(mu_s):.4g}, "
+              "against the model's rule mu_s >= mu (the motion was that of mu_s = mu): the "
+              "data's sliding friction is larger than the static friction given; fit mu_s as "
+              "well (free=(..., 'mu_s')) or give mu_s >= mu")
+    return dataclasses.replace(res, success=False,
+                               reason="; ".join(r for r in (res.reason, reason) if r))
+
+
 def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
     """A fit at fixed mu_s with ``fixed["mu_s"]`` and ``derived["halt_time"]`` of its own
     motion (the reference with mu_s, where it halts within twice the window; otherwise the
