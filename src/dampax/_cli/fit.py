@@ -96,6 +96,15 @@ def _oscillator(args):
 
 
 def run(args: argparse.Namespace) -> int:
+    """:func:`run_fit`, with the library's argument names in its errors replaced by the
+    command's flags (``Window.end`` -> ``--end``, ``LeastSquares.seed`` -> ``--seed``)."""
+    try:
+        return run_fit(args)
+    except ValueError as err:
+        raise ValueError(_cli_words(str(err))) from None
+
+
+def run_fit(args: argparse.Namespace) -> int:
     """Fit damping constants to a measured trace; print the report and the model ranking.
 
     Returns:
