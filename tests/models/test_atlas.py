@@ -161,7 +161,14 @@ def test_atlas_is_what_its_script_builds():
                d2_ratio=grid["d2_ratio"][[0, 5]], phi0=grid["phi0"][[1, 11]])
     ds = dp.error_map(**sub, models=("matched", "matched_tail"), progress=False)
     stored = atlas["max_error"].sel(model=["matched", "matched_tail"], **sub)
-    np.testing.assert_allclose(np.asarray(stored), np.asarray(ds["max_error"]), rtol=1e-6)
+    # what may differ on another platform (a GPU, another CPU, other XLA fusions): the file
+    # holds float32 (half an ulp: 2^-24 relative), and a platform's reference may sit anywhere
+    # within its tested accuracy, 1e-10 A0 of the exact motion (tests/reference/
+    # test_reference.py, on every platform), which moves a max error by as much: 2e-10 A0
+    # between two platforms. On this CPU: 3.9e-8 relative, also with the axes moved by 1-4 ulp
+    # and with the reference's tolerances tripled (benchmarks/README.md, issue 34)
+    np.testing.assert_allclose(np.asarray(stored), np.asarray(ds["max_error"]), rtol=2.0**-24,
+                               atol=2.0 * 1e-10 * (1.0 + 2.0**-24))
 
 
 def test_atlas_file_is_cf_clean():

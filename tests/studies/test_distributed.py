@@ -9,10 +9,13 @@ reference, one model), two steps of 4 points: one per process.
 """
 
 import os
+import pickle
 import subprocess
 import sys
+import textwrap
 import time
 
+import jax
 import numpy as np
 import pytest
 
@@ -26,9 +29,35 @@ CLI = ["errormap", "--d0", "0,0.04", "--d2", "0,0.3", "--phi0", "0,2", "--period
        "--samples-per-period", "16", "--chunk-size", "4", "--models", "matched", "--no-progress"]
 
 
+#: local worker processes share this host's devices: on a CPU its cores, on a GPU host the
+#: host's CPU too (two processes on one GPU would be two NCCL ranks on one device), so there the
+#: processes, and the one-process map they must equal bit for bit, run on the CPU
+ON_CPU = jax.default_backend() == "cpu"
+ONE_ON_CPU = textwrap.dedent("""
+    import pickle, sys
+    import dampax
+    from dampax._studies._maps import error_map
+    with open(sys.argv[1], "wb") as f:
+        pickle.dump(error_map(**eval(sys.argv[2])), f)
+""")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def host_platform():
+    with pytest.MonkeyPatch.context() as mp:
+        if not ON_CPU:  # the workers (and the CLI's) inherit it
+            mp.setenv("JAX_PLATFORMS", "cpu")
+        yield
+
+
 @pytest.fixture(scope="module")
-def one():
-    return error_map(**SMALL)
+def one(tmp_path_factory, host_platform):
+    if ON_CPU:
+        return error_map(**SMALL)
+    path = tmp_path_factory.mktemp("one") / "one.pickle"
+    subprocess.run([sys.executable, "-c", ONE_ON_CPU, str(path), repr(SMALL)], check=True)
+    with open(path, "rb") as f:
+        return pickle.load(f)
 
 
 def assert_same_bits(a, b):
