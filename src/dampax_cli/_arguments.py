@@ -32,7 +32,7 @@ LOSSES = ("linear", "soft_l1")
 #: Grid and settings of ``dampax errormap`` (a few minutes on 2 cores with the reference) and
 #: of ``--quick`` (a smoke run). The grids include d0 = 0 and d2 = 0 for the summary table.
 ERRORMAP_DEFAULTS = dict(d0="0:0.1:16", d1="0", d2="0:0.75:16", phi0="0:7*pi/8:8",
-                         periods=20.0, samples_per_period=64, chunk_size=128)
+                         periods=20.0, samples_per_period=64, chunk_size=None)
 #: ``dampax errormap``: a grid of more points (about 10 minutes at the default window on a
 #: 2-core machine) runs only with ``--yes``
 ERRORMAP_CONFIRM_POINTS = 100_000
@@ -123,8 +123,9 @@ def add_errormap_arguments(parser: argparse.ArgumentParser) -> None:
                      help=f"time samples per period (default: {d['samples_per_period']}; "
                           f"quick: {q['samples_per_period']})")
     run.add_argument("--chunk-size", type=int, metavar="N",
-                     help=f"grid points per device evaluated at once; bounds the memory "
-                          f"(default: {d['chunk_size']})")
+                     help="grid points per device evaluated at once (default: from the "
+                          "device and its memory: 128 on a CPU, up to 32768 on a GPU; any value "
+                          "is clipped to the grid and to a quarter of the device's memory)")
     out = parser.add_argument_group("output")
     out.add_argument("--out", default="errormap", metavar="DIR",
                      help="folder for errormap.nc and the heat maps (default: %(default)s)")

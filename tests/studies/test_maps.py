@@ -14,6 +14,7 @@ import textwrap
 from pathlib import Path
 
 import equinox as eqx
+import jax
 import numpy as np
 import pytest
 import xarray as xr
@@ -57,7 +58,8 @@ FOUR_DEVICES = textwrap.dedent("""
     import numpy as np
     import dampax as dp
     from dampax._studies._maps import error_map
-    assert len(jax.devices()) == 4, jax.devices()
+    # the forced host devices are the devices on a CPU; on a GPU host, the GPUs it has
+    assert jax.default_backend() != "cpu" or len(jax.devices()) == 4, jax.devices()
     ds = error_map(d0_ratio=np.linspace(0.0, 0.1, 4), d1_ratio=np.array([0.0]),
                    d2_ratio=np.linspace(0.0, 0.75, 4), phi0=np.array([0.0, math.pi / 2]),
                    periods=10.0, samples_per_period=32, chunk_size=3, progress=False,
@@ -163,7 +165,13 @@ def test_same_map_on_four_devices(quick_map, four_devices):
     _, err = proc.communicate(timeout=400)
     assert proc.returncode == 0, err
     four = xr.load_dataset(path, engine="scipy")
-    assert four.attrs["devices"].startswith("4 x cpu")
+    # sharded over 4 host devices on a CPU; on another platform (a GPU host) over the devices
+    # it has (its default backend's; the flag only adds host devices): the same code path, one
+    # step of 3 points per device against the quick map's chunks of 32
+    devices = jax.local_devices()
+    expected = "4 x cpu" if jax.default_backend() == "cpu" else \
+        f"{len(devices)} x {devices[0].platform}"
+    assert four.attrs["devices"].startswith(expected)
     one = quick_map.sel(model=["matched_tail"])
     for name in METRICS + ("window", "reference_halt_time"):
         a, b = np.asarray(one[name]), np.asarray(four[name])
@@ -196,6 +204,39 @@ def test_chunk_size_does_not_change_the_map():
     assert float(np.nanmax(small["max_error"].sel(model="coulomb_exact"))) < 1e-12
     assert float(small["max_error"].sel(model="matched", d0_ratio=0.0, d1_ratio=0.0).max()) \
         < 1e-12
+
+
+def test_chunk_size_from_the_platform_and_clipped_to_the_grid_and_the_memory(quick_map):
+    """Not given: 128 per CPU device (as before), on a GPU the grid in one launch up to 32768
+    points per device; given or not, no more than the grid needs (not below 128: small maps
+    share a step) nor a quarter of the device's memory (issue 37: chunk_size=1_000_000 on 4
+    points asked for 47 GB)."""
+    import dataclasses
+
+    cfg = maps._config(MODELS, "reference", 20.0, 64, 1e-10, 1e-12)
+    per_point = maps.step_bytes_per_point(cfg)
+    assert 151_000 < per_point < 300_000  # XLA's measured temporaries: 151 KB a point
+    cpu = jax.local_devices()[:1]
+
+    @dataclasses.dataclass
+    class Device:  # an accelerator as jax describes one (platform, memory_stats)
+        platform: str = "gpu"
+        limit: float = 80e9
+
+        def memory_stats(self):
+            return {"bytes_limit": self.limit}
+
+    choose = maps.choose_chunk
+    assert choose(None, cfg, 2048, cpu) == 128 and choose(None, cfg, 8, cpu) == 128
+    assert choose(1_000_000, cfg, 4, cpu) == 128 and choose(3, cfg, 18, cpu) == 3
+    assert choose(None, cfg, 2048, [Device()]) == 2048  # the default map: one launch
+    assert choose(None, cfg, 128 * 128 * 8, [Device()]) == 32768
+    assert choose(None, cfg, 2048, [Device(), Device()]) == 1024  # per device
+    assert choose(None, cfg, 2048, [Device()], n_processes=4) == 512  # per process
+    small = Device(limit=1e9)  # a quarter of it holds 1282 points: 1024
+    assert choose(None, cfg, 10**6, [small]) == 1024 == choose(10**6, cfg, 10**6, [small])
+    assert choose(None, cfg, 10**6, [Device(limit=1e3)]) == 1
+    assert quick_map.attrs["chunk_size"] == 32  # a map reports the value it used
 
 
 @pytest.mark.parametrize("change, name", [

@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
     chunk = pick("chunk_size")
     for flag, value, low in (("--periods", periods, 0.0), ("--samples-per-period", spp, 1),
                              ("--chunk-size", chunk, 0)):
-        if not (math.isfinite(value) and value > low):
+        if value is not None and not (math.isfinite(value) and value > low):
             raise ValueError(f"{flag} must be > {low:g}, got {value}")
     # the size first: a grid beyond the memory is refused, a long one needs --yes (issue 37)
     sizes = {flag: axes[name].size for flag, name in

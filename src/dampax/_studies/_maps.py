@@ -456,6 +456,64 @@ def duration_text(seconds: float) -> str:
     return "forever"
 
 
+#: grid points per device and step when ``chunk_size`` is not given, on a CPU: the vmapped step
+#: runs its points one after the other there (a few SIMD lanes aside), so larger steps gain
+#: nothing (issue 34: the default map in the same 0.27 s as before this choice existed)
+CPU_CHUNK = 128
+#: on an accelerator (GPU, TPU) when ``chunk_size`` is not given: at most this many points per
+#: device and step, the whole grid in one launch where it fits (one H100, issue 34: the
+#: default map took 0.17 s in steps of 128 points, 0.05 s in one of 4096), within
+#: :data:`STEP_MEMORY_SHARE` of the device's memory
+ACCELERATOR_CHUNK = 32768
+#: the share of a device's memory that one step's buffers may take (whatever chunk_size says)
+STEP_MEMORY_SHARE = 0.25
+
+
+def step_bytes_per_point(cfg: _Config) -> int:
+    """Memory one grid point of a step takes on its device [bytes], an upper estimate.
+
+    XLA's temporaries of the compiled step (``compiled.memory_analysis()``, measured on a CPU
+    for issue 34, per point): 151 KB at the default window (4 models, blocks of 641 samples),
+    3.8 KB for one model against the exact half-swings (blocks of 49), 265 KB for 100 periods
+    in segments (blocks of 915); 8 bytes x block x (6 (models + 1) + 8) is above each.
+    """
+    return 8 * cfg.block * (6 * (len(cfg.models) + 1) + 8)
+
+
+def device_memory(device) -> float:
+    """Memory of one device [bytes]: what its allocator may use (``memory_stats()``, GPUs and
+    TPUs), else the machine's memory shared by the host's devices of its platform."""
+    try:
+        stats = device.memory_stats() or {}
+    except Exception:  # noqa: BLE001 - a backend without memory statistics
+        stats = {}
+    limit = stats.get("bytes_limit")
+    if limit:
+        return float(limit)
+    host = [d for d in jax.local_devices() if d.platform == device.platform]
+    return physical_memory() / max(1, len(host))
+
+
+def choose_chunk(chunk_size: int | None, cfg: _Config, n_points: int, devices,
+                 n_processes: int = 1) -> int:
+    """Grid points per device and step.
+
+    Not given (None): :data:`CPU_CHUNK` on a CPU, :data:`ACCELERATOR_CHUNK` elsewhere. Given or
+    not, it is then clipped to the grid (no more than the points each device gets, rounded up
+    to a power of two, but not below :data:`CPU_CHUNK`, so that small maps share one compiled
+    step) and to the memory (:data:`STEP_MEMORY_SHARE` of a device's memory over
+    :func:`step_bytes_per_point`, a power of two, at least 1).
+    """
+    chunk = (CPU_CHUNK if devices[0].platform == "cpu" else ACCELERATOR_CHUNK) \
+        if chunk_size is None else int(chunk_size)
+    per_device = -(-int(n_points) // (len(devices) * max(1, int(n_processes))))
+    chunk = min(chunk, max(1 << max(per_device - 1, 0).bit_length(), CPU_CHUNK))
+    fits = STEP_MEMORY_SHARE * device_memory(devices[0]) / step_bytes_per_point(cfg)
+    if math.isfinite(fits):
+        chunk = min(chunk, 1 << max(int(fits), 1).bit_length() - 1)
+    return max(1, chunk)
+
+
 def _tail_count(estimate, step: int, tail_step: int) -> int:
     """How many of the points (sorted by estimated window, longest first) form the tail: those
     whose window is more than 4x the longest outside the first step. A multiple of
@@ -504,7 +562,7 @@ def _config(models, reference, periods, samples_per_period, rtol, atol,
 
 def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               models: Sequence[str] = DEFAULT_MODELS, periods: float = 20.0,
-              samples_per_period: int = 64, chunk_size: int = 128,
+              samples_per_period: int = 64, chunk_size: int | None = None,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
               progress: bool = True, k3_ratio=None, processes: int | None = None,
               timeout: float = DEFAULT_TIMEOUT):
@@ -531,7 +589,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             periods, each restarted from the state where the last ended, so memory does not
             grow with ``periods``; at most ``MAX_SAMPLES`` samples per point.
         samples_per_period: samples per undamped period, >= 2.
-        chunk_size: grid points per device evaluated at once (bounds the memory), >= 1.
+        chunk_size: grid points per device evaluated at once, >= 1; None (default): chosen
+            from the platform and the memory (``choose_chunk``: 128 on a CPU, up to 32768
+            on a GPU). Given or not, clipped to the grid and to a quarter of a device's
+            memory; the value used is in ``attrs['chunk_size']``.
         reference: "reference" (the DOP853 integrator of eq. 3 with exact stick-slip) or
             "coulomb_exact" (the exact half-swings, analytic and fast: valid only where
             d2 = 0 and d1 < 1, NaN elsewhere).
@@ -586,7 +647,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
-    chunk_size = _positive_int("chunk_size", chunk_size)
+    if chunk_size is not None:
+        chunk_size = _positive_int("chunk_size", chunk_size)
     samples_per_period = _positive_int("samples_per_period", samples_per_period, 2)
     try:
         periods = float(periods)
@@ -626,8 +688,10 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
 
     devices = jax.local_devices()
     _, mesh = _compiled(cfg, tuple(d.id for d in devices))
-    step = chunk_size * len(devices)
     n_proc, proc = jax.process_count(), jax.process_index()
+    # from the platform and its memory when not given; clipped to the grid and the memory
+    chunk_size = choose_chunk(chunk_size, cfg, n_points, devices, n_proc)
+    step = chunk_size * len(devices)
     # the few points whose windows are far longer than all others' (a motion that never
     # stops runs the whole window) go first, in steps of TAIL_CHUNK points: a vmapped loop
     # costs about the same per iteration for few points as for a step of them
