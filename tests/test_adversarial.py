@@ -338,3 +338,42 @@ def test_cli_turns_any_other_exception_into_one_line(monkeypatch, capsys):
     monkeypatch.setenv("DAMPAX_TRACEBACK", "1")
     with pytest.raises(OverflowError):
         main(["solve"])
+
+
+@dataclasses.dataclass(frozen=True)
+class _K3Fit:
+    params: dict
+    t: np.ndarray
+    chisqr: float = 0.0
+    free: tuple = ("mu", "D")
+    varied: tuple = ("mu", "D")
+    stderr: dict = dataclasses.field(default_factory=lambda: {"mu": 1e-5, "D": 1e-4})
+
+
+def test_k3_model_bias_is_the_refit_of_the_exact_motion():
+    """_stiffness.model_bias (the k3 fit of an approximate model: D came out 43 standard errors
+    off with success): the exact motion of the fit's constants is refitted at k3 = e -+ h; a
+    stand-in fit whose cost is a parabola in e with its minimum at e0 and whose D moves by
+    0.002 + 0.5 (e - e_best) gives the shifts known in closed form."""
+    from dampax._fit._stiffness import model_bias
+
+    t = np.linspace(0.0, 2.0, 64)
+    params = dict(mu=0.002, b=0.0, D=0.05, w0=8.66, offset=0.0, x0=0.1, v0=0.0)
+    best = _K3Fit(params, t)
+    e_best, e0, scale, h = 0.07, 0.0712, 2000.0, 2e-3
+    seen = []
+
+    def fit(t_, x_, *, free, k3, _inner, **options):
+        e = k3 / scale
+        seen.append((e, options["start"], options["starts"], x_.shape))
+        return _K3Fit({**params, "D": params["D"] + 0.002 + 0.5 * (e - e_best)}, t_,
+                      chisqr=3.0 * (e - e0) ** 2 + 1.0)
+
+    out = model_bias(fit, best, e_best, scale, h, 5e-4, dict(oscillator=None, model="ansatz"))
+    assert [s[0] for s in seen] == pytest.approx([e_best - h, e_best, e_best + h])
+    assert all(s[1:] == ("data", 1, t.shape) for s in seen)
+    assert out["k3"]["shift"] == pytest.approx((e0 - e_best) * scale, rel=1e-9)
+    assert out["k3"]["z"] == pytest.approx(abs(e0 - e_best) / 5e-4, rel=1e-9)
+    assert out["D"]["shift"] == pytest.approx(0.002 + 0.5 * (e0 - e_best), rel=1e-9)
+    assert out["D"]["z"] == pytest.approx(out["D"]["shift"] / 1e-4, rel=1e-9)
+    assert out["mu"]["shift"] == pytest.approx(0.0, abs=1e-15)
