@@ -101,6 +101,7 @@ def _time_axes():
         "offset by 1e14, steps of 10 ms": (t + 1e14, x, "spacings"),
         "one stray stamp": (gap, x, "gap"),
         "shuffled": (np.random.default_rng(37).permutation(t), x, "goes back"),
+        "steps of 1e-302 s": (t * 1e-300, x, "below 1e-12 s"),
     }
 
 
@@ -111,6 +112,14 @@ def test_fit_refuses_garbage_time_axes_at_once(case):
     with pytest.raises(ValueError, match=rf"^t: .*{words}"):
         dp.fit(t, x, oscillator=dp.Oscillator(m=1.0, k=64.0))
     assert time.perf_counter() - began < 5.0
+
+
+@pytest.mark.parametrize("scale", [1e200, 1e-200, 1e-150, 1e150])
+def test_fit_refuses_positions_beyond_float64s_squares(scale):
+    """x * 1e200 or x * 1e-150 stopped the fit with "SVD did not converge"."""
+    t, x = _decay()
+    with pytest.raises(ValueError, match=r"^x: positions up to .* outside"):
+        dp.fit(t, x * scale)
 
 
 def test_phase_drift_is_bounded_by_the_samples():

@@ -22,7 +22,14 @@ from .._oscillator import Oscillator
 from .._reference import _uniform
 from .._solve import solve
 from .._trace import Trace, load_trace
-from ._checks import check_gaps, check_sampling, check_time_axis, check_trace, looks_stuck
+from ._checks import (
+    check_gaps,
+    check_positions,
+    check_sampling,
+    check_time_axis,
+    check_trace,
+    looks_stuck,
+)
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -91,6 +98,7 @@ def _prepare(trace_or_t, x):
     ok = np.isfinite(t) & np.isfinite(x)
     t, x = t[ok], x[ok]
     check_time_axis(t)
+    check_positions(x)
     order = np.argsort(t, kind="stable")
     t, x = t[order], x[order]
     if t.size < 10:

@@ -75,6 +75,9 @@ NEWTON_TOL = 0.09
 #: the largest |time| [s] a fit takes (about 3e7 years; beyond it the time axis is not one of
 #: a free decay, and times near 1e300 overflowed the fit's sums)
 MAX_TIME = 1e15
+#: the smallest median time step [s] a fit takes (a sampling rate of 1 THz: the squares of the
+#: frequencies of finer steps overflowed)
+MIN_STEP = 1e-12
 #: the median time step must exceed this many float64 spacings of the largest |time|: else
 #: the stamps are quantised by the float format itself (subtract the first stamp first)
 MIN_STEPS_PER_SPACING = 1e3
@@ -85,10 +88,10 @@ MAX_GAP_SHARE, MAX_GAP_STEPS = 0.5, 100.0
 
 def check_time_axis(t: np.ndarray) -> None:
     """ValueError naming ``t`` for a time axis that is not one trace's: times that go back
-    (a clock that resets, runs put end to end), times beyond :data:`MAX_TIME`, steps below the
-    float format's resolution, or mostly repeated stamps (every sample twice). One gap over
-    most of the window is :func:`check_gaps`'s (on the window: ``Window.end`` can leave it
-    out).
+    (a clock that resets, runs put end to end), times beyond :data:`MAX_TIME`, steps below
+    :data:`MIN_STEP` or the float format's resolution, or mostly repeated stamps (every
+    sample twice). One gap over most of the window is :func:`check_gaps`'s (on the window:
+    ``Window.end`` can leave it out).
 
     Arguments:
         t: the finite sample times, in the order given (not sorted).
@@ -115,11 +118,36 @@ def check_time_axis(t: np.ndarray) -> None:
                          "(samples written twice, or buffered stamps); rebuild time from the "
                          "sample rate (load_trace(rate=...), dampax fit --rate) or drop the "
                          "repeated rows")
+    if step < MIN_STEP:
+        raise ValueError(f"t: the median time step ({step:.3g} s) is below {MIN_STEP:g} s (a "
+                         "sampling rate above 1 THz); give the times in seconds")
     if step < MIN_STEPS_PER_SPACING * float(np.spacing(top)):
         raise ValueError(f"t: the median time step ({step:.3g} s) is within "
                          f"{MIN_STEPS_PER_SPACING:g} float64 spacings of the times ({top:.3g} "
                          "s): the stamps are rounded by the number format; subtract the first "
                          "time stamp before storing them")
+
+
+#: the range of the largest |position| a fit takes: beyond it the sums of squares of the
+#: residuals leave float64's range (positions of 1e200 or 1e-150 stopped the linear algebra
+#: with "SVD did not converge")
+POSITION_RANGE = (1e-100, 1e100)
+
+
+def check_positions(x: np.ndarray) -> None:
+    """ValueError naming ``x`` when the largest |position| lies outside
+    :data:`POSITION_RANGE` (all zero is left to :func:`check_sampling`: a constant trace).
+
+    Arguments:
+        x: the finite positions.
+    """
+    top = float(np.max(np.abs(x))) if np.size(x) else 0.0
+    low, high = POSITION_RANGE
+    if top != 0.0 and not low <= top <= high:
+        raise ValueError(f"x: positions up to {top:.3g}, outside the [{low:g}, {high:g}] a fit "
+                         "takes (its sums of squares leave float64's range); rescale them "
+                         "(load_trace(scale=...), dampax fit --scale) and name the unit "
+                         "(Window(units=...))")
 
 
 def check_gaps(t: np.ndarray) -> None:
