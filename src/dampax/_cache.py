@@ -68,6 +68,7 @@ import warnings
 from pathlib import Path
 
 import jax
+import jax.export  # noqa: F401 (jax 0.7 does not import this submodule itself)
 import jax.numpy as jnp
 
 from ._io import atomic_file
