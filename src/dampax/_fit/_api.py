@@ -40,6 +40,7 @@ from ._core import (
     ReferenceOptions,
     model_curve,
     run_core,
+    swing_budget,
 )
 from ._guess import analyse, guess_envelope, guess_trace, start_index
 from ._options import Window, options
@@ -144,7 +145,7 @@ def _reference_options(model: FitModel, max_swings, rtol, atol, t, w0):
     if max_swings is None:
         try:
             span = float(np.max(np.asarray(t)) - np.asarray(t)[0])
-            max_swings = int(1.15 * span * float(w0) / math.pi) + 8
+            max_swings = swing_budget(span, float(w0))
         except (TypeError, jax.errors.ConcretizationTypeError,
                 jax.errors.TracerArrayConversionError) as err:
             raise ValueError(f"fit_arrays(model={model.name!r}) under jit/vmap needs "
@@ -159,9 +160,7 @@ def _swings_bucket(max_swings, t, w0) -> int:
     windows of similar length share the compiled batch."""
     if max_swings is not None:
         return int(max_swings)
-    span = float(np.max(np.asarray(t)) - np.asarray(t)[0])
-    need = int(1.5 * span * float(w0) / math.pi) + 8
-    return 1 << int(math.ceil(math.log2(max(need, 16))))
+    return swing_budget(float(np.max(np.asarray(t)) - np.asarray(t)[0]), float(w0), "starts")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -653,7 +652,7 @@ def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bo
     span = jnp.max(t) - t[0]
     if spec.integrates and max_swings is None:
         omega = analyse(np.asarray(t), np.asarray(x)).omega if fit_omega0 else osc["w0"]
-        max_swings = int(1.15 * float(span) * omega / math.pi) + 8
+        max_swings = swing_budget(float(span), omega)
     opts = _reference_options(spec, max_swings, 1e-10, 1e-12, t, base.w0)
 
     def residuals(p):
@@ -761,7 +760,7 @@ def example_trace(**overrides) -> tuple[Trace, dict]:
     osc = Oscillator(m=truth["m"], k=truth["k"], mu=truth["mu"], b=truth["b"], D=truth["D"])
     t = np.arange(0.0, truth["t_end"], 1.0 / truth["rate"])
     w0 = math.sqrt(truth["k"] / truth["m"])
-    swings = int(1.2 * truth["t_end"] * w0 / math.pi) + 8
+    swings = swing_budget(truth["t_end"], w0, "data")
     sol = solve(osc, truth["x0"], truth["v0"], method="reference", t_end=float(t[-1]) + 0.01,
                 max_swings=swings)
     x = np.asarray(_positions(sol, jnp.asarray(t)))

@@ -81,6 +81,21 @@ class ReferenceOptions(NamedTuple):
     atol: float
 
 
+#: margins of the half-swing budget over the half swings of a span at the start's w0: a fit's
+#: window, generated data and a posterior's curve, a batch of jittered starts (whose w0 vary)
+SWING_MARGIN = {"fit": 1.15, "data": 1.2, "starts": 1.5}
+
+
+def swing_budget(span: float, w0: float, use: str = "fit") -> int:
+    """The reference's half-swing budget over ``span`` seconds at angular frequency ``w0``:
+    the span's half swings w0 span / pi times :data:`SWING_MARGIN` [``use``], plus 8; for
+    ``use="starts"`` rounded up to a power of two (at least 16), so that windows of similar
+    length share the compiled batch. The one home of the budget (issue 33).
+    """
+    need = int(SWING_MARGIN[use] * span * w0 / math.pi) + 8
+    return 1 << int(math.ceil(math.log2(max(need, 16)))) if use == "starts" else need
+
+
 # ----------------------------------------------------------------------------------------------
 # the fit models: curve and per-model settings
 

@@ -51,7 +51,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._core import FIT_MODELS, MODELS, ReferenceOptions, reference_solution
+from ._core import FIT_MODELS, MODELS, ReferenceOptions, reference_solution, swing_budget
 from ._entry import fit_flat
 from ._joint_result import JointResidual, JointResult
 from ._options import LeastSquares, Window, options
@@ -179,7 +179,7 @@ def _trace_setup(res, stride: int, vary_k3: bool):
     theta0 += [math.log(sig_hat), math.atanh(phi_hat)]
     opts = None
     if model == "reference":
-        opts = ReferenceOptions(int(1.2 * span * p["w0"] / math.pi) + 8, REFERENCE_RTOL,
+        opts = ReferenceOptions(swing_budget(span, p["w0"], "data"), REFERENCE_RTOL,
                                 REFERENCE_ATOL)
     residual = TraceResidual(model=model, names=tuple(names), opts=opts)
     base = TraceCoords(**{f: jnp.asarray(float(p[f] if f in p else 0.0))

@@ -16,6 +16,7 @@ from .._oscillator import Oscillator
 from .._solve import solve
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
+from ._intervals import ar1_coefficient
 from ._params import PARAMS, oscillator_values
 from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
 
@@ -64,8 +65,7 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
     curv = (sp + sm - 2.0 * s0) / (h * h)
     r = np.asarray(best.residuals, dtype=float)
     n, p = r.size, best.nvarys + 1
-    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 else 0.0
-    rho = min(max(rho, 0.0), 0.99)
+    rho = ar1_coefficient(r, clip=(0.0, 0.99), pearson=True)
     sigma2 = s0 / max(n - p, 1) * (1.0 + rho) / (1.0 - rho)
     sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
     k3 = e_best * scale
