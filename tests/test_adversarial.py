@@ -386,3 +386,10 @@ def test_k3_model_bias_is_the_refit_of_the_exact_motion():
     assert out["D"]["shift"] == pytest.approx(0.002 + 0.5 * (e0 - e_best), rel=1e-9)
     assert out["D"]["z"] == pytest.approx(out["D"]["shift"] / 1e-4, rel=1e-9)
     assert out["mu"]["shift"] == pytest.approx(0.0, abs=1e-15)
+
+
+@pytest.mark.parametrize("n, words", [(10**9, "at most 1000000"), (-1, ">= 0"), (2.0, "integer")])
+def test_turning_points_refuses_counts_it_cannot_allocate(n, words):
+    sol = dp.solve(dp.Oscillator(**BLOCK), 0.2, 0.0)
+    with pytest.raises(ValueError, match=rf"^n must .*{words}"):
+        dp.turning_points(sol, n)

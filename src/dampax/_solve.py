@@ -302,12 +302,21 @@ def turning_points(sol, n: int):
 
     Arguments:
         sol: a solution returned by :func:`solve`.
-        n: how many (static), an integer >= 0.
+        n: how many (static), an integer from 0 to :data:`MAX_TURNING_POINTS`.
 
     Returns:
         (t, x), two arrays of shape (n,).
     """
-    return turning_points_checked(sol, check_count("n", n))
+    n = check_count("n", n)
+    if n > MAX_TURNING_POINTS:
+        raise ValueError(f"n must be at most {MAX_TURNING_POINTS} (two arrays of n values are "
+                         f"allocated), got {n}")
+    return turning_points_checked(sol, n)
+
+
+#: the most turning points :func:`turning_points` lists (its arrays are that long: 1e9 asked
+#: for 16 GB)
+MAX_TURNING_POINTS = 1_000_000
 
 
 def turning_points_checked(sol, n: int):
