@@ -393,3 +393,28 @@ def test_turning_points_refuses_counts_it_cannot_allocate(n, words):
     sol = dp.solve(dp.Oscillator(**BLOCK), 0.2, 0.0)
     with pytest.raises(ValueError, match=rf"^n must .*{words}"):
         dp.turning_points(sol, n)
+
+
+@pytest.mark.parametrize("m, k", [(1e300, 1e-300), (1e-300, 1e300), (1e200, 1e-200)])
+def test_oscillator_refuses_a_frequency_float64_cannot_square(m, k):
+    with pytest.raises(ValueError, match=r"^m, k: w0 = sqrt\(k/m\)"):
+        dp.Oscillator(m=m, k=k)
+
+
+def test_sensitivity_refuses_turning_points_it_cannot_follow():
+    with pytest.raises(ValueError, match=r"^turning_points must be at most 1000"):
+        dp.sensitivity(dp.Oscillator(**BLOCK), 0.2, 0.0, np.linspace(0.0, 1.0, 5),
+                       wrt=("mu",), turning_points=10**9)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["sensitivity", "--x0", "0", "--v0", "1e-170"], "--x0 0, --v0 1e-170: the start's amplitude"),
+    (["sensitivity", "--turning-points", "1000000000"], "turning_points must be at most"),
+    (["solve", "--m", "1e300", "--k", "1e-300"], r"m, k: w0 = sqrt\(k/m\)"),
+])
+def test_cli_sensitivity_and_units_answer_at_once(argv, message, capsys):
+    began = time.perf_counter()
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert re.match(rf"dampax: error: {message}", err) and "\n" not in err, err
+    assert time.perf_counter() - began < 10.0

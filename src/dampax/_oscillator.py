@@ -176,6 +176,13 @@ class Oscillator(eqx.Module):
                                       ("b", b, False), ("D", D, False), ("g", g, True)):
             _check_field(name, value, positive=positive)
         check_finite("k3", k3)
+        if is_concrete(m, k):
+            with np.errstate(all="ignore"):
+                w0 = np.sqrt(np.asarray(k, dtype=float) / np.asarray(m, dtype=float))
+            if not np.all(np.isfinite(w0) & (w0 >= 1e-150) & (w0 <= 1e150)):
+                raise ValueError(f"m, k: w0 = sqrt(k/m) = {float(np.min(w0)):.3g} rad/s is outside "
+                                 f"[1e-150, 1e150], where its squares leave float64's range; "
+                                 f"give m and k in other units, got m={m!r}, k={k!r}")
         self.m = jnp.asarray(m, dtype=float)
         self.k = jnp.asarray(k, dtype=float)
         self.mu = jnp.asarray(mu, dtype=float)

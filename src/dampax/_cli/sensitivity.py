@@ -37,6 +37,7 @@ from ._common import (
     oscillator_text,
     split_names,
 )
+from .solve import check_start
 
 
 def parse_global(spec: str) -> dict[str, tuple[float, float]]:
@@ -117,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
     osc = oscillator_from(args)
     check_finite("x0", args.x0)
     check_finite("v0", args.v0)
+    check_start(osc, args)
     for k in models:
         if not MODELS[k].applies(osc):
             raise ValueError(f"--models: {k} ({MODELS[k].label}) does not apply to this "

@@ -48,6 +48,8 @@ UNITS = {"m": "kg", "k": "N/m", "mu": "", "b": "kg/s", "D": "kg/m", "g": "m/s²"
 _SYMBOLS = {"m": "m", "k": "k", "mu": r"\mu", "b": "b", "D": "D", "g": "g", "k3": "k_3",
             "x0": "x_0", "v0": "v_0"}
 _MODES = ("forward", "reverse")
+#: the most turning points a sensitivity follows (1e9 hung allocating their derivatives)
+MAX_TURNING = 1000
 # the adjoints of the reference integrator that each mode of differentiation can go through
 _ADJOINTS = {"forward": ("forward", "direct"), "reverse": ("recursive", "direct")}
 # default reference integration span, in undamped periods (as solve_reference's default)
@@ -602,7 +604,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
             and give their trend ``dswings_trend`` (default False: for the analytic models the
             count costs a Newton solve per turning point and about doubles the compilation).
         turning_points: also give the first N = ``turning_points`` turning points (t_n, x_n)
-            (v = 0, t > 0, as :func:`dampax.turning_points`), their local derivatives
+            (v = 0, t > 0, as :func:`dampax.turning_points`; N <= 1000), their local derivatives
             (``dturning_time``, ``dturning_position``) and, on the same sweeps, their trends
             (``dturning_time_trend``, ``dturning_position_trend``: the least-squares slope over
             the window points where turning point n exists); default 0 (none: like
@@ -654,6 +656,9 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
             or window_points < 3:
         raise ValueError(f"window_points must be an integer >= 3, got {window_points!r}")
     n_turning = check_count("turning_points", turning_points)
+    if n_turning > MAX_TURNING:
+        raise ValueError(f"turning_points must be at most {MAX_TURNING} (each adds derivatives "
+                         f"and sweeps of its own), got {n_turning}")
     for name, value in (("osc", osc), ("x0", x0), ("v0", v0)):
         if any(jnp.ndim(leaf) for leaf in jax.tree_util.tree_leaves(value)):
             raise ValueError(f"{name}: sensitivity needs scalars, not a batch; map over a batch "
