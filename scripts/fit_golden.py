@@ -36,10 +36,16 @@ def _collect(folder: Path) -> dict:
     return records
 
 
-def _example() -> dict:
-    import dampax as dp
-
-    return json.loads(json.dumps(dp.fit(dp.example_trace()).to_dict(), default=str))
+def _example() -> list:
+    """The example trace's fits (``dampax fit --example``'s call, and with the exact model),
+    in a fresh process (the code on this process's path)."""
+    code = ("import json, dampax as dp; tr, tru = dp.example_trace(); "
+            "osc = dp.Oscillator(m=tru['m'], k=tru['k']); "
+            "print(json.dumps([dp.fit(tr, oscillator=osc, model=m).to_dict() "
+            "for m in ('ansatz', 'reference')], default=str))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
 
 
 def _diff(a, b, where: str, out: list) -> None:
@@ -71,7 +77,7 @@ def main(mode: str) -> int:
         run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "tests/fit",
                               "-p", "no:cacheprovider"], cwd=ROOT, env=env)
         records = _collect(Path(folder))
-    records["example_trace"] = [_example()]
+    records["example_trace"] = _example()
     if run.returncode:
         print(f"note: pytest tests/fit exited with {run.returncode}")
     if mode == "record":
