@@ -21,6 +21,7 @@ from dampax_cli._arguments import add_sensitivity_arguments as add_arguments  # 
 from .._models._registry import MODELS, check_models
 from .._oscillator import Oscillator, check_finite
 from .._studies._sensitivity import (
+    MAX_TURNING,
     TREND_NOTE,
     UNITS,
     Sensitivity,
@@ -110,8 +111,9 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--{err}") from None
     if args.window_points < 3:
         raise ValueError(f"--window-points must be >= 3, got {args.window_points}")
-    if args.turning_points < 0:
-        raise ValueError(f"--turning-points must be >= 0, got {args.turning_points}")
+    if not 0 <= args.turning_points <= MAX_TURNING:
+        raise ValueError(f"--turning-points must be between 0 and {MAX_TURNING}, got "
+                         f"{args.turning_points}")
     check_plot_path(args.plot)
     trend_path = _trend_path(args)
     check_plot_path(trend_path, "--trend-plot")
