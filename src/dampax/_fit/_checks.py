@@ -97,7 +97,7 @@ def check_time_axis(t: np.ndarray) -> None:
         t: the finite sample times, in the order given (not sorted).
     """
     t = np.asarray(t, dtype=float)
-    if t.size < 2:
+    if t.size < 2 or float(np.ptp(t)) == 0.0:  # constant time: check_sampling says so
         return
     top = float(np.max(np.abs(t)))
     if top > MAX_TIME:
