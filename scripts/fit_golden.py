@@ -3,7 +3,8 @@
     python scripts/fit_golden.py record   # before the change: writes tests/fit/golden_fits.json
     python scripts/fit_golden.py check    # after it: the same fits, compared (1e-12 relative)
 
-Each mode runs ``pytest tests/fit`` (two processes) with ``DAMPAX_FIT_GOLDEN_DIR`` set: the
+Each mode runs ``pytest`` on :data:`FILES` (tests/fit, and the k3 and mu_s searches' tests;
+two processes) with ``DAMPAX_FIT_GOLDEN_DIR`` set: the
 conftest of tests/fit then records the ``to_dict()`` of every result that ``dp.fit`` (single
 and joint, through ``_entry.fit_flat``) returns to its caller, by test and in call order, and
 of ``dp.fit(dp.example_trace())``. ``check`` compares them with the golden file: every number
@@ -25,6 +26,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 GOLDEN = ROOT / "tests" / "fit" / "golden_fits.json"
 RTOL = 1e-12
+#: the tests whose fits are recorded: the fit layer's own, and those of the k3 and mu_s searches
+FILES = ("tests/fit", "tests/models/test_cubic.py", "tests/reference/test_static_friction.py")
 
 
 def _collect(folder: Path) -> dict:
@@ -74,7 +77,7 @@ def main(mode: str) -> int:
         return 2
     with tempfile.TemporaryDirectory(prefix="dampax-golden-") as folder:
         env = dict(os.environ, DAMPAX_FIT_GOLDEN_DIR=folder)
-        run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", "tests/fit",
+        run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "2", *FILES,
                               "-p", "no:cacheprovider"], cwd=ROOT, env=env)
         records = _collect(Path(folder))
     records["example_trace"] = _example()

@@ -31,6 +31,8 @@ else:
     os.environ["DAMPAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="dampax-test-cache-")
     os.environ[_SESSION_DIR] = os.environ["DAMPAX_CACHE_DIR"]
 
+import pytest  # noqa: E402
+
 import dampax  # noqa: E402, F401  (jax_enable_x64 is set on import)
 
 #: test files and notebooks by measured run time (an idle 2-core run with -n 2, issue 26), the
@@ -63,3 +65,48 @@ def pytest_collection_modifyitems(config, items):
         return rank.get(path, len(rank))
 
     items.sort(key=key)  # stable: the order within a file and of the unlisted files is kept
+
+
+# ----------------------------------------------------------------------------------------------
+# the golden record of scripts/fit_golden.py (issue 33): only when DAMPAX_FIT_GOLDEN_DIR is set
+
+_CURRENT = {"test": None}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """The test whose setup, call or teardown runs now (module fixtures count to the first
+    test that uses them, as their fits run in its setup)."""
+    _CURRENT["test"] = item.nodeid
+    yield
+    _CURRENT["test"] = None
+
+
+def pytest_configure(config):
+    """With DAMPAX_FIT_GOLDEN_DIR: record the to_dict() of every result dp.fit returns to its
+    caller (``_entry.fit_flat``, single and joint), one JSON line per fit, per process."""
+    import json
+    import os
+
+    folder = os.environ.get("DAMPAX_FIT_GOLDEN_DIR")
+    if not folder:
+        return
+    from dampax._fit import _entry
+
+    real = _entry.fit_flat
+    depth = [0]
+    part = Path(folder) / f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')}.jsonl"
+
+    def recorded(*args, **kwargs):
+        depth[0] += 1
+        try:
+            res = real(*args, **kwargs)
+        finally:
+            depth[0] -= 1
+        if depth[0] == 0 and hasattr(res, "to_dict"):
+            line = json.dumps({"test": _CURRENT["test"], "fit": res.to_dict()}, default=str)
+            with open(part, "a", encoding="utf-8") as fh:
+                fh.write(line + "\n")
+        return res
+
+    _entry.fit_flat = recorded

@@ -253,7 +253,7 @@ class _Fit:
                                              (2e-3, 3e-3, False), (1.0 + 1e-6, 1.0, True)])
 def test_a_fitted_mu_above_the_given_mu_s_fails_with_the_reason(mu, mu_s, fails):
     """fit(model="reference", mu_s=1e-5) reported mu = 0.003 > mu_s as a success."""
-    from dampax._fit._static import above_mu_s
+    from dampax._fit._halts import above_mu_s
 
     out = above_mu_s(_Fit({"mu": mu, "D": 0.1}), mu_s)
     assert out.success is not fails
@@ -359,28 +359,46 @@ class _K3Fit:
     stderr: dict = dataclasses.field(default_factory=lambda: {"mu": 1e-5, "D": 1e-4})
 
 
-def test_k3_model_bias_is_the_refit_of_the_exact_motion():
+def test_k3_model_bias_is_the_refit_of_the_exact_motion(monkeypatch):
     """_stiffness.model_bias (the k3 fit of an approximate model: D came out 43 standard errors
-    off with success): the exact motion of the fit's constants is refitted at k3 = e -+ h; a
-    stand-in fit whose cost is a parabola in e with its minimum at e0 and whose D moves by
-    0.002 + 0.5 (e - e_best) gives the shifts known in closed form."""
-    from dampax._fit._stiffness import model_bias
+    off with success): the exact motion of the fit's constants is prepared once as data (from
+    its first sample, one start) and refitted at k3 = e -+ h; a stand-in fit whose cost is a
+    parabola in e with its minimum at e0 and whose D moves by 0.002 + 0.5 (e - e_best) gives
+    the shifts known in closed form."""
+    from dampax._fit import _stiffness
+    from dampax._fit._params import Constants
+    from dampax._fit._problem import Settings
 
     t = np.linspace(0.0, 2.0, 64)
     params = dict(mu=0.002, b=0.0, D=0.05, w0=8.66, offset=0.0, x0=0.1, v0=0.0)
     best = _K3Fit(params, t)
     e_best, e0, scale, h = 0.07, 0.0712, 2000.0, 2e-3
-    seen = []
+    prepared, seen = [], []
 
-    def fit(t_, x_, *, free, k3, _inner, **options):
-        e = k3 / scale
-        seen.append((e, options["start"], options["starts"], x_.shape))
-        return _K3Fit({**params, "D": params["D"] + 0.002 + 0.5 * (e - e_best)}, t_,
+    class Held:
+        def __init__(self, k3=None):
+            self.k3 = k3
+
+        def with_consts(self, k3):
+            return Held(k3)
+
+    def prepare(t_, x_, settings):
+        prepared.append((settings.start, settings.starts, settings.end, x_.shape))
+        return Held()
+
+    def run(problem, plan):
+        e = problem.k3 / scale
+        seen.append(e)
+        return _K3Fit({**params, "D": params["D"] + 0.002 + 0.5 * (e - e_best)}, t,
                       chisqr=3.0 * (e - e0) ** 2 + 1.0)
 
-    out = model_bias(fit, best, e_best, scale, h, 5e-4, dict(oscillator=None, model="ansatz"))
-    assert [s[0] for s in seen] == pytest.approx([e_best - h, e_best, e_best + h])
-    assert all(s[1:] == ("data", 1, t.shape) for s in seen)
+    monkeypatch.setattr(_stiffness, "prepare", prepare)
+    monkeypatch.setattr(_stiffness, "run", run)
+    problem = dataclasses.make_dataclass("P", ["settings", "consts"])(
+        Settings(model="ansatz"), Constants(m=1.0, g=9.81))
+    out = _stiffness.model_bias(problem, best, (e_best, scale, h, 5e-4))
+    assert prepared == [("data", 1, None, t.shape)]
+    assert seen == pytest.approx([e_best - h, e_best, e_best + h])
     assert out["k3"]["shift"] == pytest.approx((e0 - e_best) * scale, rel=1e-9)
     assert out["k3"]["z"] == pytest.approx(abs(e0 - e_best) / 5e-4, rel=1e-9)
     assert out["D"]["shift"] == pytest.approx(0.002 + 0.5 * (e0 - e_best), rel=1e-9)

@@ -9,9 +9,7 @@
 from __future__ import annotations
 
 import math
-import re
 import warnings
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -21,15 +19,7 @@ from .._cache import call_cached_tree
 from .._oscillator import Oscillator
 from .._reference import _uniform
 from .._solve import solve
-from .._trace import Trace, load_trace
-from ._checks import (
-    check_gaps,
-    check_positions,
-    check_sampling,
-    check_time_axis,
-    check_trace,
-    looks_stuck,
-)
+from .._trace import Trace
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -42,14 +32,13 @@ from ._core import (
     run_core,
     swing_budget,
 )
-from ._guess import analyse, guess_envelope, guess_trace, start_index
+from ._guess import analyse, guess_envelope
 from ._options import Window, options
 from ._params import (
     CANDIDATES,
     FREE,
     LOSSES,
     MAD,
-    PARAMS,
     Constants,
     EnvelopeParams,
     TraceParams,
@@ -63,67 +52,19 @@ from ._params import (
     varied_names,
     vary_mask,
 )
+from ._pipeline import FULL, run
+from ._problem import Settings, bucket, pad, prepare, read_arrays, units_of
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
-from ._starts import run_starts
-from ._static import (
-    above_mu_s,
-    fit_mu_s,
-    other_halt_check,
-    search_other_halts,
-    with_static_halt,
-)
+from ._static import fit_mu_s
 from ._stiffness import fit_k3
 
 # ----------------------------------------------------------------------------------------------
-# data preparation
+# data preparation (the single fit's: ``_problem``)
 
-
-def _prepare(trace_or_t, x):
-    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped."""
-    source = ""
-    if isinstance(trace_or_t, Trace):
-        if x is not None:
-            raise ValueError("pass either a Trace or the arrays t and x, not both")
-        t, x, source = trace_or_t.t, trace_or_t.x, trace_or_t.source
-    elif isinstance(trace_or_t, (str, Path)):
-        trace = load_trace(trace_or_t)
-        t, x, source = trace.t, trace.x, trace.source
-    else:
-        if x is None:
-            raise ValueError("fit(t, x): x is missing (or pass a dampax.Trace)")
-        t = trace_or_t
-    t = np.asarray(t, dtype=float).reshape(-1)
-    x = np.asarray(x, dtype=float).reshape(-1)
-    if t.shape != x.shape:
-        raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
-    ok = np.isfinite(t) & np.isfinite(x)
-    t, x = t[ok], x[ok]
-    check_time_axis(t)
-    check_positions(x)
-    order = np.argsort(t, kind="stable")
-    t, x = t[order], x[order]
-    if t.size < 10:
-        raise ValueError(f"a fit needs at least 10 finite samples, got {t.size}")
-    return t, x, source
-
-
-def _bucket(n: int, minimum: int = 4096) -> int:
-    """Padded length: the next power of 4 >= n, at least ``minimum``, so that traces of
-    different lengths share compiled fits (compiling one takes 10-30 s; evaluating the padded
-    samples costs far less)."""
-    return max(minimum, 1 << (2 * int(math.ceil(math.log2(max(n, 1)) / 2))))
-
-
-def _pad(t, x, n_pad):
-    """(t, x, weight) padded to ``n_pad`` samples with the last one at weight 0."""
-    n = len(t)
-    wt = np.zeros(n_pad)
-    wt[:n] = 1.0
-    tp = np.full(n_pad, t[-1])
-    tp[:n] = t
-    xp = np.full(n_pad, x[-1])
-    xp[:n] = x
-    return tp, xp, wt
+_prepare = read_arrays
+_bucket = bucket
+_pad = pad
+_units_of = units_of
 
 
 def _robust_scale(r) -> float:
@@ -167,18 +108,6 @@ def _swings_bucket(max_swings, t, w0) -> int:
 # fits
 
 
-def _units_of(trace_or_t, units):
-    """The position unit: ``units``, else the unit in the position column's name of a Trace
-    ("Angle(deg)" -> "deg"), else "m"."""
-    if units is not None:  # checked by Window (or fit_envelope)
-        return units
-    if isinstance(trace_or_t, Trace):
-        found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
-        if found:
-            return found.group(1)
-    return "m"
-
-
 def _check_max_steps(max_steps):
     if max_steps is None:
         return None
@@ -192,8 +121,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
         rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
         units: str | None = None, starts: int = 32, seed: int = 0,
-        k3: float | None = None, mu_s: float | None = None, shared=None,
-        _inner: bool = False, _direct: bool = False) -> FitResult:
+        k3: float | None = None, mu_s: float | None = None, shared=None) -> FitResult:
     """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace (the
     implementation of :func:`dampax.fit`, whose ``window`` and ``solver`` objects arrive here
     as flat, checked keywords).
@@ -289,7 +217,6 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
                          "two or more traces, not a single trace")
     # the options (window, solver) were checked at the edge (dp.fit, ._options)
     check_choice("model", model, MODELS)
-    spec = FIT_MODELS[model]
     free = check_free(free, allowed=FREE)
     if mu_s is not None or "mu_s" in free:
         if model != "reference":
@@ -298,201 +225,23 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "
         if "k3" in free:
             raise ValueError("mu_s: free=(..., 'mu_s') and (..., 'k3') together are not "
                              "supported: fix k3 (k3=...) or mu_s")
+    settings = Settings(oscillator=oscillator, free=free, model=model, fit_omega0=fit_omega0,
+                        offset=offset, start=start, end=end, loss=loss, optimizer=optimizer,
+                        p0=p0, max_steps=max_steps, rtol=rtol, atol=atol,
+                        max_swings=max_swings, units=units, starts=starts, seed=seed, k3=k3,
+                        mu_s=mu_s)
     if "mu_s" in free:
         if mu_s is not None:
             raise ValueError("mu_s: give either free=(..., 'mu_s') or a fixed mu_s, not both")
-
-        return fit_mu_s(fit, trace_or_t, x, free=tuple(f for f in free if f != "mu_s"),
-                        options=dict(oscillator=oscillator, model=model,
-                                     fit_omega0=fit_omega0, offset=offset, start=start,
-                                     end=end, loss=loss, optimizer=optimizer, p0=p0,
-                                     max_steps=max_steps, rtol=rtol, atol=atol,
-                                     max_swings=max_swings, units=units, starts=starts,
-                                     seed=seed, k3=k3))
-    if mu_s is not None:
-        mu_s = float(mu_s)
-        if not (math.isfinite(mu_s) and mu_s >= 0.0):
-            raise ValueError(f"mu_s must be a finite number >= 0, got {mu_s!r}")
+        return fit_mu_s(prepare(trace_or_t, x, settings._replace(
+            free=tuple(f for f in free if f != "mu_s"))))
     if "k3" in free:
         if k3 is not None:
             raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
-
-        return fit_k3(fit, trace_or_t, x, free=tuple(f for f in free if f != "k3"),
-                       options=dict(oscillator=oscillator, model=model,
-                                    fit_omega0=fit_omega0, offset=offset, start=start,
-                                    end=end, loss=loss, optimizer=optimizer, p0=p0,
-                                    max_steps=max_steps, rtol=rtol, atol=atol,
-                                    max_swings=max_swings, units=units, starts=starts,
-                                    seed=seed))
-    if k3 is not None:
-        k3 = float(k3)
-        if not math.isfinite(k3):
-            raise ValueError(f"k3 must be a finite number, got {k3!r}")
-    per_mass = oscillator is None
-    if fit_omega0 is None:
-        fit_omega0 = per_mass
-    if per_mass and not fit_omega0:
-        raise ValueError("fit_omega0=False needs an oscillator (m and k): without one, w0 is "
-                         "fitted per unit mass")
-    osc = oscillator_values(oscillator)
-    unit = _units_of(trace_or_t, units)
-    t_all, x_all, source = _prepare(trace_or_t, x)
-    check_sampling(t_all, x_all)
-    warn = []
-    an = analyse(t_all, x_all)
-    if not fit_omega0 and an.n_turns >= 5 and \
-            abs(an.omega / osc["w0"] - 1.0) > 0.03 + 2.0 * an.omega_spread:
-        # the turning points (not the zero crossings, which friction moves) keep the clock
-        warn.append(f"the data's turning points are {math.pi / an.omega:.5g} s apart, "
-                    f"half a period of {an.omega:.5g} rad/s, but sqrt(k/m) = "
-                    f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k")
-    i0 = start_index(t_all, x_all, an, start)
-    i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
-    t, xw = t_all[i0:i1], x_all[i0:i1]
-    if t.size < 10:
-        raise ValueError(f"Window.start, Window.end: the fit window [{t_all[i0]:g}, {end}] "
-                         f"holds fewer than 10 samples (the trace runs from {t_all[0]:g} to "
-                         f"{t_all[-1]:g} s)")
-    check_gaps(t)
-    an_w = analyse(t, xw, omega0=None if fit_omega0 else osc["w0"])
-    check_trace(t, xw, an_w)
-    if per_mass:
-        osc = {**osc, "w0": an_w.omega, "k": an_w.omega ** 2}
-    guess = guess_trace(t, xw, free, osc, fit_omega0, offset, an=an_w)
-    if p0:
-        unknown = set(p0) - set(PARAMS)
-        if unknown:
-            raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
-        guess = guess._replace(**{k: float(v) for k, v in p0.items()})
-    for w in warn:
-        warnings.warn(w, stacklevel=2)
-    vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0, offset=offset)
-    if mu_s is not None and "mu" not in free and mu_s < osc["mu"]:
-        raise ValueError(f"mu_s must be >= mu (static friction is at least the sliding "
-                         f"friction), got mu_s={mu_s!r} and mu={osc['mu']!r}")
-    consts = Constants(m=osc["m"], g=osc["g"], k3=k3, mu_s=mu_s)
-    n = len(t)
-    tp, xp, wt = _pad(t, xw, _bucket(n))
-    steps = int(max_steps or MAX_STEPS[optimizer])
-
-    last = {}
-
-    def run(p_start, name, fs, mask=vary):
-        # the swing budget rounded up (_swings_bucket): windows of similar length share the
-        # compiled fit
-        opts = last.get("opts") if mask is not vary else _reference_options(
-            FIT_MODELS[name], _swings_bucket(max_swings, t, p_start.w0), 1e-8, 1e-10, t,
-            p_start.w0)
-        last.update(opts=opts, name=name, fs=fs)
-        return run_core(tp, xp, wt, p_start, mask, consts, fs, model=name, optimizer=optimizer,
-                        max_steps=steps, rtol=float(rtol), atol=float(atol), opts=opts)
-
-    stages = []
-    fs = math.inf
-    # _direct (the fits at fixed mu_s of ``_static``, started from p0 = the optimum of a fit of
-    # the same model): no approximate model first
-    first = spec.name if _direct else (spec.start_from or spec.name)
-    found = None
-    start_p = guess
-    if starts > 1 and not FIT_MODELS[first].integrates:
-        found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts, f_scale=fs,
-                           n=int(starts), seed=int(seed), fit_omega0=fit_omega0,
-                           omega=an_w.omega, w0_spread=an_w.omega_spread, model=first,
-                           optimizer=optimizer,
-                           max_steps=steps, rtol=float(rtol), atol=float(atol))
-        start_p = found.params
-    out = run(start_p, first, fs)
-    if loss == "soft_l1":
-        r = xw - np.asarray(out.curve)[:n]
-        fs = _robust_scale(r)
-        fs = fs if fs > 0 else float(np.std(r)) or 1.0
-        stages.append(f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}")
-        out = run(out.params, first, fs)
-    if spec.start_from and not _direct:
-        # the approximate model's optimum can lie in another basin of the exact model (a
-        # strongly damped trace that halts after a few swings: where the block sticks changes
-        # the cost by steps): the exact model gets its own batch of starts around the
-        # turning-point guess, the approximate model's optimum among them
-        text = f"started from the {first} fit ({int(out.steps)} steps)"
-        approx = out.params
-        out = run(approx, spec.name, fs)
-        if starts > 1 and looks_stuck(t, xw, np.asarray(out.curve)[:n], an_w,
-                                      float(out.params.w0), out.code):
-            # what the exact model's fit shows is not noise: a batch of its own starts around
-            # the turning-point guess (the approximate model's optimum and this one among
-            # them), the lower cost kept
-            opts = _reference_options(spec, _swings_bucket(max_swings, t, guess.w0), 1e-8,
-                                      1e-10, t, guess.w0)
-            found = run_starts(t, xw, guess, free=free, vary=vary, consts=consts,
-                               f_scale=fs, n=int(starts), seed=int(seed) + 1,
-                               fit_omega0=fit_omega0, omega=an_w.omega,
-                               w0_spread=an_w.omega_spread, model=spec.name,
-                               optimizer=optimizer, max_steps=steps, rtol=float(rtol),
-                               atol=float(atol), opts=opts, extra=(approx, out.params))
-            other = run(found.params, spec.name, fs)
-            c0, c1 = float(out.chisqr), float(other.chisqr)
-            text += (f"; its residuals were not noise: {int(starts) - 2} jittered starts of "
-                     f"the {spec.name} model")
-            if math.isfinite(c1) and (c1 < c0 or not math.isfinite(c0)):
-                out = other
-                text += f" found a lower cost ({0.5 * c1:.4g} < {0.5 * c0:.4g})"
-            else:
-                text += " found no lower cost"
-        stages.append(text)
-    if max_steps is None and bool(out.code == FIT_RESULTS.max_steps_reached):
-        # the default budget ran out on the way (a long valley): one more round from there,
-        # kept where it lowers the cost (a budget the caller set is honoured)
-        more = run(out.params, spec.name, fs)
-        if float(more.chisqr) < float(out.chisqr):
-            stages.append(f"the step budget ran out: continued ({int(more.steps)} more steps)")
-            out = more
-    others = {}  # mu of a motion that halts at a neighbouring turning point -> its held cost
-    if spec.integrates and vary.mu and mu_s is None and not _inner and loss == "linear":
-
-        out, others = search_other_halts(out, run, t, vary, fs, spec.name, stages,
-                                   (osc["m"], osc["g"], 0.0 if k3 is None else k3))
-    init = {name: getattr(guess, name) for name in varied_names(vary)}
-    best = out
-
-    def profile(name, value, start=None, batch=False):
-        # the fit with one parameter held (the checks), from the fit's values with ``start``'s
-        # in place; ``batch``: first a batch of jittered starts around there (the fit's own
-        # batch program: its first model), the best one polished
-        held = {name: float(value), **{k: float(v) for k, v in (start or {}).items()}}
-        mask = vary._replace(**{name: False})
-        p = best.params._replace(**held)
-        if batch and starts > 1:
-            p = run_starts(t, xw, p, free=tuple(f for f in free if f != name), vary=mask,
-                           consts=consts, f_scale=last["fs"], n=int(starts),
-                           seed=int(seed) + 2, fit_omega0=fit_omega0, omega=an_w.omega,
-                           w0_spread=an_w.omega_spread, model=first, optimizer=optimizer,
-                           max_steps=steps, rtol=float(rtol), atol=float(atol),
-                           extra=(p,)).params
-            # its damping constants (the approximate model's state and frequency can lie
-            # far from the exact model's where the block halts early)
-            p = p._replace(**{k: float(getattr(p, k)) for k in free if k != name},
-                           **{k: getattr(best.params, k) for k in ("w0", "offset", "x0",
-                                                                      "v0")})
-            p = p._replace(**{name: float(value)})
-        prof = run(p, last["name"], last["fs"], mask=mask)
-        return float(prof.chisqr)
-
-    res = build_result(out, FitContext(
-        model=model, free=free, vary=vary, consts=consts, t=t, x=xw, loss=loss,
-        optimizer=optimizer, f_scale=fs, init=init, source=source, full_t=t_all, full_x=x_all,
-        warnings=tuple(warn), stages="; ".join(stages), per_mass=per_mass, units=unit,
-        analysis=an_w, starts=found,
-        profile=profile if loss == "linear" and not _inner else None))
-    if "unidentifiable" in res.diagnostics and not _inner:
-        raise ValueError(res.diagnostics["unidentifiable"])
-    if others and res.success:
-
-        res = other_halt_check(res, others)
-    if mu_s is not None and not _inner:  # the halt of the motion with static friction
-
-        res = with_static_halt(res, osc["m"], osc["g"], 0.0 if k3 is None else k3, mu_s)
-        res = above_mu_s(res, mu_s)
-    return res
+        return fit_k3(prepare(trace_or_t, x, settings._replace(
+            free=tuple(f for f in free if f != "k3"))))
+    problem = prepare(trace_or_t, x, settings._replace(free=free))
+    return run(problem, FULL)
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

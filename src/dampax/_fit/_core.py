@@ -432,7 +432,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
         return (_clamp_flat(theta + scale * sol.value, args, model), sol.stats["num_steps"],
                 _result_code(sol.result))
 
-    def one(carry, _):
+    def one(carry, index):
         theta, scale, steps, code, redo = carry
         again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
         theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),

@@ -291,7 +291,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
     local_only = jnp.concatenate([jnp.zeros(len(lay.shared)), jnp.ones(size - len(lay.shared))])
     theta0, steps0, _ = solve(jnp.zeros(size), local_only)
 
-    def one(carry, _):
+    def one(carry, index):
         theta, scale, steps, code, redo = carry
         again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
         theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),

@@ -308,7 +308,7 @@ def ansatz_y(x0, v0, mu, b, D, w0, m, g, iters=40):
     d0, d1, d2 = damping_d(mu, b, D, w0, m, g)
     w0 = phase_rate(w0, d1)
 
-    def body(_, w):
+    def body(index, w):
         A = jnp.sqrt(x0 * x0 + w * w)
         A = jnp.where(A > 0.0, A, 1.0)
         return -(v0 + (d2 * A + d1 + d0 / A) * x0) / w0

@@ -1,7 +1,6 @@
-"""Where the block halts, in fits: ``fit(free=(..., "mu_s"))`` (the static friction coefficient,
-searched by the halt it gives) and, for every reference fit with mu free, the search of the
-motions that halt at a neighbouring turning point (:func:`search_other_halts`,
-:func:`other_halt_check`).
+"""``fit(free=(..., "mu_s"))``: the static friction coefficient, searched by the halt it gives
+(the motion's turning points and thresholds, and the checks every reference fit makes of
+where it halts, are ``_halts``, below the pipeline).
 
 With static friction mu_s >= mu the block sticks at the first turning point x_j where
 |k x_j + k3 x_j^3| <= mu_s m g (``Oscillator.mu_s``). The motion before that turning point does
@@ -32,214 +31,13 @@ import math
 
 import numpy as np
 
-from .._oscillator import Oscillator
-from .._solve import solve
-from ._params import PARAMS, oscillator_values
-from ._profile import LR_CHI2, LR_Z
+from ._halts import thresholds, turning_points
+from ._params import PARAMS
+from ._pipeline import DIRECT, DIRECT_INNER, INNER, run
 
 #: fits at fixed mu_s of the best-screening candidates, and the most fits at fixed mu_s in all
 REFINE = 2
 MAX_FITS = 5
-
-
-def _constants(options) -> tuple[float, float, float]:
-    """(m, g, k3) of the fit's oscillator (unit mass and g = 9.81 without one)."""
-    vals = oscillator_values(options["oscillator"])
-    k3 = options.get("k3")
-    return vals["m"], vals["g"], 0.0 if k3 is None else float(k3)
-
-
-def _motion(res, m: float, g: float, k3: float, mu_s=None):
-    """The reference solution of a fit's motion from its start over twice its window (one
-    compiled program for every call of a search), and the window's span."""
-
-    p = res.params
-    osc = Oscillator(m=m, k=m * p["w0"] ** 2, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
-                     mu_s=None if mu_s is None else max(float(mu_s), float(p["mu"])))
-    span = float(res.t[-1] - res.t[0])
-    return solve(osc, p["x0"], p["v0"], method="reference", t_end=2.0 * span), span
-
-
-def turning_points(res, m: float, g: float, k3: float, mu_s=None):
-    """The turning points of a fit's motion inside its window.
-
-    Arguments:
-        res: a trace fit of the reference model.
-        m, g, k3: the fit's constants.
-        mu_s: the static friction of the motion (None: mu_s = mu); with a value the list
-            ends at the halt it gives.
-
-    Returns:
-        (tau_j, x_j, th_j, halts): the times after the fit start, the positions (about the
-        offset), the static-friction thresholds th_j = |k x_j + k3 x_j^3| / (m g) in time
-        order, and whether the motion halts inside the window (its last turning point is
-        then the halt).
-    """
-    sol, span = _motion(res, m, g, k3, mu_s)
-    k = m * float(res.params["w0"]) ** 2
-    ts = np.asarray(sol.swing_times, dtype=float)
-    xs = np.asarray(sol.turning_x, dtype=float)
-    ok = np.isfinite(ts) & (ts > 0.0) & (ts <= span)
-    ts, xs = ts[ok], xs[ok]
-    th = np.abs(k * xs + k3 * xs ** 3) / (m * g)
-    halt = float(sol.halt_time)
-    return ts, xs, th, bool(np.asarray(sol.halted)) and math.isfinite(halt) and halt <= span
-
-
-def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarray, bool]:
-    """(th_j, halts) of :func:`turning_points`."""
-    _, _, th, halts = turning_points(res, m, g, k3, mu_s)
-    return th, halts
-
-
-def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]:
-    """The thresholds of mu at which a fit's motion would halt one turning point earlier or
-    later (sliding friction, mu_s = mu; the check of ``fit`` for another optimum).
-
-    Where the block sticks is a step function of mu: the motion halts at the first turning
-    point j with th_j = |k x_j + k3 x_j^3| / (m g) <= mu. A fit that halts at turning point h
-    (th_h <= mu < th_(h-1)) has neighbours that halt at h - 1 (mu >= th_(h-1)) and h + 1
-    (mu < th_h), a jump in the cost that no gradient crosses; over two or three swings their
-    optimum can fit as well.
-
-    Arguments:
-        params: the fit's parameters (dict or TraceParams: mu, b, D, w0, x0, v0).
-        t: the window's times.
-        m, g, k3: the fit's constants.
-
-    Returns:
-        (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
-        point). A motion that does not halt inside the window has one neighbour: the motion
-        that halts at the window's last turning point (th_(h-1) = its threshold, th_h NaN);
-        none without a turning point inside the window.
-    """
-    from types import SimpleNamespace
-
-    p = params if isinstance(params, dict) else params._asdict()
-    ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
-    th, halts = thresholds(ns, m, g, k3)
-    if th.size == 0:
-        return math.nan, math.nan
-    if not halts:  # it halts after the window: the neighbour halts at its last turning point
-        return float(th[-1]), math.nan
-    h = th.size - 1
-    return (float(th[h - 1]) if h >= 1 else math.nan), float(th[h])
-
-
-def search_other_halts(out, run, t, vary, fs, name, stages, constants):
-    """The search of ``fit`` for a better optimum where the block halts at a neighbouring
-    turning point (``_static.other_halts``), for the exact model with mu free.
-
-    With the thresholds th_(h-1) (halt one turning point earlier) and th_h (one later): mu
-    held just past each threshold (by a quarter of its standard error), at 1.05 and 1.25
-    th_(h-1) and at 0.95 and 0.8 th_h, the rest refitted; and free fits started at 1.05
-    th_(h-1) and 0.95 th_h (where to look, not thresholds: the verdict is the likelihood
-    ratio of :func:`other_halt_check`). A lower cost is taken (a held fit's by freeing mu
-    from it: the optimizer only goes downhill, so it stays in that basin) and the search
-    repeated once around it.
-
-    Returns:
-        (the fit, {held mu: its cost}) for :func:`other_halt_check`: the held fits of both
-        rounds and the optimum a lower cost replaced.
-    """
-    held = vary._replace(mu=False)
-    others = {}  # every held fit of the search, and an optimum it left (a basin it saw)
-    for _ in range(2):
-        prev, last = other_halts(out.params, t, *constants)
-        se = float(out.stderr.mu) if math.isfinite(float(out.stderr.mu)) else 0.0
-        points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
-                  last * (1.0 - 1e-3) - 0.25 * se, 0.95 * last, 0.8 * last]
-        fits = []
-        for mu_alt in points:
-            if math.isfinite(mu_alt) and mu_alt > 0.0:
-                fit_alt = run(out.params._replace(mu=mu_alt), name, fs, mask=held)
-                others[mu_alt] = float(fit_alt.chisqr)
-                fits.append(fit_alt)
-        lower = [f for f in fits if float(f.chisqr) < float(out.chisqr)]
-        starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
-        starts += [out.params._replace(mu=v) for v in (1.05 * prev, 0.95 * last)
-                   if math.isfinite(v) and v > 0.0]
-        better = None
-        for p in starts:
-            cand = run(p, name, fs)
-            if float(cand.chisqr) < float(out.chisqr if better is None else better.chisqr):
-                better = cand
-        if better is None:
-            break
-        stages.append(f"a motion that halts at another turning point fits better (cost "
-                      f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(out.chisqr):.4g})")
-        others[float(out.params.mu)] = float(out.chisqr)  # the basin left: nearly as good?
-        out = better
-    return out, others
-
-
-def other_halt_check(res, others: dict):
-    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
-    with mu outside its interval (``_static.other_halts``): with mu held at each value of
-    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
-    the fit,
-    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``),
-    below :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
-    :data:`~dampax._fit._profile.LR_Z` interval sd: the data hold two answers, and the
-    interval of one of them is no interval."""
-
-    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
-    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
-        return res
-    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
-    mu = float(res.params["mu"])
-    for mu_alt, cost in others.items():
-        if not abs(mu_alt - mu) > LR_Z * sd:
-            continue
-        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
-        if rise < LR_CHI2:
-            reason = (f"two motions fit nearly as well: this one and one that halts at another "
-                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
-                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
-                      "where the block sticks does not settle mu; fit a longer record or fix "
-                      "the offset")
-            return dataclasses.replace(res, success=False, reason=reason,
-                                       diagnostics={**res.diagnostics,
-                                                    "other_halt_mu": mu_alt,
-                                                    "other_halt_chi2": rise})
-    return res
-
-
-def above_mu_s(res, mu_s: float):
-    """A fit at a given mu_s whose fitted mu exceeds it, failed with the reason (issue 37):
-    the model's rule is mu_s >= mu, and a traced mu_s below mu acts as mu, so such a fit
-    described a motion without the given static friction and reported it as a success.
-
-    Arguments:
-        res: the fit's FitResult.
-        mu_s: the given static friction coefficient.
-
-    Returns:
-        ``res`` unchanged when mu <= mu_s (to 1e-9 relative) or mu was not fitted, else a
-        copy with ``success = False`` and the reason.
-    """
-    mu = res.params.get("mu")
-    if mu is None or not float(mu) > float(mu_s) * (1.0 + 1e-9):
-        return res
-    reason = (f"the fitted mu = {float(mu):.4g} exceeds the given mu_s = {float(mu_s):.4g}, "
-              "against the model's rule mu_s >= mu (the motion was that of mu_s = mu): the "
-              "data's sliding friction is larger than the static friction given; fit mu_s as "
-              "well (free=(..., 'mu_s')) or give mu_s >= mu")
-    return dataclasses.replace(res, success=False,
-                               reason="; ".join(r for r in (res.reason, reason) if r))
-
-
-def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
-    """A fit at fixed mu_s with ``fixed["mu_s"]`` and ``derived["halt_time"]`` of its own
-    motion (the reference with mu_s, where it halts within twice the window; otherwise the
-    value stays the ansatz's estimate for mu_s = mu, which is later)."""
-    res = dataclasses.replace(res, fixed={**res.fixed, "mu_s": float(mu_s)})
-    sol, _ = _motion(res, m, g, k3, mu_s)
-    halt = float(sol.halt_time)
-    if not (bool(np.asarray(sol.halted)) and math.isfinite(halt)):
-        return res
-    return dataclasses.replace(res, derived={**res.derived,
-                                             "halt_time": float(res.t[0]) + halt})
 
 
 def _interval(th: np.ndarray, j: int) -> tuple[float, float]:
@@ -281,14 +79,62 @@ def screen(res, m: float, g: float, k3: float) -> list[tuple[float, int, float]]
     return sorted(out)
 
 
-def fit_mu_s(fit, trace_or_t, x, *, free, options):
-    """``fit`` with the static friction coefficient mu_s searched (see the module's text).
+def _constants(problem) -> tuple[float, float, float]:
+    """(m, g, k3) of the problem (k3 = 0 for the linear spring)."""
+    c = problem.consts
+    return c.m, c.g, 0.0 if c.k3 is None else float(c.k3)
+
+
+def _cost(res) -> float:
+    return float(res.chisqr) if res is not None and np.isfinite(res.chisqr) else math.inf
+
+
+def _at(problem, value, start, inner: bool = True):
+    """A fit at fixed mu_s from another fit's optimum with the reference model directly (one
+    start: the caller's starts were spent on the sliding fit); None where an inner one is
+    refused."""
+    try:
+        held = problem.with_consts(mu_s=value).starting_at(
+            {n: float(start.params[n]) for n in PARAMS}, starts=1)
+        return run(held, DIRECT_INNER if inner else DIRECT)
+    except ValueError:
+        if not inner:
+            raise
+        return None
+
+
+def _search(problem, base):
+    """Steps 2-4 of the module's search: (the best fit, its mu_s or None, fits made)."""
+    m, g, k3 = _constants(problem)
+    best, best_value, done = base, None, {}
+    for _, j, value in screen(base, m, g, k3)[:REFINE]:
+        res = done[j] = _at(problem, value, base)
+        if _cost(res) < _cost(best):
+            best, best_value = res, value
+    fits = len(done)
+    if best_value is not None:
+        # the screen at the best fit's parameters: a halt not yet fitted that screens below it
+        tried = {best_value}
+        for c, _, value in screen(best, m, g, k3):
+            if fits >= MAX_FITS or c >= _cost(best):
+                break
+            if any(abs(value - v) <= 1e-12 * max(1.0, abs(v)) for v in tried):
+                continue
+            tried.add(value)
+            res = _at(problem, value, base)
+            fits += 1
+            if _cost(res) < _cost(best):
+                best, best_value = res, value
+    return best, best_value, fits
+
+
+def fit_mu_s(problem):
+    """The fit of ``problem`` with the static friction coefficient mu_s searched (see the
+    module's text).
 
     Arguments:
-        fit: :func:`dampax.fit` (passed in: this module does not import ``_api``).
-        trace_or_t, x: the data, as for ``fit``.
-        free: the other free constants.
-        options: the other keyword arguments of ``fit`` (model "reference").
+        problem: the prepared problem (``_problem.prepare``; model "reference", ``free``
+            without "mu_s").
 
     Returns:
         The :class:`FitResult` of the lowest cost, with "mu_s" in ``params``, ``stderr``,
@@ -297,48 +143,19 @@ def fit_mu_s(fit, trace_or_t, x, *, free, options):
         (1-based), the fits made, and the rms and the model's position at the window's end
         of the sliding-friction fit (mu_s = mu).
     """
-    m, g, k3 = _constants(options)
+    m, g, k3 = _constants(problem)
     # the search's fits are inner fits (no refusal, no profile of the intervals): the chosen
     # one is fitted again at the end with every check of a plain fit
-    base = fit(trace_or_t, x, free=free, _inner=True, **options)
-
-    def cost(res):
-        return float(res.chisqr) if res is not None and np.isfinite(res.chisqr) else math.inf
-
-    def run(value, start=base, inner=True):
-        # a fit at fixed mu_s from another fit's optimum with the reference model directly
-        # (one start: the caller's starts were spent on the sliding fit)
-        kw = {**options, "starts": 1, "p0": {n: float(start.params[n]) for n in PARAMS}}
-        try:
-            return fit(trace_or_t, x, free=free, mu_s=value, _inner=inner, _direct=True, **kw)
-        except ValueError:
-            if not inner:
-                raise
-            return None
-
-    done: dict[int, object] = {}  # candidate halt j (of the sliding fit's screen) -> fit
-
-    best, best_value = base, None
-    for _, j, value in screen(base, m, g, k3)[:REFINE]:
-        res = done[j] = run(value)
-        if cost(res) < cost(best):
-            best, best_value = res, value
-    fits = len(done)
-    if best_value is not None:
-        # the screen at the best fit's parameters: a halt not yet fitted that screens below it
-        tried = {best_value}
-        for c, _, value in screen(best, m, g, k3):
-            if fits >= MAX_FITS or c >= cost(best):
-                break
-            if any(abs(value - v) <= 1e-12 * max(1.0, abs(v)) for v in tried):
-                continue
-            tried.add(value)
-            res = run(value)
-            fits += 1
-            if cost(res) < cost(best):
-                best, best_value = res, value
+    base = run(problem, INNER)
+    best, best_value, fits = _search(problem, base)
     # the chosen fit again as a plain fit (its checks, and a refusal with the true reason)
-    best = run(best_value, start=best, inner=False)
+    best = _at(problem, best_value, best, inner=False)
+    return _reported(best, base, best_value, fits, (m, g, k3))
+
+
+def _reported(best, base, best_value, fits, constants):
+    """The chosen fit with mu_s reported: the middle of the values that give its halt."""
+    m, g, k3 = constants
     mu_best = float(best.params["mu"])
     used = mu_best if best_value is None else best_value
     # the halt that the chosen fit makes (its parameters moved from the candidate's), and the

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -17,49 +19,55 @@ from .._solve import solve
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
 from ._intervals import ar1_coefficient
-from ._params import PARAMS, oscillator_values
+from ._params import PARAMS
+from ._pipeline import FULL, INNER, run
+from ._problem import prepare
 from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
 
 
-def fit_k3(fit, trace_or_t, x, *, free, options):
-    """``fit`` with the cubic stiffness k3 profiled (see its ``free``); ``fit`` is passed in
-    (this module does not import ``_api``).
+class Profile(NamedTuple):
+    """k3's profile: S(e) minimised over e = k3 A^2/(m w0^2) (e = k3 / scale)."""
 
-    S(k3), the residual sum of squares of the fit at fixed k3, is minimised by Brent's method
-    in e = k3 A^2/(m w0^2) on [-0.3, 0.3]; the interval of k3 comes from the curvature of S at
-    the minimum (central differences), sigma^2 = S/(n - p) and the factor (1 + rho)/(1 - rho)
-    of the residuals' lag-1 autocorrelation rho. Returns the fit at the best k3 with "k3" in
-    ``params``, ``stderr``, ``free`` and ``conf_interval``.
-    """
+    base: object  # the linear-spring fit
+    at: Callable  # e -> the fit at fixed k3 = e * scale (memoised)
+    cost: Callable  # e -> its residual sum of squares (1e300 where not finite)
+    evaluations: Callable  # () -> the fits made so far
+    scale: float
+    e_best: float
+    h: float  # the step of the central differences
+    s0: float  # S(e_best)
+    sigma2: float  # the noise variance, inflated for the residuals' AR(1) correlation
+    sd_e: float  # e's standard error
+    rho: float
+
+
+def profile_k3(problem) -> Profile:
+    """The linear-spring fit (the plain plan), then S(e) minimised by Brent's method from
+    fits at fixed k3 started at its optimum (one start each: the global starts were spent on
+    the linear fit), and e's standard error from the curvature of S at the minimum."""
     from scipy.optimize import minimize_scalar
 
-    base = fit(trace_or_t, x, free=free, **options)
-    m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
+    base = run(problem, FULL)
     w0 = float(base.params["w0"])
     amp = float(math.hypot(base.params["x0"], base.params["v0"] / w0))
-    scale = m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
+    scale = problem.consts.m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
+    inner = problem.starting_at({name: float(base.params[name]) for name in PARAMS}, starts=1)
     cache = {}
 
-    # every fit at fixed k3 starts from the linear-spring optimum (one start: the global
-    # starts were spent on the linear fit)
-    inner = {**options, "starts": 1,
-             "p0": {name: float(base.params[name]) for name in PARAMS}}
-
-    def run(e):
+    def at(e):
         e = float(e)
         if e not in cache:
-            cache[e] = fit(trace_or_t, x, free=free, k3=e * scale, _inner=True, **inner)
+            cache[e] = run(inner.with_consts(k3=e * scale), INNER)
         return cache[e]
 
     def cost(e):
-        res = run(e)
+        res = at(e)
         return float(res.chisqr) if np.isfinite(res.chisqr) else 1e300
 
     opt = minimize_scalar(cost, bracket=(-0.01, 0.01), bounds=None, method="brent",
                           options={"xtol": 1e-4, "maxiter": 40})
     e_best = float(np.clip(opt.x, -0.3, 0.3))
-    best = run(e_best)
-    # curvature of S(e) at the minimum
+    best = at(e_best)
     h = max(0.02 * abs(e_best), 2e-3)
     s0, sp, sm = cost(e_best), cost(e_best + h), cost(e_best - h)
     curv = (sp + sm - 2.0 * s0) / (h * h)
@@ -68,67 +76,96 @@ def fit_k3(fit, trace_or_t, x, *, free, options):
     rho = ar1_coefficient(r, clip=(0.0, 0.99), pearson=True)
     sigma2 = s0 / max(n - p, 1) * (1.0 + rho) / (1.0 - rho)
     sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
-    k3 = e_best * scale
-    sd = sd_e * scale
-    profile = {"k3": {"value": k3, "stderr": sd, "ratio": e_best, "ratio_scale": scale,
-                      "rho": rho, "evaluations": len(cache), "rms_linear": base.rms,
-                      "at_bound": abs(e_best) >= 0.3}}
-    # the others' intervals allow for k3's uncertainty (issue 25): cov += g g^T sd_e^2 with g
-    # the change of each optimum with e (central differences of the profile's fits)
-    extra = None
-    plus, minus = run(e_best + h), run(e_best - h)
-    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * h) for n in best.varied])
-    if np.all(np.isfinite(g)) and math.isfinite(sd_e):
-        extra = np.outer(g, g) * sd_e * sd_e
-    # k3's interval against the cost itself (as _profile.profile_ratios for the others): S at
-    # e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it rises
-    # c < 1 times that is widened by 1/sqrt(c) (followed out where c < 1/4:
-    # _profile.profile_side); where its bound lies beyond the reach (S is flat: where the block
-    # sticks moves with k3 and changes the cost by steps) the interval does not hold
+    return Profile(base, at, cost, lambda: len(cache), scale, e_best, h, s0, sigma2, sd_e,
+                   rho)
+
+
+def carried_covariance(pr: Profile):
+    """What k3's uncertainty adds to the others' covariance (issue 25): g g^T sd_e^2 with g
+    the change of each optimum with e (central differences of the profile's fits); None
+    where not finite."""
+    best, plus, minus = pr.at(pr.e_best), pr.at(pr.e_best + pr.h), pr.at(pr.e_best - pr.h)
+    g = np.array([(plus.params[n] - minus.params[n]) / (2.0 * pr.h) for n in best.varied])
+    if np.all(np.isfinite(g)) and math.isfinite(pr.sd_e):
+        return np.outer(g, g) * pr.sd_e * pr.sd_e
+    return None
+
+
+def k3_sides(pr: Profile, entry: dict) -> str:
+    """k3's interval against the cost itself (as ``_profile.profile_ratios`` for the others):
+    S at e -+ 2 sd_e must rise by about the 4 sigma^2 the interval assumes; a side where it
+    rises c < 1 times that is widened by 1/sqrt(c) (followed out where c < 1/4:
+    ``_profile.profile_side``); where its bound lies beyond the reach (S is flat: where the
+    block sticks moves with k3 and changes the cost by steps) the interval does not hold.
+    Fills ``entry`` (the profile's report) and returns the failure's reason, or ""."""
+    rises = []
+    for sgn in (-1, 1):
+        def rise(d, sgn=sgn):
+            return (pr.cost(pr.e_best + sgn * d) - pr.s0) / (4.0 * pr.sigma2)
+
+        rises.append(profile_side(rise, 2.0 * pr.sd_e, rise(2.0 * pr.sd_e)))
+    entry["profile"] = rises
+    entry["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and PROFILE_FAIL <= c < 1.0
+                           else 1.0 for c in rises)
+    if any(math.isfinite(c) and c < PROFILE_FAIL for c in rises):
+        return (f"the intervals do not hold: with k3 held from 2 to "
+                f"{2 * PROFILE_REACH:.0f} sd from its value and the rest refitted the cost "
+                "rises less than its interval assumes (the cost is not quadratic in k3 "
+                "over its interval)")
+    return ""
+
+
+def bias_reason(problem, pr: Profile, bias: dict) -> str:
+    """The failure's reason where the approximate model's own error for this cubic spring
+    moves a constant beyond 1.96 standard errors (issue 37), or ""."""
+    worst = max(bias, key=lambda n: bias[n]["z"], default=None)
+    if worst is None or not bias[worst]["z"] > norm_ppf(0.975):
+        return ""
+    shown = ", ".join(f"{n} by {b['shift']:+.3g} ({b['z']:.1f} standard errors)"
+                      for n, b in bias.items() if b["z"] > 1.0)
+    return (f"the {problem.settings.model} model's own error for this cubic spring biases "
+            f"the fit beyond its intervals: fitted to the exact motion (the reference) of its "
+            f"own constants, it moves {shown}; fit with model='reference', exact for a cubic "
+            "spring")
+
+
+def fit_k3(problem):
+    """The fit of ``problem`` with the cubic stiffness k3 profiled (see ``fit``'s ``free``):
+    every fit at fixed k3 is ``problem.with_consts(k3=...)``, the data prepared once.
+
+    S(k3), the residual sum of squares of the fit at fixed k3, is minimised by Brent's method
+    in e = k3 A^2/(m w0^2) on [-0.3, 0.3]; the interval of k3 comes from the curvature of S at
+    the minimum (central differences), sigma^2 = S/(n - p) and the factor (1 + rho)/(1 - rho)
+    of the residuals' lag-1 autocorrelation rho. Returns the fit at the best k3 with "k3" in
+    ``params``, ``stderr``, ``free`` and ``conf_interval``.
+    """
+    pr = profile_k3(problem)
+    best, k3, sd = pr.at(pr.e_best), pr.e_best * pr.scale, pr.sd_e * pr.scale
+    entry = {"value": k3, "stderr": sd, "ratio": pr.e_best, "ratio_scale": pr.scale,
+             "rho": pr.rho, "evaluations": pr.evaluations(), "rms_linear": pr.base.rms,
+             "at_bound": abs(pr.e_best) >= 0.3}
+    extra = carried_covariance(pr)
     success, reason = best.success, best.reason
-    if math.isfinite(sd_e) and sd_e > 0 and best.success:
-
-        rises = []
-        for sgn in (-1, 1):
-            def rise(d, sgn=sgn):
-                return (cost(e_best + sgn * d) - s0) / (4.0 * sigma2)
-
-            rises.append(profile_side(rise, 2.0 * sd_e, rise(2.0 * sd_e)))
-        profile["k3"]["profile"] = rises
-        profile["k3"]["scale"] = tuple(1.0 / math.sqrt(c) if math.isfinite(c) and
-                                       PROFILE_FAIL <= c < 1.0 else 1.0 for c in rises)
-        low = [c for c in rises if math.isfinite(c) and c < PROFILE_FAIL]
-        if low:
-            success = False
-            reason = (f"the intervals do not hold: with k3 held from 2 to "
-                      f"{2 * PROFILE_REACH:.0f} sd from its value and the rest refitted the cost "
-                      "rises less than its interval assumes (the cost is not quadratic in k3 "
-                      "over its interval)")
-    bias = {}
-    if success and not FIT_MODELS[options["model"]].integrates and math.isfinite(sd_e):
+    if math.isfinite(pr.sd_e) and pr.sd_e > 0 and best.success:
+        reason = k3_sides(pr, entry) or reason
+        success = success and reason == best.reason
+    if success and not FIT_MODELS[problem.settings.model].integrates and \
+            math.isfinite(pr.sd_e):
         # the approximate model's own error for a cubic spring, against the fit's standard
         # errors (issue 37: D 43 standard errors off the truth, reported as a success)
-        bias = model_bias(fit, best, e_best, scale, h, sd_e, options, extra)
-        worst = max(bias, key=lambda n: bias[n]["z"], default=None)
-        if worst is not None and bias[worst]["z"] > norm_ppf(0.975):
-            success = False
-            shown = ", ".join(f"{n} by {b['shift']:+.3g} ({b['z']:.1f} standard errors)"
-                              for n, b in bias.items() if b["z"] > 1.0)
-            reason = (f"the {options['model']} model's own error for this cubic spring biases "
-                      f"the fit beyond its intervals: fitted to the exact motion (the "
-                      f"reference) of its own constants, it moves {shown}; fit with "
-                      "model='reference', exact for a cubic spring")
-        profile["k3"]["model_bias"] = bias
+        bias = model_bias(problem, best, (pr.e_best, pr.scale, pr.h, pr.sd_e), extra)
+        reason = bias_reason(problem, pr, bias) or reason
+        success = success and reason == best.reason
+        entry["model_bias"] = bias
     return dataclasses.replace(
         best, success=success, reason=reason,
         params={**best.params, "k3": k3}, stderr={**best.stderr, "k3": sd},
-        free=tuple(best.free) + ("k3",), profiled=profile, extra_cov=extra,
-        derived={**best.derived, "k3_ratio": e_best, "rms_linear_spring": base.rms,
+        free=tuple(best.free) + ("k3",), profiled={"k3": entry}, extra_cov=extra,
+        derived={**best.derived, "k3_ratio": pr.e_best, "rms_linear_spring": pr.base.rms,
                  "k3_z": norm_ppf(0.975)})
 
 
-def model_bias(fit, best, e_best: float, scale: float, h: float, sd_e: float,
-               options: dict, extra=None) -> dict:
+def model_bias(problem, best, profile: tuple, extra=None) -> dict:
     """The bias of an approximate model's k3 fit from its own error: the exact motion of the
     fit's constants (the reference, k3 included) is fitted again as data, noise-free, with the
     same model: where the model were exact the fit would return its constants; what it moves
@@ -137,10 +174,10 @@ def model_bias(fit, best, e_best: float, scale: float, h: float, sd_e: float,
     e_best and e_best -+ h (three fits at fixed k3, from the fit's optimum).
 
     Arguments:
-        fit: the fit function (``_api.fit``).
+        problem: the fit's prepared problem (its settings: the same fit of other data).
         best: the fit at the best k3.
-        e_best, scale: k3 = e_best * scale; h, sd_e: the profile's step and k3's sd in e.
-        options: the fit's options.
+        profile: (e_best, scale, h, sd_e): k3 = e_best * scale; the profile's step and k3's
+            sd in e.
         extra: the covariance that k3's uncertainty adds to the others (over
             ``best.varied``), or None.
 
@@ -149,9 +186,9 @@ def model_bias(fit, best, e_best: float, scale: float, h: float, sd_e: float,
         for the fitted damping constants and k3 (empty where the exact motion cannot be
         computed).
     """
+    e_best, scale, h, sd_e = profile
     p = best.params
-    m = 1.0 if options["oscillator"] is None else oscillator_values(options["oscillator"])["m"]
-    g = 9.81 if options["oscillator"] is None else oscillator_values(options["oscillator"])["g"]
+    m, g = problem.consts.m, problem.consts.g
     t = np.asarray(best.t, dtype=float)
     tau = t - t[0]
     try:
@@ -162,14 +199,15 @@ def model_bias(fit, best, e_best: float, scale: float, h: float, sd_e: float,
         exact = np.asarray(sol.x(tau), dtype=float) + p["offset"]
     except ValueError:
         return {}
-    inner = {**options, "starts": 1, "start": "data", "end": None,
-             "p0": {name: float(p[name]) for name in PARAMS}}
+    settings = problem.settings._replace(starts=1, start="data", end=None, free=best.free,
+                                         p0={name: float(p[name]) for name in PARAMS})
     refits = {}
-    for e in (e_best - h, e_best, e_best + h):
-        try:
-            refits[e] = fit(t, exact, free=best.free, k3=e * scale, _inner=True, **inner)
-        except ValueError:
-            return {}
+    try:
+        exact_problem = prepare(t, exact, settings)
+        for e in (e_best - h, e_best, e_best + h):
+            refits[e] = run(exact_problem.with_consts(k3=e * scale), INNER)
+    except ValueError:
+        return {}
     costs = np.array([float(r.chisqr) for r in refits.values()])
     if not np.all(np.isfinite(costs)):
         return {}

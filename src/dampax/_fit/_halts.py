@@ -1,0 +1,222 @@
+"""Where the block halts, for every fit of the exact model: the motion of a fit's parameters,
+its turning points and the thresholds of mu (or mu_s) that halt it there; the pipeline's
+search of the motions that halt at a neighbouring turning point (:func:`search_other_halts`,
+:func:`other_halt_check`) and the checks of a fit at a given mu_s (:func:`with_static_halt`,
+:func:`above_mu_s`). The search of mu_s itself (``fit(free=(..., "mu_s"))``) is
+``_static.fit_mu_s``, above the pipeline.
+
+With static friction mu_s >= mu the block sticks at the first turning point x_j where
+|k x_j + k3 x_j^3| <= mu_s m g (``Oscillator.mu_s``); with mu_s = mu where that holds for mu.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .._oscillator import Oscillator
+from .._solve import solve
+from ._profile import LR_CHI2, LR_Z
+
+
+def _motion(res, m: float, g: float, k3: float, mu_s=None):
+    """The reference solution of a fit's motion from its start over twice its window (one
+    compiled program for every call of a search), and the window's span."""
+
+    p = res.params
+    osc = Oscillator(m=m, k=m * p["w0"] ** 2, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
+                     mu_s=None if mu_s is None else max(float(mu_s), float(p["mu"])))
+    span = float(res.t[-1] - res.t[0])
+    return solve(osc, p["x0"], p["v0"], method="reference", t_end=2.0 * span), span
+
+
+def turning_points(res, m: float, g: float, k3: float, mu_s=None):
+    """The turning points of a fit's motion inside its window.
+
+    Arguments:
+        res: a trace fit of the reference model.
+        m, g, k3: the fit's constants.
+        mu_s: the static friction of the motion (None: mu_s = mu); with a value the list
+            ends at the halt it gives.
+
+    Returns:
+        (tau_j, x_j, th_j, halts): the times after the fit start, the positions (about the
+        offset), the static-friction thresholds th_j = |k x_j + k3 x_j^3| / (m g) in time
+        order, and whether the motion halts inside the window (its last turning point is
+        then the halt).
+    """
+    sol, span = _motion(res, m, g, k3, mu_s)
+    k = m * float(res.params["w0"]) ** 2
+    ts = np.asarray(sol.swing_times, dtype=float)
+    xs = np.asarray(sol.turning_x, dtype=float)
+    ok = np.isfinite(ts) & (ts > 0.0) & (ts <= span)
+    ts, xs = ts[ok], xs[ok]
+    th = np.abs(k * xs + k3 * xs ** 3) / (m * g)
+    halt = float(sol.halt_time)
+    return ts, xs, th, bool(np.asarray(sol.halted)) and math.isfinite(halt) and halt <= span
+
+
+def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarray, bool]:
+    """(th_j, halts) of :func:`turning_points`."""
+    _, _, th, halts = turning_points(res, m, g, k3, mu_s)
+    return th, halts
+
+
+def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]:
+    """The thresholds of mu at which a fit's motion would halt one turning point earlier or
+    later (sliding friction, mu_s = mu; the check of ``fit`` for another optimum).
+
+    Where the block sticks is a step function of mu: the motion halts at the first turning
+    point j with th_j = |k x_j + k3 x_j^3| / (m g) <= mu. A fit that halts at turning point h
+    (th_h <= mu < th_(h-1)) has neighbours that halt at h - 1 (mu >= th_(h-1)) and h + 1
+    (mu < th_h), a jump in the cost that no gradient crosses; over two or three swings their
+    optimum can fit as well.
+
+    Arguments:
+        params: the fit's parameters (dict or TraceParams: mu, b, D, w0, x0, v0).
+        t: the window's times.
+        m, g, k3: the fit's constants.
+
+    Returns:
+        (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
+        point). A motion that does not halt inside the window has one neighbour: the motion
+        that halts at the window's last turning point (th_(h-1) = its threshold, th_h NaN);
+        none without a turning point inside the window.
+    """
+    from types import SimpleNamespace
+
+    p = params if isinstance(params, dict) else params._asdict()
+    ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
+    th, halts = thresholds(ns, m, g, k3)
+    if th.size == 0:
+        return math.nan, math.nan
+    if not halts:  # it halts after the window: the neighbour halts at its last turning point
+        return float(th[-1]), math.nan
+    h = th.size - 1
+    return (float(th[h - 1]) if h >= 1 else math.nan), float(th[h])
+
+
+def search_other_halts(problem, best, last):
+    """The search of a fit for a better optimum where the block halts at a neighbouring
+    turning point (:func:`other_halts`), for the exact model with mu free.
+
+    With the thresholds th_(h-1) (halt one turning point earlier) and th_h (one later): mu
+    held just past each threshold (by a quarter of its standard error), at 1.05 and 1.25
+    th_(h-1) and at 0.95 and 0.8 th_h, the rest refitted; and free fits started at 1.05
+    th_(h-1) and 0.95 th_h (where to look, not thresholds: the verdict is the likelihood
+    ratio of :func:`other_halt_check`). A lower cost is taken (a held fit's by freeing mu
+    from it: the optimizer only goes downhill, so it stays in that basin) and the search
+    repeated once around it.
+
+    Arguments:
+        problem: the fit's ``_problem.Problem``.
+        best: the fit's optimum (the core's output).
+        last: the fit's last solve (``_problem.Solved``: its model, scale and options).
+
+    Returns:
+        (the optimum, the last solve, {held mu: its cost}, the stages' notes): the held fits
+        of both rounds and the optimum a lower cost replaced, for :func:`other_halt_check`.
+    """
+    held = problem.holding("mu")
+    c = problem.consts
+    constants = (c.m, c.g, 0.0 if c.k3 is None else c.k3)
+    name, fs = last.model, last.fs
+    others, notes = {}, ()  # every held fit of the search, and an optimum it left
+    for _ in range(2):
+        prev, nxt = other_halts(best.params, problem.data.t, *constants)
+        se = float(best.stderr.mu) if math.isfinite(float(best.stderr.mu)) else 0.0
+        points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
+                  nxt * (1.0 - 1e-3) - 0.25 * se, 0.95 * nxt, 0.8 * nxt]
+        fits = []
+        for mu_alt in points:
+            if math.isfinite(mu_alt) and mu_alt > 0.0:
+                last = held.solve(best.params._replace(mu=mu_alt), name, fs, like=last)
+                others[mu_alt] = float(last.out.chisqr)
+                fits.append(last.out)
+        lower = [f for f in fits if float(f.chisqr) < float(best.chisqr)]
+        starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
+        starts += [best.params._replace(mu=v) for v in (1.05 * prev, 0.95 * nxt)
+                   if math.isfinite(v) and v > 0.0]
+        better = None
+        for p in starts:
+            last = problem.solve(p, name, fs)
+            if float(last.out.chisqr) < float(best.chisqr if better is None else better.chisqr):
+                better = last.out
+        if better is None:
+            break
+        notes += (f"a motion that halts at another turning point fits better (cost "
+                  f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(best.chisqr):.4g})",)
+        others[float(best.params.mu)] = float(best.chisqr)  # the basin left: nearly as good?
+        best = better
+    return best, last, others, notes
+
+
+def other_halt_check(res, others: dict):
+    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
+    with mu outside its interval (``_static.other_halts``): with mu held at each value of
+    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
+    the fit,
+    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``),
+    below :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
+    :data:`~dampax._fit._profile.LR_Z` interval sd: the data hold two answers, and the
+    interval of one of them is no interval."""
+
+    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
+    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
+        return res
+    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
+    mu = float(res.params["mu"])
+    for mu_alt, cost in others.items():
+        if not abs(mu_alt - mu) > LR_Z * sd:
+            continue
+        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
+        if rise < LR_CHI2:
+            reason = (f"two motions fit nearly as well: this one and one that halts at another "
+                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
+                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
+                      "where the block sticks does not settle mu; fit a longer record or fix "
+                      "the offset")
+            return dataclasses.replace(res, success=False, reason=reason,
+                                       diagnostics={**res.diagnostics,
+                                                    "other_halt_mu": mu_alt,
+                                                    "other_halt_chi2": rise})
+    return res
+
+
+def above_mu_s(res, mu_s: float):
+    """A fit at a given mu_s whose fitted mu exceeds it, failed with the reason (issue 37):
+    the model's rule is mu_s >= mu, and a traced mu_s below mu acts as mu, so such a fit
+    described a motion without the given static friction and reported it as a success.
+
+    Arguments:
+        res: the fit's FitResult.
+        mu_s: the given static friction coefficient.
+
+    Returns:
+        ``res`` unchanged when mu <= mu_s (to 1e-9 relative) or mu was not fitted, else a
+        copy with ``success = False`` and the reason.
+    """
+    mu = res.params.get("mu")
+    if mu is None or not float(mu) > float(mu_s) * (1.0 + 1e-9):
+        return res
+    reason = (f"the fitted mu = {float(mu):.4g} exceeds the given mu_s = {float(mu_s):.4g}, "
+              "against the model's rule mu_s >= mu (the motion was that of mu_s = mu): the "
+              "data's sliding friction is larger than the static friction given; fit mu_s as "
+              "well (free=(..., 'mu_s')) or give mu_s >= mu")
+    return dataclasses.replace(res, success=False,
+                               reason="; ".join(r for r in (res.reason, reason) if r))
+
+
+def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
+    """A fit at fixed mu_s with ``fixed["mu_s"]`` and ``derived["halt_time"]`` of its own
+    motion (the reference with mu_s, where it halts within twice the window; otherwise the
+    value stays the ansatz's estimate for mu_s = mu, which is later)."""
+    res = dataclasses.replace(res, fixed={**res.fixed, "mu_s": float(mu_s)})
+    sol, _ = _motion(res, m, g, k3, mu_s)
+    halt = float(sol.halt_time)
+    if not (bool(np.asarray(sol.halted)) and math.isfinite(halt)):
+        return res
+    return dataclasses.replace(res, derived={**res.derived,
+                                             "halt_time": float(res.t[0]) + halt})

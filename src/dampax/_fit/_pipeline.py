@@ -1,0 +1,227 @@
+"""The fit of a prepared problem as a plan of stages (issue 33): each stage a function of the
+problem and the fit so far (a :class:`Fit` value), the plan a value that says which stages run.
+
+Stages, in order (:func:`run`):
+
+1. **global starts**: a batch of jittered starts of the first model (the approximate one, the
+   ansatz, unless the plan starts with the exact model), the best one polished;
+2. **robust restart**: with ``loss="soft_l1"``, again from the linear-loss optimum with the
+   scale from its residuals (1.4826 MAD);
+3. **exact model**: a model with ``start_from`` (the reference) from the approximate optimum,
+   and, where its residuals are not noise (``_checks.looks_stuck``), a batch of its own starts;
+4. **continue**: where the default step budget ran out, one more round from there;
+5. **neighbouring halts**: for the exact model with mu free, the motions that halt at the
+   neighbouring turning points (``_halts.search_other_halts``);
+6. **assess**: the result and its checks (``_result.build_result``), with the profile refits
+   of the intervals' checks (:func:`profile_refit`) where the plan asks for them;
+7. **static halt**: with a given mu_s, the halt of that motion and the rule mu_s >= mu.
+
+:data:`FULL` is ``dp.fit``'s plan; :data:`INNER` the plan of the fits inside a search (k3's
+profile, mu_s's screen: no neighbouring-halt search, no profile checks, no refusal, no static
+halt; the search's chosen fit is checked by the plan of the search); :data:`DIRECT` and
+:data:`DIRECT_INNER` start with the exact model (the fits at fixed mu_s, started from another
+fit of that model).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from ._checks import looks_stuck
+from ._core import FIT_MODELS, FIT_RESULTS
+from ._halts import above_mu_s, other_halt_check, search_other_halts, with_static_halt
+from ._params import MAD, varied_names
+from ._problem import Problem, Solved
+from ._result import FitContext, FitResult, build_result
+from ._starts import run_starts
+
+
+class Plan(NamedTuple):
+    """Which stages of :func:`run` a fit makes (see the module docstring)."""
+
+    approximate_first: bool = True  # the approximate model first (else the exact one)
+    neighbouring_halts: bool = True  # stage 5
+    profile_checks: bool = True  # the intervals' profile refits in stage 6
+    refuse_unidentifiable: bool = True  # a ValueError where the split is not determined
+    static_halt: bool = True  # stage 7
+
+
+FULL = Plan()
+INNER = Plan(neighbouring_halts=False, profile_checks=False, refuse_unidentifiable=False,
+             static_halt=False)
+DIRECT = FULL._replace(approximate_first=False)
+DIRECT_INNER = INNER._replace(approximate_first=False)
+
+
+class Fit(NamedTuple):
+    """The fit so far: the current optimum, the last solve (whose model, scale and options a
+    held refit uses), the batch of starts, the stages' notes."""
+
+    best: object
+    last: Solved
+    starts: object = None
+    notes: tuple = ()
+
+
+def _starts_batch(problem: Problem, p, model: str, fs: float, *, seed: int, held=None,
+                  extra=(), opts=None):
+    """``_starts.run_starts`` of ``problem`` around ``p`` (``held``: a parameter held)."""
+    s, an = problem.settings, problem.data.analysis
+    free = tuple(f for f in s.free if f != held)
+    vary = problem.vary if held is None else problem.vary._replace(**{held: False})
+    return run_starts(problem.data.t, problem.data.x, p, free=free, vary=vary,
+                      consts=problem.consts, f_scale=fs, n=int(s.starts), seed=seed,
+                      fit_omega0=problem.fit_omega0, omega=an.omega,
+                      w0_spread=an.omega_spread, model=model, optimizer=s.optimizer,
+                      max_steps=problem.steps, rtol=float(s.rtol), atol=float(s.atol),
+                      opts=opts, extra=extra)
+
+
+def first_model(problem: Problem, plan: Plan) -> str:
+    """The model of stages 1-2: the approximate one unless the plan starts with the exact."""
+    spec = FIT_MODELS[problem.settings.model]
+    return (spec.start_from or spec.name) if plan.approximate_first else spec.name
+
+
+def global_starts(problem: Problem, plan: Plan) -> Fit:
+    """Stage 1: the batch of starts (closed-form first models), then a solve from the best."""
+    first, s = first_model(problem, plan), problem.settings
+    found, start = None, problem.guess
+    if s.starts > 1 and not FIT_MODELS[first].integrates:
+        found = _starts_batch(problem, problem.guess, first, math.inf, seed=int(s.seed))
+        start = found.params
+    last = problem.solve(start, first, math.inf)
+    return Fit(last.out, last, found)
+
+
+def robust_restart(problem: Problem, state: Fit) -> Fit:
+    """Stage 2: soft_l1 from the linear-loss optimum, f_scale = 1.4826 MAD of its residuals."""
+    if problem.settings.loss != "soft_l1":
+        return state
+    r = problem.data.x - np.asarray(state.best.curve)[:problem.n]
+    fs = float(MAD * np.median(np.abs(r - np.median(r))))
+    fs = fs if fs > 0 else float(np.std(r)) or 1.0
+    last = problem.solve(state.best.params, state.last.model, fs)
+    return Fit(last.out, last, state.starts,
+               state.notes + (f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}",))
+
+
+def exact_model(problem: Problem, plan: Plan, state: Fit) -> Fit:
+    """Stage 3: the exact model from the approximate optimum; where its residuals are not
+    noise, a batch of its own starts around the guess (both optima among them), the lower
+    cost kept (the approximate optimum can lie in another basin of the exact model)."""
+    spec = FIT_MODELS[problem.settings.model]
+    if not (spec.start_from and plan.approximate_first):
+        return state
+    first, fs = state.last.model, state.last.fs
+    text = f"started from the {first} fit ({int(state.best.steps)} steps)"
+    approx = state.best.params
+    last = problem.solve(approx, spec.name, fs)
+    out, found, s, data = last.out, state.starts, problem.settings, problem.data
+    if s.starts > 1 and looks_stuck(data.t, data.x, np.asarray(out.curve)[:problem.n],
+                                    data.analysis, float(out.params.w0), out.code):
+        opts = problem.reference_options(spec.name, problem.guess.w0)
+        found = _starts_batch(problem, problem.guess, spec.name, fs, seed=int(s.seed) + 1,
+                              extra=(approx, out.params), opts=opts)
+        last = problem.solve(found.params, spec.name, fs)
+        c0, c1 = float(out.chisqr), float(last.out.chisqr)
+        text += (f"; its residuals were not noise: {int(s.starts) - 2} jittered starts of "
+                 f"the {spec.name} model")
+        if math.isfinite(c1) and (c1 < c0 or not math.isfinite(c0)):
+            out = last.out
+            text += f" found a lower cost ({0.5 * c1:.4g} < {0.5 * c0:.4g})"
+        else:
+            text += " found no lower cost"
+    return Fit(out, last, found, state.notes + (text,))
+
+
+def continue_budget(problem: Problem, state: Fit) -> Fit:
+    """Stage 4: where the default step budget ran out, one more round, kept if lower (a
+    budget the caller set is honoured)."""
+    if problem.settings.max_steps is not None or \
+            not bool(state.best.code == FIT_RESULTS.max_steps_reached):
+        return state
+    last = problem.solve(state.best.params, problem.settings.model, state.last.fs)
+    if float(last.out.chisqr) < float(state.best.chisqr):
+        note = f"the step budget ran out: continued ({int(last.out.steps)} more steps)"
+        return Fit(last.out, last, state.starts, state.notes + (note,))
+    return state._replace(last=last)
+
+
+def neighbouring_halts(problem: Problem, plan: Plan, state: Fit) -> tuple[Fit, dict]:
+    """Stage 5: the search of the motions that halt at a neighbouring turning point (the
+    exact model, mu free, mu_s = mu, the linear loss); (the fit, {held mu: its cost})."""
+    s = problem.settings
+    if not (plan.neighbouring_halts and FIT_MODELS[s.model].integrates and problem.vary.mu
+            and problem.consts.mu_s is None and s.loss == "linear"):
+        return state, {}
+    best, last, others, notes = search_other_halts(problem, state.best, state.last)
+    return Fit(best, last, state.starts, state.notes + notes), others
+
+
+def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, start=None,
+                  batch: bool = False) -> float:
+    """The cost of the fit with ``name`` held at ``value`` (the intervals' checks), from the
+    fit's values with ``start``'s in place; ``batch``: first a batch of jittered starts
+    around there (the first model's batch program), the best one polished."""
+    held = {name: float(value), **{k: float(v) for k, v in (start or {}).items()}}
+    best = state.best.params
+    p = best._replace(**held)
+    if batch and problem.settings.starts > 1:
+        p = _starts_batch(problem, p, first, state.last.fs, seed=int(problem.settings.seed) + 2,
+                          held=name, extra=(p,)).params
+        # its damping constants (the approximate model's state and frequency can lie far from
+        # the exact model's where the block halts early)
+        p = p._replace(**{k: float(getattr(p, k)) for k in problem.settings.free if k != name},
+                       **{k: getattr(best, k) for k in ("w0", "offset", "x0", "v0")})
+        p = p._replace(**{name: float(value)})
+    return float(problem.holding(name).solve(p, state.last.model, state.last.fs,
+                                             like=state.last).out.chisqr)
+
+
+def assess(problem: Problem, plan: Plan, state: Fit) -> FitResult:
+    """Stage 6: the result and its checks (``_result.build_result``)."""
+    s, data = problem.settings, problem.data
+    profile = None
+    if s.loss == "linear" and plan.profile_checks:
+        profile = functools.partial(profile_refit, problem, state, first_model(problem, plan))
+    res = build_result(state.best, FitContext(
+        model=s.model, free=s.free, vary=problem.vary, consts=problem.consts, t=data.t,
+        x=data.x, loss=s.loss, optimizer=s.optimizer, f_scale=state.last.fs,
+        init={name: getattr(problem.guess, name) for name in varied_names(problem.vary)},
+        source=data.source, full_t=data.t_all, full_x=data.x_all, warnings=problem.warnings,
+        stages="; ".join(state.notes), per_mass=problem.per_mass, units=problem.units,
+        analysis=data.analysis, starts=state.starts, profile=profile))
+    if "unidentifiable" in res.diagnostics and plan.refuse_unidentifiable:
+        raise ValueError(res.diagnostics["unidentifiable"])
+    return res
+
+
+def run(problem: Problem, plan: Plan = FULL) -> FitResult:
+    """Fit a prepared problem by ``plan`` (the module docstring's stages).
+
+    Arguments:
+        problem: from ``_problem.prepare`` (and its ``holding`` / ``with_consts`` /
+            ``starting_at``).
+        plan: which stages run.
+
+    Returns:
+        The :class:`FitResult`.
+    """
+    state = global_starts(problem, plan)
+    state = robust_restart(problem, state)
+    state = exact_model(problem, plan, state)
+    state = continue_budget(problem, state)
+    state, others = neighbouring_halts(problem, plan, state)
+    res = assess(problem, plan, state)
+    if others and res.success:
+        res = other_halt_check(res, others)
+    mu_s, c = problem.consts.mu_s, problem.consts
+    if mu_s is not None and plan.static_halt:  # the halt of the motion with static friction
+        k3 = 0.0 if c.k3 is None else c.k3
+        res = above_mu_s(with_static_halt(res, c.m, c.g, k3, mu_s), mu_s)
+    return res

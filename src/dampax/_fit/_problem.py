@@ -1,0 +1,335 @@
+"""The fit problem, made once: the data read, windowed and analysed, the start, the mask of the
+varied parameters and the constants, as one immutable value (issue 33).
+
+:func:`prepare` does everything a fit does before it optimises; a :class:`Problem` then
+:meth:`~Problem.solve`\\ s itself from a start with a model, and makes the problems that every
+"hold and refit" needs without touching the data again: :meth:`~Problem.holding` (a parameter
+held: profiles, tests at a bound, neighbouring halts), :meth:`~Problem.with_consts` (k3 or mu_s
+held: the k3 and mu_s searches), :meth:`~Problem.starting_at` (another start, other global
+starts). lmfit's ``Minimizer`` plays this part there; optimistix's ``least_squares`` takes the
+same pieces as arguments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import warnings
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .._trace import Trace, load_trace
+from ._checks import (
+    check_gaps,
+    check_positions,
+    check_sampling,
+    check_time_axis,
+    check_trace,
+)
+from ._core import FIT_MODELS, MAX_STEPS, ReferenceOptions, run_core, swing_budget
+from ._guess import Analysis, analyse, guess_trace, start_index
+from ._params import PARAMS, Constants, TraceParams, oscillator_values, vary_mask
+
+
+class Settings(NamedTuple):
+    """What the caller asked of a single-trace fit (checked at the edge, ``_options``)."""
+
+    oscillator: object = None
+    free: tuple = ("mu", "D")
+    model: str = "ansatz"
+    fit_omega0: bool | None = None
+    offset: bool = True
+    start: object = "auto"
+    end: float | None = None
+    loss: str = "linear"
+    optimizer: str = "lm"
+    p0: dict | None = None
+    max_steps: int | None = None
+    rtol: float = 1e-8
+    atol: float = 1e-10
+    max_swings: int | None = None
+    units: str | None = None
+    starts: int = 32
+    seed: int = 0
+    k3: float | None = None
+    mu_s: float | None = None
+
+
+class Data(NamedTuple):
+    """The trace and its fit window (not padded, and padded to the bucket of its length)."""
+
+    t_all: np.ndarray
+    x_all: np.ndarray
+    source: str
+    t: np.ndarray
+    x: np.ndarray
+    tp: np.ndarray
+    xp: np.ndarray
+    wt: np.ndarray
+    analysis: Analysis
+
+
+class Solved(NamedTuple):
+    """A solve's output and what produced it: the model, the soft_l1 scale and the
+    integrator's options (a held refit of this fit uses the same)."""
+
+    out: object
+    model: str
+    fs: float
+    opts: ReferenceOptions | None
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """A prepared fit problem (immutable; see the module docstring).
+
+    Attributes:
+        settings: the caller's options (:class:`Settings`; ``free`` without "k3" / "mu_s").
+        data: the trace, the window and its analysis (:class:`Data`).
+        osc: the oscillator's values (w0 and k from the data per unit mass).
+        per_mass: no oscillator was given (w0 fitted, b and D per unit mass).
+        fit_omega0: w0 is fitted.
+        units: the unit of the positions.
+        guess: the start (the turning-point guess, or ``p0``'s values in its place).
+        vary: the mask of the varied parameters.
+        consts: m, g, k3, mu_s.
+        warnings: notes about the data (emitted once, by :func:`prepare`).
+    """
+
+    settings: Settings
+    data: Data
+    osc: dict
+    per_mass: bool
+    fit_omega0: bool
+    units: str
+    guess: TraceParams
+    vary: TraceParams
+    consts: Constants
+    warnings: tuple
+
+    @property
+    def steps(self) -> int:
+        """The optimizer's step budget per optimisation."""
+        return int(self.settings.max_steps or MAX_STEPS[self.settings.optimizer])
+
+    @property
+    def n(self) -> int:
+        """The number of samples in the window."""
+        return len(self.data.t)
+
+    def reference_options(self, model: str, w0) -> ReferenceOptions | None:
+        """The integrator's options of ``model`` for a start of angular frequency ``w0``: the
+        swing budget rounded up (``swing_budget(..., "starts")``), so that windows of similar
+        length share the compiled fit; None for a closed-form model."""
+        if not FIT_MODELS[model].integrates:
+            return None
+        t = self.data.t
+        max_swings = self.settings.max_swings
+        if max_swings is None:
+            max_swings = swing_budget(float(np.max(t) - t[0]), float(w0), "starts")
+        return ReferenceOptions(int(max_swings), 1e-8, 1e-10)
+
+    def solve(self, p_start: TraceParams, model: str, fs: float, *,
+              like: Solved | None = None) -> Solved:
+        """Optimise from ``p_start`` with ``model`` (the jitted core, ``_core.run_core``).
+
+        Arguments:
+            p_start: the start (held parameters keep its values).
+            model: the fit model's name.
+            fs: the soft_l1 scale (inf: the linear loss).
+            like: a fit whose integrator options a refit keeps (a held refit of it);
+                default: options for ``p_start``'s w0.
+
+        Returns:
+            :class:`Solved`.
+        """
+        opts = like.opts if like is not None else self.reference_options(model, p_start.w0)
+        s = self.settings
+        out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
+                       self.consts, fs, model=model, optimizer=s.optimizer,
+                       max_steps=self.steps, rtol=float(s.rtol), atol=float(s.atol), opts=opts)
+        return Solved(out, model, fs, opts)
+
+    def holding(self, *names: str) -> Problem:
+        """The problem with the parameters ``names`` held at the start's values."""
+        return dataclasses.replace(self, vary=self.vary._replace(**{n: False for n in names}))
+
+    def starting_at(self, p0: dict | None = None, *, starts: int | None = None) -> Problem:
+        """The problem started at ``p0``'s values (in place of the guess) with ``starts``
+        global starts."""
+        guess = self.guess._replace(**{k: float(v) for k, v in (p0 or {}).items()})
+        settings = self.settings if starts is None else self.settings._replace(starts=starts)
+        return dataclasses.replace(self, guess=guess, settings=settings)
+
+    def with_consts(self, **values) -> Problem:
+        """The problem with the constants ``k3`` and/or ``mu_s`` held at other values (the
+        data, the window and the start unchanged).
+
+        Raises:
+            ValueError: a value that is not finite, or mu_s below a held mu.
+        """
+        k3 = values.get("k3", self.consts.k3)
+        mu_s = values.get("mu_s", self.consts.mu_s)
+        k3, mu_s = _checked_consts(k3, mu_s, self.settings.free, self.osc)
+        consts = self.consts._replace(k3=k3, mu_s=mu_s)
+        settings = self.settings._replace(k3=k3, mu_s=mu_s)
+        return dataclasses.replace(self, consts=consts, settings=settings)
+
+
+def _checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
+    """(k3, mu_s) as floats (or None), checked: finite, mu_s >= 0 and (``against_mu``) >= a
+    held mu."""
+    if mu_s is not None:
+        mu_s = float(mu_s)
+        if not (math.isfinite(mu_s) and mu_s >= 0.0):
+            raise ValueError(f"mu_s must be a finite number >= 0, got {mu_s!r}")
+        if against_mu and "mu" not in free and mu_s < osc["mu"]:
+            raise ValueError(f"mu_s must be >= mu (static friction is at least the sliding "
+                             f"friction), got mu_s={mu_s!r} and mu={osc['mu']!r}")
+    if k3 is not None:
+        k3 = float(k3)
+        if not math.isfinite(k3):
+            raise ValueError(f"k3 must be a finite number, got {k3!r}")
+    return k3, mu_s
+
+
+# ----------------------------------------------------------------------------------------------
+# reading the data
+
+
+def read_arrays(trace_or_t, x):
+    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped."""
+    source = ""
+    if isinstance(trace_or_t, Trace):
+        if x is not None:
+            raise ValueError("pass either a Trace or the arrays t and x, not both")
+        t, x, source = trace_or_t.t, trace_or_t.x, trace_or_t.source
+    elif isinstance(trace_or_t, (str, Path)):
+        trace = load_trace(trace_or_t)
+        t, x, source = trace.t, trace.x, trace.source
+    else:
+        if x is None:
+            raise ValueError("fit(t, x): x is missing (or pass a dampax.Trace)")
+        t = trace_or_t
+    t = np.asarray(t, dtype=float).reshape(-1)
+    x = np.asarray(x, dtype=float).reshape(-1)
+    if t.shape != x.shape:
+        raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
+    ok = np.isfinite(t) & np.isfinite(x)
+    t, x = t[ok], x[ok]
+    check_time_axis(t)
+    check_positions(x)
+    order = np.argsort(t, kind="stable")
+    t, x = t[order], x[order]
+    if t.size < 10:
+        raise ValueError(f"a fit needs at least 10 finite samples, got {t.size}")
+    return t, x, source
+
+
+def bucket(n: int, minimum: int = 4096) -> int:
+    """Padded length: the next power of 4 >= n, at least ``minimum``, so that traces of
+    different lengths share compiled fits (compiling one takes 10-30 s; evaluating the padded
+    samples costs far less)."""
+    return max(minimum, 1 << (2 * int(math.ceil(math.log2(max(n, 1)) / 2))))
+
+
+def pad(t, x, n_pad):
+    """(t, x, weight) padded to ``n_pad`` samples with the last one at weight 0."""
+    n = len(t)
+    wt = np.zeros(n_pad)
+    wt[:n] = 1.0
+    tp = np.full(n_pad, t[-1])
+    tp[:n] = t
+    xp = np.full(n_pad, x[-1])
+    xp[:n] = x
+    return tp, xp, wt
+
+
+def units_of(trace_or_t, units):
+    """The position unit: ``units``, else the unit in the position column's name of a Trace
+    ("Angle(deg)" -> "deg"), else "m"."""
+    if units is not None:  # checked by Window (or fit_envelope)
+        return units
+    if isinstance(trace_or_t, Trace):
+        found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
+        if found:
+            return found.group(1)
+    return "m"
+
+
+def _omega_warning(an: Analysis, osc: dict, fit_omega0: bool) -> list:
+    """A note when the data's turning points disagree with sqrt(k/m) (w0 not fitted)."""
+    if not fit_omega0 and an.n_turns >= 5 and \
+            abs(an.omega / osc["w0"] - 1.0) > 0.03 + 2.0 * an.omega_spread:
+        # the turning points (not the zero crossings, which friction moves) keep the clock
+        return [f"the data's turning points are {math.pi / an.omega:.5g} s apart, "
+                f"half a period of {an.omega:.5g} rad/s, but sqrt(k/m) = "
+                f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k"]
+    return []
+
+
+def _window(t_all, x_all, s: Settings, osc: dict, fit_omega0: bool):
+    """(t, x, analysis of the window, notes): the window of the settings, checked."""
+    an = analyse(t_all, x_all)
+    warn = _omega_warning(an, osc, fit_omega0)
+    i0 = start_index(t_all, x_all, an, s.start)
+    end = s.end
+    i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
+    t, xw = t_all[i0:i1], x_all[i0:i1]
+    if t.size < 10:
+        raise ValueError(f"Window.start, Window.end: the fit window [{t_all[i0]:g}, {end}] "
+                         f"holds fewer than 10 samples (the trace runs from {t_all[0]:g} to "
+                         f"{t_all[-1]:g} s)")
+    check_gaps(t)
+    an_w = analyse(t, xw, omega0=None if fit_omega0 else osc["w0"])
+    check_trace(t, xw, an_w)
+    return t, xw, an_w, warn
+
+
+def prepare(trace_or_t, x, settings: Settings) -> Problem:
+    """Read, window and analyse the data once; the :class:`Problem` of a single-trace fit.
+
+    Arguments:
+        trace_or_t, x: the data, as for ``dp.fit``.
+        settings: the checked options (``free`` without "k3" and "mu_s").
+
+    Returns:
+        The problem; its notes about the data are emitted as warnings here, once.
+
+    Raises:
+        ValueError: the data hold no free decay, the window is too short, ``p0`` names
+            unknown parameters, or a constant is not valid (the reason named).
+    """
+    s = settings
+    k3, mu_s = _checked_consts(s.k3, s.mu_s, s.free, {}, against_mu=False)
+    per_mass = s.oscillator is None
+    fit_omega0 = per_mass if s.fit_omega0 is None else s.fit_omega0
+    if per_mass and not fit_omega0:
+        raise ValueError("fit_omega0=False needs an oscillator (m and k): without one, w0 is "
+                         "fitted per unit mass")
+    osc = oscillator_values(s.oscillator)
+    units = units_of(trace_or_t, s.units)
+    t_all, x_all, source = read_arrays(trace_or_t, x)
+    check_sampling(t_all, x_all)
+    t, xw, an_w, warn = _window(t_all, x_all, s, osc, fit_omega0)
+    if per_mass:
+        osc = {**osc, "w0": an_w.omega, "k": an_w.omega ** 2}
+    guess = guess_trace(t, xw, s.free, osc, fit_omega0, s.offset, an=an_w)
+    if s.p0:
+        unknown = set(s.p0) - set(PARAMS)
+        if unknown:
+            raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
+        guess = guess._replace(**{k: float(v) for k, v in s.p0.items()})
+    for w in warn:
+        warnings.warn(w, stacklevel=3)
+    vary = vary_mask(TraceParams, s.free, fit_omega0=fit_omega0, offset=s.offset)
+    k3, mu_s = _checked_consts(k3, mu_s, s.free, osc)
+    tp, xp, wt = pad(t, xw, bucket(len(t)))
+    data = Data(t_all, x_all, source, t, xw, tp, xp, wt, an_w)
+    return Problem(settings=s._replace(k3=k3, mu_s=mu_s), data=data, osc=osc,
+                   per_mass=per_mass, fit_omega0=fit_omega0, units=units, guess=guess,
+                   vary=vary, consts=Constants(m=osc["m"], g=osc["g"], k3=k3, mu_s=mu_s),
+                   warnings=tuple(warn))
