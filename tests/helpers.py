@@ -117,3 +117,20 @@ def check_cf_file(path, *, flags=()) -> dict:
         assert values.dtype == data.dtype, (name, values.dtype, typecode)
         assert set(np.unique(data).tolist()) <= set(values.tolist()), name
     return {name: attrs for name, (_, _, attrs, _) in variables.items()}
+
+
+def count_reads(monkeypatch, x) -> list:
+    """Record every reading of the positions ``x`` by a fit (``_problem.read_arrays``, where
+    ``prepare`` starts; the analyses of a preparation follow it): issue 33's "the data are
+    prepared once per dp.fit", however many fits a search makes at fixed k3 or mu_s."""
+    from dampax._fit import _problem
+
+    real, seen = _problem.read_arrays, []
+
+    def counted(trace_or_t, xs):
+        if xs is not None and np.shape(xs) == np.shape(x) and np.array_equal(xs, x):
+            seen.append(1)
+        return real(trace_or_t, xs)
+
+    monkeypatch.setattr(_problem, "read_arrays", counted)
+    return seen

@@ -223,3 +223,54 @@ def test_each_public_call_validates_once():
         assert seen.get(("check_finite", "x0")) == 1 and seen.get(("check_finite", "v0")) == 1, \
             (name, seen)
         assert all(n == 1 for n in seen.values()), (name, seen)
+
+
+#: the layers inside the fit package, bottom up (issue 33): a module may import its own layer
+#: and the ones below it. The result (built from the checks' findings) sits below the
+#: pipeline that builds it; the searches of k3 and mu_s above the pipeline they run.
+FIT_LAYERS = (
+    ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler"),  # ground
+    ("_core",),  # the models and the solver core
+    ("_guess", "_checks", "_options"),  # guesses, checks, the option objects
+    ("_problem", "_result"),  # the problem made once; the result and its report
+    ("_starts", "_halts"),  # stages: the batch of starts, the neighbouring halts
+    ("_pipeline",),  # the plan of stages and the assessment
+    ("_static", "_stiffness"),  # the searches of mu_s and k3
+    ("_api",),  # single-trace entry points
+    ("_joint_problem", "_joint_result", "_joint"),  # joint fits
+    ("_entry",),  # dp.fit
+    ("_posterior_result", "_posterior"),  # the posterior
+    ("__init__",),
+)
+
+
+def test_fit_layers_point_down():
+    """Every module of _fit/ is in one layer of FIT_LAYERS and imports only its own layer and
+    those below (the fit function reaches no lower layer as a value: the AST test below)."""
+    fit = SRC / "_fit"
+    layer = {name: i for i, names in enumerate(FIT_LAYERS) for name in names}
+    assert sorted(layer) == sorted(p.stem for p in fit.glob("*.py"))
+    up = []
+    for path in fit.glob("*.py"):
+        for target in _imports(path):
+            if target.startswith("dampax._fit."):
+                other = target.split(".")[2]
+                if layer[other] > layer[path.stem]:
+                    up.append(f"{path.stem} (layer {layer[path.stem]}) imports {other} "
+                              f"(layer {layer[other]})")
+    assert not up, "\n".join(up)
+
+
+def test_fit_functions_take_no_private_or_fit_function_parameters():
+    """No parameter in _fit/ starts with "_" (a hidden switch such as _inner) or is named fit
+    (the orchestrator handed down to be called back): variants are plans and problems."""
+    bad = []
+    for path in (SRC / "_fit").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                a = node.args
+                names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs,
+                                         *filter(None, (a.vararg, a.kwarg)))]
+                bad += [f"{path.name}:{getattr(node, 'name', 'lambda')}({n})" for n in names
+                        if n.startswith("_") or n == "fit"]
+    assert not bad, bad

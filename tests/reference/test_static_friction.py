@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import count_reads
 from scipy.integrate import solve_ivp
 
 import dampax as dp
@@ -168,15 +169,17 @@ def fit_traces():
 
 
 @pytest.mark.parametrize("mu_s", [None, FIT_MU_S])
-def test_fit_with_free_mu_s(fit_traces, mu_s):
+def test_fit_with_free_mu_s(fit_traces, mu_s, monkeypatch):
     """With static friction the search finds the halt: the interval of mu_s holds the truth,
     mu and D are inside their 99 % intervals, the halt time is the data's, and the rms falls
     to the noise from the sliding-friction fit's. Without it the fit stays the sliding one
     (no invented halt), mu_s from mu up. Seconds once the sliding fit is compiled."""
     t, x, rest = fit_traces[mu_s]
+    reads = count_reads(monkeypatch, x)
     res = dp.fit(t, x, oscillator=dp.Oscillator(m=M, k=K), free=("mu", "D", "mu_s"),
                  model="reference")
     assert res.success, res.reason
+    assert len(reads) == 1  # the data prepared once for every fit of the search
     assert res.free[-1] == "mu_s" and "mu_s" in res.report()
     ci = res.conf_interval(0.99)
     for name, value in (("mu", FIT_MU), ("D", FIT_D)):

@@ -329,7 +329,7 @@ def _materialised(fn, args):
         J, r = jax.jacfwd(lambda th: (fn(th, args),) * 2, has_aux=True)(theta)
         return r, J @ dtheta
 
-    return lambda theta, _args: residuals(theta)
+    return lambda theta, args: residuals(theta)
 
 
 def _clamp_flat(theta, args: ResidualArgs, model: FitModel):
