@@ -6,11 +6,12 @@ says why: constant time, a constant trace, a trace within the excursions of pure
 an amplitude that grows (growing or time-reversed data). Nothing else is refused: a trace that
 halts after one swing is fitted, and the fit says what the data determine.
 
-After a fit, :func:`assess` judges it by what it shows and returns the failures
-(``success = False`` with a one-line reason) and, separately, whether the model describes the
-data (``adequate``). No check compares with zero crossings (friction and drag move them) or
-with thresholds set on measured files; the levels are p-values of tests whose null
-distribution is known (calibrated on the generated family of benchmarks/fit_calibration.py):
+After a fit, ``_assess.assess`` judges it by what it shows (its table lists the checks) and
+returns the failures (``success = False`` with a one-line reason) and, separately, whether the
+model describes the data (``adequate``). No check compares with zero crossings (friction and
+drag move them) or with thresholds set on measured files; the levels are p-values of tests
+whose null distribution is known (calibrated on the generated family of
+benchmarks/fit_calibration.py):
 
 failures
     the optimizer did not converge (a fit that ran out of steps on a flat valley, where one
@@ -46,31 +47,16 @@ import math
 import numpy as np
 
 from ._core import FIT_RESULTS
-from ._dist import chi2_isf, chi2_sf, f_sf
+from ._dist import chi2_sf, f_sf
 from ._guess import Analysis, despike
 from ._intervals import ar1_coefficient, hac_covariance
-from ._profile import LR_CHI2, PROFILE_FAIL, PROFILE_REACH, bound_tests, profile_ratios
 
-#: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
-ABSURD = 10.0
-#: the model is inadequate when its residuals hold structure (:data:`STRUCTURE_P`) and their
-#: rms exceeds this fraction of the first amplitude (a tolerance of the description, not a
-#: test: the residuals of a model that misses 5 % of the swing are seen by eye)
-RMS_AMPLITUDE = 0.05
 #: the residuals hold structure beyond AR(1) noise below this p-value of
 #: :func:`residual_structure` (a failure of the exact model "reference", a note otherwise)
 STRUCTURE_P = 1e-3
 #: the residuals between the motion ends of model and data exceed those elsewhere below this
 #: p-value (:func:`end_mismatch`): a failure
 END_P = 1e-3
-#: a gross mismatch of the motion ends whatever the noise: the swings above a fiftieth of the
-#: amplitude end this many periods (or a tenth of the window) apart
-END_PERIODS = 4.0
-#: a fit that ran out of optimizer steps counts as converged when one more Gauss-Newton step
-#: would move no parameter by more than sqrt(this) = 0.3 sd of its interval (for a trace; of
-#: its delta-method standard error otherwise, where the decrement in noise variances bounds
-#: it), which keeps a 90 % interval's coverage above 87.7 %
-NEWTON_TOL = 0.09
 
 #: the largest |time| [s] a fit takes (about 3e7 years; beyond it the time axis is not one of
 #: a free decay, and times near 1e300 overflowed the fit's sums)
@@ -208,7 +194,7 @@ def check_trace(t: np.ndarray, x: np.ndarray, an: Analysis) -> None:
     peak-to-peak below :func:`noise_excursion` noise sigmas, the noise from the second
     differences), and a trace whose turning points grow (growing or time-reversed data). A
     trace that halts after one swing is fitted: whether its constants are separately
-    identifiable is the fit's to say (``_checks.assess``).
+    identifiable is the fit's to say (``_assess.assess``).
 
     Arguments:
         t, x: the fit window.
@@ -386,7 +372,7 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
     return end_mismatch(t, r, model_end(t, c), end_d, st["phi"]) < END_P
 
 
-def _interval_sd(jac, rows, params, t):
+def interval_sd(jac, rows, params, t):
     """The sd of the intervals (:func:`~dampax._fit._intervals.hac_covariance`) of the
     Jacobian's columns, or None."""
 
@@ -482,257 +468,3 @@ def null_directions(jac, names) -> list:
         order = [int(i) for i in np.argsort(-v) if v[i] > 0.1]
         out.append([names[int(live[i])] for i in order])
     return out
-
-
-
-
-def assess(*, t, x, curve, params: dict, stderr: dict, varied, derived: dict, an: Analysis,
-           converged: bool, message: str, kind: str = "trace", model: str = "ansatz",
-           jac=None, rows=None, capped: bool = False, profile=None, chisqr=math.nan,
-           d_scale: dict | None = None):
-    """Failures and adequacy of a finished fit, judged by what the fit shows.
-
-    Arguments:
-        t, x, curve: the fitted window and the model on it.
-        params, stderr, varied, derived: of the fit (``derived`` holds d0, d1, d2, A).
-        an: the :class:`Analysis` of the window (noise, turning points, where the data stop).
-        converged: the optimizer converged; ``message``: its message; ``capped``: it stopped
-            at its step budget (not on a failure).
-        kind: "trace" (every check) or "envelope" (the optimizer and the standard errors).
-        model: the fit model ("reference" integrates eq. 3 exactly).
-        jac, rows: the Jacobian (physical parameters) and residuals of the data rows.
-        profile: ``profile(name, value, start=None, batch=False)`` -> the chi-square of the
-            fit with that parameter held at that value, from the fit's values (with
-            ``start``'s in place; ``batch``: a batch of starts around there) (for the
-            intervals' check; None: skipped); ``chisqr``: the fit's.
-        d_scale: d per unit of mu, b, D at the fitted w0 (eq. 21): the starts of the tests at
-            the bound.
-
-    Returns:
-        (failures, inadequacies, diagnostics): two lists of one-line reasons and a dict of the
-        measured numbers. ``diagnostics["unidentifiable"]``, when present, is the true reason
-        to refuse the fit (the decay is measured, its split between the damping terms is not).
-    """
-
-    fails, bad, diag = [], [], {}
-    names = list(varied)
-    if not converged and capped and jac is not None and rows is not None:
-        dec, step = newton_step(jac, rows, [params[n] for n in names], names)
-        diag["newton_decrement"] = dec
-        # how far the parameters would still move: sqrt(decrement) bounds it in delta-method
-        # standard errors; for a trace, in the sd of the intervals themselves (HAC: what
-        # conf_interval reports, and what the coverage depends on)
-        move, unit = math.sqrt(max(dec, 0.0)), "standard errors"
-        sd_move = _interval_sd(jac, rows, params, t) if kind == "trace" else None
-        if step is not None and sd_move is not None and np.all(sd_move > 0):
-            move, unit = float(np.max(np.abs(step) / sd_move)), "interval sd"
-            diag["newton_move_sd"] = move
-        if move * move <= NEWTON_TOL:
-            converged = True
-            diag["note_steps"] = (f"the step budget ran out on a flat valley: one more "
-                                  f"Gauss-Newton step would lower the cost by {dec:.2g} noise "
-                                  "variances (the parameters would move by less than "
-                                  f"{move:.2g} {unit})")
-    if not converged:
-        fails.append(f"the optimizer did not converge ({message})")
-    if not all(math.isfinite(params.get(n, math.nan)) for n in varied):
-        if converged:
-            fails.append("the fitted parameters are not finite")
-        return fails, ["the fit produced no finite model"], diag
-    null = null_directions(jac, names)
-    if null:
-        diag["null_space"] = null
-        group = [n for n in ("mu", "b", "D", "w0") if n in null[0]]
-        others = [n for n in null[0] if n not in group]
-        if others:  # the offset first: what Coulomb friction trades with over one swing
-            group.append("offset" if "offset" in others else others[0])
-        if len(group) >= 2:
-            diag["unidentifiable"] = (
-                f"{', '.join(group[:-1])} and {group[-1]} are not separately identifiable "
-                f"from this window ({an.n_turns} turning point{'s' if an.n_turns != 1 else ''}"
-                "): the Jacobian of the fit is singular, their effects on the trace cancel "
-                "exactly (over a single swing Coulomb friction only moves its centre); fix all "
-                "but one of them (damping constants in the oscillator, the offset with "
-                "offset=False and p0={'offset': ...}) or fit a longer record")
-    nonfinite = [n for n in varied if not math.isfinite(stderr.get(n, math.nan))]
-    if nonfinite:
-        fails.append(f"the standard error of {', '.join(nonfinite)} is not finite (the data do "
-                     "not determine it)")
-    damping = [n for n in ("mu", "b", "D") if n in varied]
-    held = [n for n in ("mu", "b", "D") if n not in varied and params.get(n, 0.0) > 0.0]
-    if kind != "trace" and damping and not held and \
-            all(not params[n] > 2.0 * stderr.get(n, math.nan) for n in damping):
-        # (a decay that held constants explain is measured by them; a note, not a failure:
-        # the values and their intervals, which reach 0, are the right answer)
-        diag["note_decay"] = (f"no measurable decay: every fitted damping constant "
-                              f"({', '.join(damping)}) is consistent with zero (the intervals "
-                              "are upper bounds)")
-    if kind != "trace":
-        return fails, bad, diag
-    w0 = params["w0"]
-    A = derived.get("A", math.nan)
-    d0, d1, d2 = derived["d0"], derived["d1"], derived["d2"]
-    span_x = float(np.ptp(x))
-    if not (math.isfinite(A) and A > 0 and math.isfinite(w0) and w0 > 0):
-        fails.append("the fitted amplitude or frequency is not a positive finite number")
-        return fails, bad, diag
-    ratios = {"d0/(w0 A)": d0 / (w0 * A), "d1/w0": d1 / w0, "d2 A/w0": d2 * A / w0}
-    diag.update(ratios)
-    absurd = [f"{k} = {v:.3g}" for k, v in ratios.items() if not v <= ABSURD]
-    if absurd or A > 100.0 * span_x:
-        what = ", ".join(absurd) if absurd else f"A = {A:.3g} vs data range {span_x:.3g}"
-        fails.append(f"a parameter ran to absurd values ({what})")
-    r = x - curve
-    rms = float(np.sqrt(np.mean(r * r)))
-    noise = an.noise
-    period = 2.0 * math.pi / w0
-    diag.update(noise=noise, rms=rms, **{"rms/noise": rms / noise if noise > 0 else math.inf,
-                                         "rms/A": rms / A})
-    if math.isfinite(an.omega) and an.omega > 0:
-        diag["w0/turning - 1"] = w0 / an.omega - 1.0
-    # the interval covariance (what conf_interval reports)
-    sd = {}
-    cov = None
-    if jac is not None and rows is not None:
-        try:
-            cov, _ = hac_covariance(jac, rows, period_samples=period / float(
-                np.median(np.diff(t))))
-            sd = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
-        except (ValueError, np.linalg.LinAlgError):
-            cov = None
-    # no measurable decay: the fitted damping constants together are consistent with zero
-    # (the Wald test with the intervals' covariance does not reject at 5 %; a decay that held
-    # constants explain is measured by them)
-    if damping and not held:
-        idx = [names.index(n) for n in damping]
-        v = np.array([params[n] for n in damping])
-        if cov is not None and np.all(np.isfinite(cov[np.ix_(idx, idx)])):
-            wald = float(v @ np.linalg.pinv(cov[np.ix_(idx, idx)]) @ v)
-        else:
-            se = np.array([stderr.get(n, math.nan) for n in damping])
-            wald = float(np.sum((v / se) ** 2)) if np.all(se > 0) else math.nan
-        diag["decay_wald"] = wald
-        if not wald > chi2_isf(0.05, len(damping)):
-            # a note: the data bound the decay (intervals that reach 0), they do not fail
-            diag["note_decay"] = (f"no measurable decay: the fitted damping constants "
-                                  f"({', '.join(damping)}) are together consistent with zero "
-                                  f"(Wald chi2 = {wald:.3g}, {len(damping)} dof; the "
-                                  "intervals are upper bounds)")
-    # identifiability of the split between the damping terms: the decay of a group of them
-    # is measured (the Wald test that all of the group are zero rejects at 1 %) but none of
-    # them on its own (each within 1.96 sd of zero): the data fix a combination only
-    if cov is not None and len(damping) >= 2 and np.all(np.isfinite(cov)):
-        weak = [n for n in damping if sd.get(n, 0.0) > 0 and abs(params[n] / sd[n]) < 1.96]
-        if len(weak) >= 2:
-            idx = [names.index(n) for n in weak]
-            C = cov[np.ix_(idx, idx)]
-            v = np.array([params[n] for n in weak])
-            wald = float(v @ np.linalg.pinv(C) @ v)
-            diag["split_wald"] = wald
-            if wald > chi2_isf(0.01, len(weak)):
-                moving = an.n_turns
-                diag["unidentifiable"] = (
-                    f"{', '.join(weak[:-1])} and {weak[-1]} are not separately identifiable "
-                    f"from this window ({moving} turning point{'s' if moving != 1 else ''}): "
-                    f"together they are measured (Wald chi2 = {wald:.3g}), none of them alone "
-                    "(each within 1.96 sd of zero); fix all but one of them (pass their "
-                    "values in the oscillator) or fit a longer record")
-    # the residuals against AR(1) noise
-    st = residual_structure(t, r, w0)
-    diag.update(residual_phi=st["phi"], residual_p=st["p"], residual_blocks=st["blocks"])
-    structured = st["p"] < STRUCTURE_P
-    # the motion ends: where the model halts, where the data stop (statistically: the
-    # residuals between the two ends against the residuals elsewhere)
-    end_m = model_end(t, curve)
-    end_d = an.end_t if an.halted else float(t[-1])
-    p_end = end_mismatch(t, r, end_m, end_d, st["phi"])
-    diag.update(end_model=end_m, end_data=end_d, end_p=p_end)
-    model_halts = end_m < float(t[-1]) - 0.5 * period
-    if p_end < END_P:
-        msg = (f"the model stops moving at t = {end_m:.5g} s, before the data (t = {end_d:.5g} "
-               "s)" if end_m < end_d else
-               f"the model still moves at t = {end_m:.5g} s, after the data stop "
-               f"(t = {end_d:.5g} s)")
-        fails.append(msg + f": the residuals between are beyond the noise (p = {p_end:.1g})")
-        bad.append(msg)
-    elif model_halts:
-        # a gross mismatch whatever the noise: the model's halt and the end of the data's
-        # swings above a fiftieth of the amplitude are END_PERIODS periods or a tenth of the
-        # window apart
-        # (the noise from the second differences misses most of correlated noise, which
-        # wanders for good: where the residuals pass the test against AR(1) noise they are
-        # the noise, and their robust scale, 1.4826 MAD, counts it; structured residuals
-        # hold the model's error and say nothing about the noise)
-        scale = noise if structured else \
-            max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
-        level = max(6.0 * scale, 0.02 * A)
-        # (the same measure on both: where the swings fall below that level; a viscous
-        # decay that fades into the noise has no halt, in the model or the data)
-        gross_d = motion_end(t, x, period, level)
-        gross_m = motion_end(t, curve, period, level)
-        tol = max(END_PERIODS * period, 0.1 * float(t[-1] - t[0]))
-        if gross_m < gross_d - tol:
-            msg = (f"the model stops moving at t = {gross_m:.5g} s, well before the data "
-                   f"(t = {gross_d:.5g} s)")
-            fails.append(msg)
-            bad.append(msg)
-        elif gross_m > gross_d + tol:
-            msg = (f"the model still moves at t = {gross_m:.5g} s, well after the data stop "
-                   f"(t = {gross_d:.5g} s)")
-            fails.append(msg)
-            bad.append(msg)
-    lo, hi = st["worst"]
-    if structured and model == "reference":
-        # eq. 3 integrated exactly: structure the noise cannot produce is a local optimum (or
-        # physics that eq. 3 lacks)
-        fails.append(f"the residuals are not noise (p = {st['p']:.1g}, worst around t = "
-                     f"{lo:.4g}-{hi:.4g} s): a local optimum, or the data hold what eq. 3 "
-                     "lacks")
-    if structured and rms > RMS_AMPLITUDE * A:
-        bad.append(f"the residuals (rms {rms:.3g}) are {diag['rms/noise']:.0f} times the noise "
-                   f"level of the data ({noise:.3g}) and {100 * rms / A:.1f} % of the amplitude")
-    drift = phase_drift(t, x, curve, w0, params.get("offset", 0.0), max(6.0 * noise, 0.02 * A))
-    diag["phase_drift"] = drift
-    if structured and model != "reference":
-        diag["note"] = (f"the residuals hold structure beyond the noise (p = {st['p']:.1g}; "
-                        f"phase drift {drift:.2f} rad, rms {diag['rms/noise']:.0f} times the "
-                        "noise): the delta-method stderr understate the uncertainty; use "
-                        "conf_interval(), which allows for it")
-    # the intervals against the cost: profiles of the damping constants (and w0), where the
-    # residuals are noise (structured residuals make the cost's curvature no measure of the
-    # intervals, which then allow for the structure: HAC)
-    if profile is not None and sd and not fails and not structured and \
-            "unidentifiable" not in diag and math.isfinite(chisqr):
-        n = r.size
-        s2 = chisqr / max(n - len(names), 1)
-        which = damping + (["w0"] if "w0" in names else [])
-        prof = profile_ratios(profile, params, stderr, sd, which, chisqr, s2)
-        flat = [(k, c) for k, cs in prof.items() for c in cs if math.isfinite(c)
-                and c < PROFILE_FAIL]
-        vals = [c for cs in prof.values() for c in cs if math.isfinite(c)]
-        if vals:
-            diag["profile_min"] = float(min(vals))
-            diag["profile_max"] = float(max(vals))
-        if not flat:  # each side of an interval where the cost rises less than assumed
-            diag["interval_scale"] = {
-                k: tuple(1.0 / math.sqrt(c) if math.isfinite(c) and c < 1.0 else 1.0
-                         for c in cs) for k, cs in prof.items()}
-        if flat:
-            k, c = min(flat, key=lambda kc: kc[1])
-            fails.append(f"the intervals do not hold: with {k} held from 2 to "
-                         f"{2 * PROFILE_REACH:.0f} sd from its value and the rest refitted the "
-                         "cost rises less than the intervals assume (the data pin the "
-                         "parameters down less than their linearisation says)")
-        else:
-            lr = bound_tests(profile, params, stderr, sd, damping, chisqr, s2,
-                             d_scale=d_scale, amplitude=float(derived.get("A", math.nan)))
-            diag.update({f"lr_zero_{k}": v[1] for k, v in lr.items()})
-            weak = [(k, z, c) for k, (z, c) in lr.items() if c < LR_CHI2]
-            if weak:
-                k, z, c = min(weak, key=lambda kzc: kzc[2])
-                fails.append(f"the intervals do not hold: {k}'s interval excludes 0 by "
-                             f"{z:.2g} sd, but with {k} held at 0 and the rest refitted the "
-                             f"cost rises by a likelihood-ratio chi2 of only {c:.2g} (< "
-                             f"{LR_CHI2:.2f}, 1 %): the other terms explain the decay nearly "
-                             "as well (the split between them is not determined)")
-    return fails, bad, diag

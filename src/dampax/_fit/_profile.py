@@ -1,4 +1,4 @@
-"""The intervals of a fit against its cost (used by ``_checks.assess`` and the k3 profile):
+"""The intervals of a fit against its cost (used by ``_assess.assess`` and the k3 profile):
 the profile of each parameter on either side of its interval (:func:`profile_ratios`,
 followed out where it is far from a quadratic: :func:`profile_side`) and the likelihood-ratio
 test of each damping constant at the bound 0 (:func:`bound_tests`, from a batch of starts

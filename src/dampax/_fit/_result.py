@@ -18,7 +18,7 @@ from .._io import save_figure
 from .._models._decay import decay, halt_time
 from .._plot import _place
 from . import _intervals
-from ._checks import assess
+from ._assess import Inputs, assess
 from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
 from ._dist import norm_ppf
 from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
@@ -57,7 +57,7 @@ class FitResult:
             deceleration mu g in position units/s^2), b/m [1/s], D/m [1/position unit].
         free, model, loss, optimizer, kind ("trace" or "envelope"), t_start, source.
         success: the fit can be trusted as a fit: the optimizer converged and none of the
-            checks of ``_checks.assess`` failed; else ``reason`` says why in one line.
+            checks of ``_assess.assess`` failed; else ``reason`` says why in one line.
         converged: the optimizer alone converged (``message``).
         reason: "" or the failures, one line.
         adequate: the model describes the data (residuals near the noise level, no phase
@@ -575,15 +575,14 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":
 
-        fails, bad, diag = assess(t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
-                                  varied=varied_names(ctx.vary), derived=derived,
-                                  an=ctx.analysis, converged=converged, message=text,
-                                  kind=kind, model=ctx.model, jac=jac, rows=rows,
-                                  capped=capped, profile=ctx.profile, chisqr=chisqr,
-                                  d_scale=dict(zip(("mu", "b", "D"), damping_d(
-                                      1.0, 1.0, 1.0, params["w0"], ctx.consts.m,
-                                      ctx.consts.g), strict=True)) if "w0" in params
-                                  else None)
+        fails, bad, diag = assess(Inputs(
+            t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
+            varied=varied_names(ctx.vary), derived=derived, an=ctx.analysis,
+            converged=converged, message=text, kind=kind, model=ctx.model, jac=jac, rows=rows,
+            capped=capped, profile=ctx.profile, chisqr=chisqr,
+            d_scale=dict(zip(("mu", "b", "D"), damping_d(
+                1.0, 1.0, 1.0, params["w0"], ctx.consts.m, ctx.consts.g), strict=True))
+            if "w0" in params else None))
         converged = converged or "note_steps" in diag
     elif not converged:
         fails = [f"the optimizer did not converge ({text})"]
