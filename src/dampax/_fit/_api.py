@@ -53,23 +53,10 @@ from ._params import (
     vary_mask,
 )
 from ._pipeline import FULL, run
-from ._problem import Settings, bucket, pad, prepare, read_arrays, units_of
+from ._problem import Settings, bucket, pad, prepare, read_arrays, robust_scale, units_of
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
 from ._static import fit_mu_s
 from ._stiffness import fit_k3
-
-# ----------------------------------------------------------------------------------------------
-# data preparation (the single fit's: ``_problem``)
-
-_prepare = read_arrays
-_bucket = bucket
-_pad = pad
-_units_of = units_of
-
-
-def _robust_scale(r) -> float:
-    """1.4826 MAD of residuals: the soft_l1 scale f_scale."""
-    return float(MAD * np.median(np.abs(r - np.median(r))))
 
 
 def _reference_options(model: FitModel, max_swings, rtol, atol, t, w0):
@@ -276,7 +263,7 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     units = Window(units=units).checked().units
     free = check_free(free)
     osc = oscillator_values(oscillator)
-    t, E, source = _prepare(t_peaks, amplitudes)
+    t, E, source = read_arrays(t_peaks, amplitudes)
     E = np.abs(E)
     if omega0 is None:
         omega0 = 2.0 * math.pi / float(np.median(np.diff(t)))
@@ -287,7 +274,7 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     vary = vary_mask(EnvelopeParams, free, offset=offset)
     consts = Constants(m=osc["m"], g=osc["g"], w0=omega0)
     n = len(t)
-    tp, xp, wt = _pad(t, E, _bucket(n, 256))
+    tp, xp, wt = pad(t, E, bucket(n, 256))
     steps = int(max_steps or MAX_STEPS[optimizer])
 
     def run(p_start, fs):
@@ -299,14 +286,14 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     out = run(guess, fs)
     stages = ""
     if loss == "soft_l1":
-        fs = _robust_scale(E - np.asarray(out.curve)[:n]) or 1.0
+        fs = robust_scale(E - np.asarray(out.curve)[:n]) or 1.0
         stages = f"soft_l1 started from the linear-loss fit, f_scale = {fs:.4g}"
         out = run(out.params, fs)
     init = {name: getattr(guess, name) for name in varied_names(vary)}
     return build_result(out, FitContext(
         model="envelope", free=free, vary=vary, consts=consts, t=t, x=E, loss=loss,
         optimizer=optimizer, f_scale=fs, init=init, source=source, stages=stages,
-        per_mass=oscillator is None, units=_units_of(t_peaks, units)))
+        per_mass=oscillator is None, units=units_of(t_peaks, units)))
 
 
 def fit_arrays(t, x, p0, *, free=("mu", "D"), fit_omega0: bool = False, offset: bool = True,

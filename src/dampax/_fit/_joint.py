@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._trace import Trace, load_trace
-from ._api import _bucket, _pad, _swings_bucket, _units_of, fit
+from ._api import _swings_bucket
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -68,6 +68,7 @@ from ._joint_result import JointResult, _result
 from ._options import LeastSquares, Window
 from ._params import (
     DAMPING,
+    FREE,
     Constants,
     TraceParams,
     check_choice,
@@ -75,6 +76,8 @@ from ._params import (
     damping_floors,
     oscillator_values,
 )
+from ._pipeline import INNER, run
+from ._problem import Settings, bucket, pad, prepare, units_of
 
 # ----------------------------------------------------------------------------------------------
 # the public function
@@ -112,7 +115,7 @@ def _common_unit(runs, units) -> str:
     Returns:
         The unit.
     """
-    found = [_units_of(tr, units) for tr in runs]
+    found = [units_of(tr, units) for tr in runs]
     if len(set(found)) > 1:
         listed = ", ".join(f"traces[{j}]: {u!r}" for j, u in enumerate(found))
         raise ValueError(f"traces: the runs' positions are in different units ({listed}); "
@@ -227,10 +230,10 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
         warnings.simplefilter("always")
         for j, (tr, x) in enumerate(runs):
             try:
-                res = fit(tr, x, oscillator=oscillator, free=free, model=first,
-                          fit_omega0=fit_omega0, offset=offset, start=starts_at[j],
-                          end=ends_at[j], units=units, starts=starts, seed=seed, k3=k3,
-                          _inner=True)
+                res = run(prepare(tr, x, Settings(
+                    oscillator=oscillator, free=check_free(free, allowed=FREE), model=first,
+                    fit_omega0=fit_omega0, offset=offset, start=starts_at[j], end=ends_at[j],
+                    units=units, starts=starts, seed=seed, k3=k3)), INNER)
             except ValueError as err:
                 raise ValueError(f"traces[{j}]: {err}") from err
             singles.append(res)
@@ -245,7 +248,7 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     k3_mode = "shared" if "k3" in shared else ("fixed" if k3 is not None else "none")
     lay = Layout(model=model, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
     n_max = max(s.t.size for s in singles)
-    n_pad = _bucket(n_max)
+    n_pad = bucket(n_max)
     sigma = np.array([_noise_level(s) for s in singles])
     w0s = [start_vals.get("w0", p["w0"]) for p in own]
     amp = np.array([math.hypot(p["x0"], p["v0"] / w) for p, w in zip(own, w0s, strict=True)])
@@ -346,7 +349,7 @@ def _arrays(singles, own, spec, lay: Layout, consts, start_vals, sigma, amp, n_p
 
     rows = {k: [] for k in ("tau", "x", "weight", "span", "ref", "scale", "lo", "start")}
     for j, s in enumerate(singles):
-        tp, xp, wt = _pad(s.t, s.x, n_pad)
+        tp, xp, wt = pad(s.t, s.x, n_pad)
         p = TraceParams(**{n: start_vals.get(n, own[j][n]) for n in TraceParams._fields})
         sx = amp[j] if amp[j] > 0 else 1.0
         span = max(float(s.t[-1] - s.t[0]), 1e-12)

@@ -34,8 +34,8 @@ import numpy as np
 from ._checks import looks_stuck
 from ._core import FIT_MODELS, FIT_RESULTS
 from ._halts import above_mu_s, other_halt_check, search_other_halts, with_static_halt
-from ._params import MAD, varied_names
-from ._problem import Problem, Solved
+from ._params import varied_names
+from ._problem import Problem, Solved, robust_scale
 from ._result import FitContext, FitResult, build_result
 from ._starts import run_starts
 
@@ -103,7 +103,7 @@ def robust_restart(problem: Problem, state: Fit) -> Fit:
     if problem.settings.loss != "soft_l1":
         return state
     r = problem.data.x - np.asarray(state.best.curve)[:problem.n]
-    fs = float(MAD * np.median(np.abs(r - np.median(r))))
+    fs = robust_scale(r)
     fs = fs if fs > 0 else float(np.std(r)) or 1.0
     last = problem.solve(state.best.params, state.last.model, fs)
     return Fit(last.out, last, state.starts,

@@ -31,7 +31,7 @@ from ._checks import (
 )
 from ._core import FIT_MODELS, MAX_STEPS, ReferenceOptions, run_core, swing_budget
 from ._guess import Analysis, analyse, guess_trace, start_index
-from ._params import PARAMS, Constants, TraceParams, oscillator_values, vary_mask
+from ._params import MAD, PARAMS, Constants, TraceParams, oscillator_values, vary_mask
 
 
 class Settings(NamedTuple):
@@ -227,6 +227,11 @@ def read_arrays(trace_or_t, x):
     if t.size < 10:
         raise ValueError(f"a fit needs at least 10 finite samples, got {t.size}")
     return t, x, source
+
+
+def robust_scale(r) -> float:
+    """1.4826 MAD of residuals: the soft_l1 scale f_scale."""
+    return float(MAD * np.median(np.abs(r - np.median(r))))
 
 
 def bucket(n: int, minimum: int = 4096) -> int:
