@@ -1,14 +1,19 @@
 """Fitting the damping constants mu, b, D to measured free-decay traces (docs/DESIGN.md, fitting).
 
-Modules: ``_params`` (names, named parameter pytrees, internal coordinates, eq. 21),
-``_core`` (the fit models, residuals, optimisers, covariance: pure and vmappable), ``_guess``
-(initial guesses from a trace, numpy), ``_starts`` (global starts in one vmapped batch),
-``_joint`` (joint fits of several runs with shared constants),
-``_checks`` (degenerate input, named failures, adequacy), ``_intervals`` (intervals that allow
-for correlated residuals), ``_posterior`` (NUTS with AR(1) noise), ``_mcmc`` (R-hat, ESS and
-the InferenceData file), ``_result`` (FitResult, ModelComparison, ArrayFit) and ``_api`` (the
-public functions). The command ``dampax fit``
-lives in ``dampax._cli.fit``.
+A fit is a pipeline of values (issue 33): ``_problem.prepare`` reads, windows and analyses the
+data once into an immutable ``Problem`` (which solves itself, and makes the held problems of
+every "hold and refit"); ``_pipeline.run(problem, plan)`` runs the stages a ``Plan`` names
+(global starts, robust restart, exact model, continued budget, neighbouring halts, assessment,
+static halt); ``_assess`` judges the result by a table of checks; the searches of k3
+(``_stiffness``) and mu_s (``_static``) run plans on held problems.
+
+Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``, ``_profile``,
+``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
+``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``; ``_starts``
+(vmapped global starts), ``_halts``; ``_pipeline``; ``_static``, ``_stiffness``; ``_api``
+(single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint``; ``_entry``
+(``dp.fit``); ``_posterior_result``, ``_posterior``. The command ``dampax fit`` lives in
+``dampax._cli.fit``.
 """
 
 from ._api import EXAMPLE as EXAMPLE
