@@ -9,17 +9,15 @@ static halt); ``_assess`` judges the result by a table of checks; the searches o
 
 Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``, ``_profile``,
 ``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
-``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``; ``_starts``
+``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``, ``_example``; ``_starts``
 (vmapped global starts), ``_halts``; ``_pipeline``; ``_static``, ``_stiffness``; ``_api``
 (single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint``; ``_entry``
 (``dp.fit``); ``_posterior_result``, ``_posterior``. The command ``dampax fit`` lives in
 ``dampax._cli.fit``.
 """
 
-from ._api import EXAMPLE as EXAMPLE
 from ._api import compare_envelope_models as compare_envelope_models
 from ._api import compare_models as compare_models
-from ._api import example_trace as example_trace
 from ._api import fit_arrays as fit_arrays
 from ._api import fit_envelope as fit_envelope
 from ._api import residual_function as residual_function
@@ -29,6 +27,8 @@ from ._core import MODELS as MODELS
 from ._core import OPTIMIZERS as OPTIMIZERS
 from ._core import FitModel as FitModel
 from ._entry import fit as fit
+from ._example import EXAMPLE as EXAMPLE
+from ._example import example_trace as example_trace
 from ._guess import initial_guess as initial_guess
 from ._joint import fit_joint as fit_joint
 from ._joint_problem import SHARED as SHARED
