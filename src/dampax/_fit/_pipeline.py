@@ -67,20 +67,6 @@ class Fit(NamedTuple):
     notes: tuple = ()
 
 
-def _starts_batch(problem: Problem, p, model: str, fs: float, *, seed: int, held=None,
-                  extra=(), opts=None):
-    """``_starts.run_starts`` of ``problem`` around ``p`` (``held``: a parameter held)."""
-    s, an = problem.settings, problem.data.analysis
-    free = tuple(f for f in s.free if f != held)
-    vary = problem.vary if held is None else problem.vary._replace(**{held: False})
-    return run_starts(problem.data.t, problem.data.x, p, free=free, vary=vary,
-                      consts=problem.consts, f_scale=fs, n=int(s.starts), seed=seed,
-                      fit_omega0=problem.fit_omega0, omega=an.omega,
-                      w0_spread=an.omega_spread, model=model, optimizer=s.optimizer,
-                      max_steps=problem.steps, rtol=float(s.rtol), atol=float(s.atol),
-                      opts=opts, extra=extra)
-
-
 def first_model(problem: Problem, plan: Plan) -> str:
     """The model of stages 1-2: the approximate one unless the plan starts with the exact."""
     spec = FIT_MODELS[problem.settings.model]
@@ -92,7 +78,7 @@ def global_starts(problem: Problem, plan: Plan) -> Fit:
     first, s = first_model(problem, plan), problem.settings
     found, start = None, problem.guess
     if s.starts > 1 and not FIT_MODELS[first].integrates:
-        found = _starts_batch(problem, problem.guess, first, math.inf, seed=int(s.seed))
+        found = run_starts(problem, problem.guess, first, math.inf, seed=int(s.seed))
         start = found.params
     last = problem.solve(start, first, math.inf)
     return Fit(last.out, last, found)
@@ -125,7 +111,7 @@ def exact_model(problem: Problem, plan: Plan, state: Fit) -> Fit:
     if s.starts > 1 and looks_stuck(data.t, data.x, np.asarray(out.curve)[:problem.n],
                                     data.analysis, float(out.params.w0), out.code):
         opts = problem.reference_options(spec.name, problem.guess.w0)
-        found = _starts_batch(problem, problem.guess, spec.name, fs, seed=int(s.seed) + 1,
+        found = run_starts(problem, problem.guess, spec.name, fs, seed=int(s.seed) + 1,
                               extra=(approx, out.params), opts=opts)
         last = problem.solve(found.params, spec.name, fs)
         c0, c1 = float(out.chisqr), float(last.out.chisqr)
@@ -172,7 +158,7 @@ def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, st
     best = state.best.params
     p = best._replace(**held)
     if batch and problem.settings.starts > 1:
-        p = _starts_batch(problem, p, first, state.last.fs, seed=int(problem.settings.seed) + 2,
+        p = run_starts(problem, p, first, state.last.fs, seed=int(problem.settings.seed) + 2,
                           held=name, extra=(p,)).params
         # its damping constants (the approximate model's state and frequency can lie far from
         # the exact model's where the block halts early)

@@ -121,16 +121,29 @@ def thin(t: np.ndarray, x: np.ndarray, omega: float):
     return tp, xp, wt, stride
 
 
-def run_starts(t, x, guess: TraceParams, *, free, vary, consts, f_scale, n: int, seed: int,
-               fit_omega0: bool, omega: float, model: str, optimizer: str, max_steps: int,
-               rtol: float, atol: float, w0_spread: float = 0.003, opts=None,
-               extra=()) -> Starts:
-    """Optimise ``n`` jittered starts around ``guess`` in one vmapped call on the thinned
-    trace; returns :class:`Starts` (the best optimum is the caller's next start).
+def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed: int,
+               held: str | None = None, extra=(), opts=None) -> Starts:
+    """Optimise ``problem``'s global starts (``settings.starts`` of them) jittered around
+    ``guess`` in one vmapped call on the thinned trace; returns :class:`Starts` (the best
+    optimum is the caller's next start).
 
-    ``opts``: the integrating model's options (static; None for the ansatz); ``extra``:
-    further starts (TraceParams) put in place of the last jittered ones (the ansatz's optimum
-    for the reference model)."""
+    Arguments:
+        problem: the prepared problem (``_problem.Problem``: its window, mask, constants and
+            optimizer settings).
+        guess: the centre of the jitter (held parameters keep its values).
+        model, f_scale: the fit model and the soft_l1 scale (inf: the linear loss).
+        seed: the jitter's seed.
+        held: a parameter held at ``guess``'s value (a profile's batch), or None.
+        extra: further starts (TraceParams) put in place of the last jittered ones (the
+            ansatz's optimum for the reference model).
+        opts: the integrating model's options (static; None for the ansatz).
+    """
+    s, an = problem.settings, problem.data.analysis
+    free = tuple(f for f in s.free if f != held)
+    vary = problem.vary if held is None else problem.vary._replace(**{held: False})
+    n, t, x, consts = int(s.starts), problem.data.t, problem.data.x, problem.consts
+    optimizer, rtol, atol, max_steps = s.optimizer, float(s.rtol), float(s.atol), problem.steps
+    fit_omega0, omega, w0_spread = problem.fit_omega0, an.omega, an.omega_spread
     P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0, w0_spread=w0_spread)
     for j, p in enumerate(extra):
         P[n - 1 - j] = np.asarray(p, dtype=float)
