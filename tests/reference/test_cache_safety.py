@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dampax import _cache
+from dampax import _cache, _cachefiles
 
 
 def _fn(x):
@@ -156,11 +156,11 @@ def test_damaged_files_are_set_aside_and_rebuilt(cache, tmp_path, damage, suffix
         path.write_bytes(b"")
     else:
         path.write_bytes(data)
-        monkeypatch.setattr(_cache, "MAX_FILE_BYTES", len(data) - 1)
+        monkeypatch.setattr(_cachefiles, "MAX_FILE_BYTES", len(data) - 1)
     with pytest.warns(_cache.CacheWarning, match="set aside"):
         _call()
     assert _aside(cache)
-    monkeypatch.setattr(_cache, "MAX_FILE_BYTES", 1 << 30)
+    monkeypatch.setattr(_cachefiles, "MAX_FILE_BYTES", 1 << 30)
     rebuilt = _kept(cache, suffix)
     assert stat.S_ISREG(os.lstat(rebuilt).st_mode)
     with warnings.catch_warnings():
