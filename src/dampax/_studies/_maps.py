@@ -19,11 +19,9 @@ processes for ``processes=N``).
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import functools
 import math
-import operator
 from collections.abc import Sequence
 
 import equinox.internal as eqxi
@@ -36,6 +34,20 @@ from .._models._registry import ANALYTIC, MODELS, check_models
 from .._oscillator import Oscillator, ratio_constants
 from .._solve import solve_checked
 from .._version import __version__
+from ._budget import ACCELERATOR_CHUNK as ACCELERATOR_CHUNK
+from ._budget import CPU_CHUNK as CPU_CHUNK
+from ._budget import MAP_BYTES_PER_POINT as MAP_BYTES_PER_POINT
+from ._budget import MAP_MEMORY_SHARE as MAP_MEMORY_SHARE
+from ._budget import MAP_SECONDS_PER_POINT as MAP_SECONDS_PER_POINT
+from ._budget import MAX_SAMPLES as MAX_SAMPLES
+from ._budget import STEP_MEMORY_SHARE as STEP_MEMORY_SHARE
+from ._budget import check_map_size as check_map_size
+from ._budget import choose_chunk as choose_chunk
+from ._budget import device_memory as device_memory
+from ._budget import duration_text as duration_text
+from ._budget import map_cost as map_cost
+from ._budget import physical_memory as physical_memory
+from ._budget import step_bytes_per_point as step_bytes_per_point
 from ._distributed import (
     DEFAULT_TIMEOUT,
     check_processes,
@@ -44,6 +56,10 @@ from ._distributed import (
     gather,
     run_local,
 )
+from ._mapquery import MAX_AXIS_POINTS as MAX_AXIS_POINTS
+from ._mapquery import largest_ratio_below as largest_ratio_below
+from ._mapquery import parse_axis as parse_axis
+from ._mapquery import worst_in_box as worst_in_box
 
 Array = jax.Array
 
@@ -58,8 +74,6 @@ _AXES = ("d0_ratio", "d1_ratio", "d2_ratio", "phi0")
 _BLOCK = 1024  # at most this many samples per scan step (memory per point: a few such arrays)
 #: Longer windows integrate the reference in segments of about this many periods.
 SEGMENT_PERIODS = 32.0
-#: At most this many samples per grid point (periods x samples_per_period).
-MAX_SAMPLES = 10**8
 
 # CF conventions: dimensionless variables have units "1"; the normalisation is in long_name
 _VARIABLE_ATTRS = {
@@ -380,140 +394,6 @@ def _window_estimate(grid, periods: float) -> np.ndarray:
 #: points per step (and device) of the longest windows (see `_tail_count`)
 TAIL_CHUNK = 8
 
-#: host memory a grid point takes [bytes], measured (issue 37): the window estimate's
-#: (points, 129) arrays (5.2 KB), the grid, the outputs and the dataset
-MAP_BYTES_PER_POINT = 6_000
-#: seconds a grid point takes at the default window (20 periods x 64 samples, 4 models),
-#: measured on an idle 2-core machine (the default 2048-point map in 12.9 s, compilation
-#: loaded from the cache): a rough guide for the size checks, not a promise
-MAP_SECONDS_PER_POINT = 6e-3
-#: the share of the machine's memory a map may need before it is refused
-MAP_MEMORY_SHARE = 0.5
-
-
-def physical_memory() -> float:
-    """The machine's memory [bytes] (inf where the platform does not say)."""
-    import os
-
-    try:
-        return float(os.sysconf("SC_PAGE_SIZE")) * float(os.sysconf("SC_PHYS_PAGES"))
-    except (ValueError, OSError, AttributeError):
-        return math.inf
-
-
-def map_cost(n_points: int, n_models: int, periods: float,
-             samples_per_period: int) -> tuple[float, float]:
-    """Rough host memory [bytes] and time [s] of an error map of ``n_points`` points (the
-    measured :data:`MAP_BYTES_PER_POINT` and :data:`MAP_SECONDS_PER_POINT`, the time scaled
-    with the samples per point and the models).
-
-    Arguments:
-        n_points: grid points.
-        n_models: analytic models compared.
-        periods, samples_per_period: the window.
-
-    Returns:
-        (bytes, seconds).
-    """
-    samples = min(float(periods) * float(samples_per_period), float(MAX_SAMPLES))
-    seconds = (float(n_points) * MAP_SECONDS_PER_POINT * (samples / 1280.0)
-               * (n_models + 1) / 5.0)
-    return float(n_points) * MAP_BYTES_PER_POINT, seconds
-
-
-def check_map_size(sizes: dict, n_models: int, periods: float,
-                   samples_per_period: int) -> int:
-    """The grid's number of points; ValueError naming the axes when its memory estimate
-    (:func:`map_cost`) exceeds :data:`MAP_MEMORY_SHARE` of the machine's memory.
-
-    Arguments:
-        sizes: the axes' names (or flags) and lengths.
-        n_models, periods, samples_per_period: as in :func:`map_cost`.
-
-    Returns:
-        The number of points.
-    """
-    n_points = math.prod(int(v) for v in sizes.values())
-    need, seconds = map_cost(n_points, n_models, periods, samples_per_period)
-    have = physical_memory()
-    if need > MAP_MEMORY_SHARE * have:
-        shape = " x ".join(f"{v} {k}" for k, v in sizes.items())
-        raise ValueError(
-            f"{', '.join(sizes)}: a grid of {n_points:.4g} points ({shape}) needs about "
-            f"{need / 2**30:.0f} GiB of memory (this machine has {have / 2**30:.0f} GiB) and "
-            f"about {duration_text(seconds)} on a 2-core machine; use coarser axes, or split "
-            f"the grid into maps of a part of an axis each")
-    return n_points
-
-
-def duration_text(seconds: float) -> str:
-    """A duration in the unit that suits it: "40 s", "12 min", "3.5 h", "69 days"."""
-    for unit, size, below in (("s", 1.0, 120.0), ("min", 60.0, 7200.0), ("h", 3600.0, 172800.0),
-                              ("days", 86400.0, math.inf)):
-        if seconds < below:
-            value = seconds / size
-            return f"{value:.2g} {unit}" if value < 10 else f"{value:.0f} {unit}"
-    return "forever"
-
-
-#: grid points per device and step when ``chunk_size`` is not given, on a CPU: the vmapped step
-#: runs its points one after the other there (a few SIMD lanes aside), so larger steps gain
-#: nothing (issue 34: the default map in the same 0.27 s as before this choice existed)
-CPU_CHUNK = 128
-#: on an accelerator (GPU, TPU) when ``chunk_size`` is not given: at most this many points per
-#: device and step, the whole grid in one launch where it fits (one H100, issue 34: the
-#: default map took 0.17 s in steps of 128 points, 0.05 s in one of 4096), within
-#: :data:`STEP_MEMORY_SHARE` of the device's memory
-ACCELERATOR_CHUNK = 32768
-#: the share of a device's memory that one step's buffers may take (whatever chunk_size says)
-STEP_MEMORY_SHARE = 0.25
-
-
-def step_bytes_per_point(cfg: _Config) -> int:
-    """Memory one grid point of a step takes on its device [bytes], an upper estimate.
-
-    XLA's temporaries of the compiled step (``compiled.memory_analysis()``, measured on a CPU
-    for issue 34, per point): 151 KB at the default window (4 models, blocks of 641 samples),
-    3.8 KB for one model against the exact half-swings (blocks of 49), 265 KB for 100 periods
-    in segments (blocks of 915); 8 bytes x block x (6 (models + 1) + 8) is above each.
-    """
-    return 8 * cfg.block * (6 * (len(cfg.models) + 1) + 8)
-
-
-def device_memory(device) -> float:
-    """Memory of one device [bytes]: what its allocator may use (``memory_stats()``, GPUs and
-    TPUs), else the machine's memory shared by the host's devices of its platform."""
-    try:
-        stats = device.memory_stats() or {}
-    except Exception:  # noqa: BLE001 - a backend without memory statistics
-        stats = {}
-    limit = stats.get("bytes_limit")
-    if limit:
-        return float(limit)
-    host = [d for d in jax.local_devices() if d.platform == device.platform]
-    return physical_memory() / max(1, len(host))
-
-
-def choose_chunk(chunk_size: int | None, cfg: _Config, n_points: int, devices,
-                 n_processes: int = 1) -> int:
-    """Grid points per device and step.
-
-    Not given (None): :data:`CPU_CHUNK` on a CPU, :data:`ACCELERATOR_CHUNK` elsewhere. Given or
-    not, it is then clipped to the grid (no more than the points each device gets, rounded up
-    to a power of two, but not below :data:`CPU_CHUNK`, so that small maps share one compiled
-    step) and to the memory (:data:`STEP_MEMORY_SHARE` of a device's memory over
-    :func:`step_bytes_per_point`, a power of two, at least 1).
-    """
-    chunk = (CPU_CHUNK if devices[0].platform == "cpu" else ACCELERATOR_CHUNK) \
-        if chunk_size is None else int(chunk_size)
-    per_device = -(-int(n_points) // (len(devices) * max(1, int(n_processes))))
-    chunk = min(chunk, max(1 << max(per_device - 1, 0).bit_length(), CPU_CHUNK))
-    fits = STEP_MEMORY_SHARE * device_memory(devices[0]) / step_bytes_per_point(cfg)
-    if math.isfinite(fits):
-        chunk = min(chunk, 1 << max(int(fits), 1).bit_length() - 1)
-    return max(1, chunk)
-
-
 def _tail_count(estimate, step: int, tail_step: int) -> int:
     """How many of the points (sorted by estimated window, longest first) form the tail: those
     whose window is more than 4x the longest outside the first step. A multiple of
@@ -828,102 +708,3 @@ def _store(pending, step, out_metrics, out_valid, out_info):
 
 # ----------------------------------------------------------------------------------------------
 # helpers for the command line and the plots
-
-
-#: the most values one axis of the command line takes ("START:STOP:N")
-MAX_AXIS_POINTS = 1_000_000
-
-
-def parse_axis(text: str, name: str) -> np.ndarray:
-    """Grid axis from the command line: "START:STOP:N" (linspace, both ends), "a,b,c" or "a".
-
-    Numbers may be arithmetic with pi, e.g. "0:7*pi/8:8". ValueError names ``name``.
-    """
-    try:
-        parts = text.split(":")
-        if len(parts) == 3:
-            n = int(parts[2])
-            if not 1 <= n <= MAX_AXIS_POINTS:
-                raise ValueError(f"N must be between 1 and {MAX_AXIS_POINTS}")
-            return np.linspace(_number(parts[0]), _number(parts[1]), n)
-        if len(parts) == 1:
-            return np.array([_number(p) for p in parts[0].split(",")], dtype=float)
-        raise ValueError("expected START:STOP:N, a,b,c or a single number")
-    except (ValueError, SyntaxError, TypeError, ArithmeticError, MemoryError,
-            RecursionError) as err:
-        raise ValueError(f"{name}: cannot read {text!r} ({err}); use START:STOP:N, "
-                         "a comma list or a number (pi allowed, e.g. 0:7*pi/8:8)") from None
-
-
-_OPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
-        ast.Div: operator.truediv, ast.USub: operator.neg, ast.UAdd: operator.pos}
-
-
-def _number(text: str) -> float:
-    """A float from simple arithmetic on numbers and ``pi`` (no names, no calls)."""
-    def ev(node):
-        if isinstance(node, ast.Expression):
-            return ev(node.body)
-        if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)):
-            return float(node.value)
-        if isinstance(node, ast.Name) and node.id == "pi":
-            return math.pi
-        if isinstance(node, ast.BinOp) and type(node.op) in _OPS:
-            return _OPS[type(node.op)](ev(node.left), ev(node.right))
-        if isinstance(node, ast.UnaryOp) and type(node.op) in _OPS:
-            return _OPS[type(node.op)](ev(node.operand))
-        raise ValueError(f"not a number: {text.strip()!r}")
-
-    text = text.strip()
-    if text.lower() in ("nan", "inf", "-inf", "+inf"):
-        return float(text)
-    return ev(ast.parse(text, mode="eval"))
-
-
-def largest_ratio_below(ds, threshold: float, *, along: str, model: str,
-                        metric: str = "max_error") -> float | None:
-    """Largest value of axis ``along`` up to which ``metric`` stays below ``threshold``.
-
-    The other two ratio axes are held at 0 and the worst case over phi0 is taken; the scan
-    goes up the axis from its first value and stops before the first point at or above the
-    threshold (or where the model or the reference is not valid).
-
-    Returns:
-        The ratio; NaN when even the first point fails; None when the grid has no 0 on one of
-        the other ratio axes.
-    """
-    sel = {}
-    for axis in ("d0_ratio", "d1_ratio", "d2_ratio"):
-        if axis == along:
-            continue
-        zero = np.flatnonzero(np.asarray(ds[axis]) == 0.0)
-        if zero.size == 0:
-            return None
-        sel[axis] = int(zero[0])
-    da = ds[metric].sel(model=model).isel(sel)
-    worst = np.asarray(np.abs(da).max("phi0", skipna=False))
-    values = np.asarray(ds[along])
-    order = np.argsort(values)
-    ok = np.isfinite(worst[order]) & (worst[order] < threshold)
-    if not ok[0]:
-        return math.nan
-    bad = np.flatnonzero(~ok)
-    return float(values[order][-1] if bad.size == 0 else values[order][bad[0] - 1])
-
-
-def worst_in_box(ds, *, model: str, d0_max: float, d2_max: float,
-                 metric: str = "max_error") -> float:
-    """Largest ``metric`` over d0 <= d0_max, d2 <= d2_max, d1 = 0 and every phi0.
-
-    NaN when the grid has no such point, no d1 = 0, or the model is not valid everywhere
-    in that box.
-    """
-    d1 = np.asarray(ds["d1_ratio"])
-    if not np.any(d1 == 0.0):
-        return math.nan
-    box = ds[metric].sel(model=model).isel(d1_ratio=int(np.flatnonzero(d1 == 0.0)[0]))
-    box = box.where((box["d0_ratio"] <= d0_max) & (box["d2_ratio"] <= d2_max), drop=True)
-    values = np.abs(np.asarray(box, dtype=float))
-    if values.size == 0 or not np.all(np.isfinite(values)):
-        return math.nan
-    return float(values.max())
