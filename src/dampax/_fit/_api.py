@@ -98,131 +98,41 @@ def _check_max_steps(max_steps):
     return int(max_steps)
 
 
-def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
-        fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
-        loss: str = "linear", optimizer: str = "lm", p0=None, max_steps: int | None = None,
-        rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
-        units: str | None = None, starts: int = 32, seed: int = 0,
-        k3: float | None = None, mu_s: float | None = None, shared=None) -> FitResult:
-    """Fit the damping constants of eq. 3 to a measured (or simulated) free-decay trace (the
-    implementation of :func:`dampax.fit`, whose ``window`` and ``solver`` objects arrive here
-    as flat, checked keywords).
-
-    A list of traces is a joint fit of several runs of one apparatus
-    (:func:`~dampax._fit._joint.fit_joint`: the constants named in ``shared`` are common to
-    all runs, each run has its own start, offset and window) and returns a
-    :class:`~dampax._fit._joint_result.JointResult`.
-
-    From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
-    offset) are identifiable. Without an ``oscillator`` the fit is per unit mass: w0 is
-    fitted, m = 1 kg, so ``params["b"]`` and ``params["D"]`` are b/m [1/s] and D/m
-    [1/unit]; the report says so. With an oscillator, m (and, unless ``fit_omega0``, k) are
-    its values and b, D are in kg/s and kg/m (positions in metres).
-
-    Parameters: the damping constants named in ``free`` (mu, b, D >= 0), and always x0, v0 at
-    the fit start, the equilibrium ``offset`` and, with ``fit_omega0``, w0 (m fixed,
-    k = m w0^2). Non-free damping constants stay at the oscillator's values. The fit is
-    global: ``starts`` jittered starts around the turning-point guess are optimised in one
-    vmapped call on a thinned copy of the trace (``_starts``), the best is polished on the
-    whole trace. With ``loss="soft_l1"`` the fit then restarts from the linear-loss optimum
-    with the scale from its residuals (1.4826 MAD); a model with ``start_from`` (the reference)
-    starts from the optimum of that model (the ansatz) and from a batch of jittered starts of
-    its own around the turning-point guess (the ansatz's optimum among them).
-
-    Failures are named: ``success`` is False, with a one-line ``reason``, when the optimizer
-    did not converge, a parameter ran to absurd values, the model stops moving before (or
-    after) the data, a standard error is not finite, the intervals do not hold (the cost is not
-    quadratic over them), or, for the exact model "reference", the residuals hold structure
-    that AR(1) noise cannot produce (``_checks``: tests with known null distributions, none on
-    zero crossings). ``adequate`` says separately whether the model describes the data. Input
-    without a free decay in it (constant, pure noise, growing or time-reversed, constant time)
-    raises ValueError; a trace that halts after one swing is fitted.
+def fit(trace_or_t, x, settings: Settings) -> FitResult:
+    """Fit one trace with the caller's checked settings (the implementation of
+    :func:`dampax.fit` for a single trace; its docstring describes the fit).
 
     Arguments:
-        trace_or_t: a :class:`Trace` (from :func:`load_trace`), a file path, or the times t.
-        x: the positions when ``trace_or_t`` holds the times.
-        oscillator: the known constants (m, k, g; the damping constants not in ``free`` stay
-            at its values, usually 0). Default None: unit mass, w0 fitted (per-mass b, D).
-        free: the constants to fit, among "mu", "b", "D" and "k3" (the cubic stiffness of
-            issue 14, docs/cubic_stiffness.md: the amplitude-dependent frequency). k3 is
-            profiled: the fit of the other parameters is repeated at fixed k3 (from the
-            linear fit's optimum) and k3 chosen by Brent's method on the residual sum of
-            squares S(k3), searched as
-            k3 A^2/(m w0^2) in [-0.3, 0.3] (A: the window's first amplitude). Its interval
-            comes from the curvature of S at the minimum, with sigma^2 = S/(n - p) inflated by
-            (1 + rho)/(1 - rho) for the residuals' lag-1 autocorrelation rho; the other
-            parameters' intervals (``conf_interval``) add k3's uncertainty carried over by
-            the change of their optima with k3 (the profile's fits beside). Per unit
-            mass (no oscillator) the value is k3/m [1/(s^2 unit^2)].
-        k3: hold the cubic stiffness at this value [N/m^3; k3/m per unit mass] (default None:
-            the linear spring, every number as without k3); not with "k3" in ``free``.
-        mu_s: model "reference" only: hold the static friction coefficient at this value
-            (>= mu; the block sticks at a turning point where |k x + k3 x^3| <= mu_s m g).
-            Default None: mu_s = mu, every number as without it. ``free=(..., "mu_s")``
-            searches it instead (``_static.fit_mu_s``): x(t) depends on mu_s only through
-            the turning point where the block halts, so the fit screens every candidate halt
-            at the sliding-friction fit's optimum, fits the best ones at fixed mu_s from
-            there and reports mu_s with the interval of values that give the chosen halt
-            (``profiled["mu_s"]``; ``derived["halt_time"]`` is that motion's halt).
-        model: "ansatz" (closed form of eqs. 11, 20-23, fast) or "reference" (DOP853
-            integration of eq. 3, started from the ansatz fit).
-        fit_omega0: also fit w0 (m fixed, k = m w0^2); otherwise w0 = sqrt(k/m). Default:
-            True without an oscillator, False with one.
-        offset: fit the equilibrium offset (else the trace is taken as centred on 0).
-        start: where the fit window begins: "auto" (the first clear extreme after the largest
-            excursion, which skips a hand release), "data" / None (the first sample) or a time.
-        end: optional end time of the window.
-        loss: "linear" or "soft_l1" (robust to outliers; scale from the MAD of a linear fit).
-        optimizer: "lm" (optimistix Levenberg-Marquardt), "adam" or "lbfgs" (optax).
-        p0: optional initial values (dict by parameter name) overriding the automatic guess.
-        max_steps, rtol, atol: optimizer budget (honoured: at most max_steps steps per
-            optimisation) and tolerances.
-        max_swings: reference model budget (default from the window length).
-        units: the unit of the positions, for the report ("m", "deg", ...); default: from the
-            position column's name of a Trace ("Angle(deg)"), else "m".
-        starts: number of global starts (1: the turning-point guess alone).
-        seed: seed of the jitter of the starts.
-        shared: joint fits only (a list of traces): the parameters common to all runs, among
-            "mu", "b", "D", "w0", "k3" (default: the free damping constants).
+        trace_or_t: a :class:`Trace`, a file path, or the times t.
+        x: the positions when ``trace_or_t`` holds the times (else None).
+        settings: the problem and the options (:class:`~dampax._fit._problem.Settings`;
+            ``window`` and ``solver`` were checked at the edge, ``_options``).
 
     Returns:
-        A :class:`FitResult` (a :class:`~dampax._fit._joint_result.JointResult` for a list
-        of traces).
-
-    Raises:
-        ValueError: bad arguments, a trace without a free decay in it, or a window that fixes
-            the combined decay of some damping terms but not their split ("mu and D are not
-            separately identifiable ...: fix all but one of them"); the reason named.
+        A :class:`FitResult`: of :data:`~dampax._fit._pipeline.FULL`'s plan, or of the mu_s
+        or k3 search (``_static.fit_mu_s``, ``_stiffness.fit_k3``) where one is free.
     """
-    if shared is not None:
-        raise ValueError("shared: names constants common to several runs; it needs a list of "
-                         "two or more traces, not a single trace")
-    # the options (window, solver) were checked at the edge (dp.fit, ._options)
-    check_choice("model", model, MODELS)
-    free = check_free(free, allowed=FREE)
+    check_choice("model", settings.model, MODELS)
+    free = check_free(settings.free, allowed=FREE)
+    k3, mu_s = settings.k3, settings.mu_s
     if mu_s is not None or "mu_s" in free:
-        if model != "reference":
-            raise ValueError(f"mu_s: static friction needs model='reference' (the {model} "
-                             "model assumes mu_s = mu)")
+        if settings.model != "reference":
+            raise ValueError(f"mu_s: static friction needs model='reference' (the "
+                             f"{settings.model} model assumes mu_s = mu)")
         if "k3" in free:
             raise ValueError("mu_s: free=(..., 'mu_s') and (..., 'k3') together are not "
                              "supported: fix k3 (k3=...) or mu_s")
-    settings = Settings(oscillator=oscillator, free=free, model=model, fit_omega0=fit_omega0,
-                        offset=offset, start=start, end=end, loss=loss, optimizer=optimizer,
-                        p0=p0, max_steps=max_steps, rtol=rtol, atol=atol,
-                        max_swings=max_swings, units=units, starts=starts, seed=seed, k3=k3,
-                        mu_s=mu_s)
-    if "mu_s" in free:
-        if mu_s is not None:
-            raise ValueError("mu_s: give either free=(..., 'mu_s') or a fixed mu_s, not both")
-        return fit_mu_s(prepare(trace_or_t, x, settings._replace(
-            free=tuple(f for f in free if f != "mu_s"))))
-    if "k3" in free:
-        if k3 is not None:
-            raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
-        return fit_k3(prepare(trace_or_t, x, settings._replace(
-            free=tuple(f for f in free if f != "k3"))))
-    problem = prepare(trace_or_t, x, settings._replace(free=free))
+    if "mu_s" in free and mu_s is not None:
+        raise ValueError("mu_s: give either free=(..., 'mu_s') or a fixed mu_s, not both")
+    if "k3" in free and k3 is not None:
+        raise ValueError("k3: give either free=(..., 'k3') or a fixed k3, not both")
+    searched = next((name for name in ("mu_s", "k3") if name in free), None)
+    problem = prepare(trace_or_t, x, settings._replace(
+        free=tuple(f for f in free if f != searched)))
+    if searched == "mu_s":
+        return fit_mu_s(problem)
+    if searched == "k3":
+        return fit_k3(problem)
     return run(problem, FULL)
 
 
@@ -439,8 +349,8 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         warnings.simplefilter("ignore")
         for cand in candidates:
             key = tuple(check_free(cand))
-            results[key] = known[key] if key in known else fit(trace, x, free=cand,
-                                                                  **fit_kwargs)
+            results[key] = known[key] if key in known else fit(
+                trace, x, Settings(**{**fit_kwargs, "free": cand}))
     return rank(results, criterion)
 
 

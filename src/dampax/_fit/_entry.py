@@ -8,6 +8,7 @@ from __future__ import annotations
 from . import _api
 from ._joint import fit_joint
 from ._options import LeastSquares, Window, options
+from ._problem import Settings
 
 
 def fit_flat(trace_or_t, x=None, **kwargs):
@@ -22,7 +23,7 @@ def fit_flat(trace_or_t, x=None, **kwargs):
                              "several runs; fit each run alone")
         kwargs = {k: v for k, v in kwargs.items() if k not in ("p0", "mu_s")}
         return fit_joint(list(trace_or_t), **kwargs)
-    return _api.fit(trace_or_t, x, **kwargs)
+    return _api.fit(trace_or_t, x, Settings(**kwargs))
 
 
 def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
@@ -35,6 +36,43 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
     The keywords define the problem; which samples are fitted and how the optimiser runs are
     small option objects (:class:`~dampax.Window`, :class:`~dampax.LeastSquares`), checked
     when they are made.
+
+    From x(t) alone only w0, the friction deceleration mu g, b/m and D/m (and x0, v0, the
+    offset) are identifiable. Without an ``oscillator`` the fit is per unit mass: w0 is
+    fitted, m = 1 kg, so ``params["b"]`` and ``params["D"]`` are b/m [1/s] and D/m
+    [1/unit]; the report says so. With an oscillator, m (and, unless ``fit_omega0``, k) are
+    its values and b, D are in kg/s and kg/m (positions in metres).
+
+    Parameters: the damping constants named in ``free`` (mu, b, D >= 0), and always x0, v0 at
+    the fit start, the equilibrium ``offset`` and, with ``fit_omega0``, w0 (m fixed,
+    k = m w0^2). Non-free damping constants stay at the oscillator's values. The fit is
+    global: ``starts`` jittered starts around the turning-point guess are optimised in one
+    vmapped call on a thinned copy of the trace (``_starts``), the best is polished on the
+    whole trace. With ``loss="soft_l1"`` the fit then restarts from the linear-loss optimum
+    with the scale from its residuals (1.4826 MAD); a model with ``start_from`` (the reference)
+    starts from the optimum of that model (the ansatz) and from a batch of jittered starts of
+    its own around the turning-point guess (the ansatz's optimum among them). The stages are
+    a plan (``_pipeline``) run on a problem prepared once (``_problem.prepare``).
+
+    k3 in ``free`` (the cubic stiffness of issue 14, docs/cubic_stiffness.md) is profiled
+    (``_stiffness.fit_k3``): the fit of the other parameters is repeated at fixed k3 and k3
+    chosen by Brent's method on the residual sum of squares S(k3), searched as
+    k3 A^2/(m w0^2) in [-0.3, 0.3] (A: the window's first amplitude); its interval comes from
+    the curvature of S at the minimum (sigma^2 inflated for the residuals' lag-1
+    autocorrelation), and the other parameters' intervals carry k3's uncertainty. mu_s in
+    ``free`` is searched (``_static.fit_mu_s``): x(t) depends on mu_s only through the
+    turning point where the block halts, so every candidate halt is screened at the sliding
+    fit's optimum, the best ones fitted at fixed mu_s, and mu_s reported with the interval of
+    values that give the chosen halt (``profiled["mu_s"]``; ``derived["halt_time"]``).
+
+    Failures are named: ``success`` is False, with a one-line ``reason``, when the optimizer
+    did not converge, a parameter ran to absurd values, the model stops moving before (or
+    after) the data, a standard error is not finite, the intervals do not hold (the cost is not
+    quadratic over them), or, for the exact model "reference", the residuals hold structure
+    that AR(1) noise cannot produce (``_checks``: tests with known null distributions, none on
+    zero crossings). ``adequate`` says separately whether the model describes the data. Input
+    without a free decay in it (constant, pure noise, growing or time-reversed, constant time)
+    raises ValueError; a trace that halts after one swing is fitted.
 
     Arguments:
         trace_or_t: a :class:`Trace` (from :func:`load_trace`), a file path, or the times t;
@@ -63,8 +101,7 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
 
     Returns:
         A :class:`FitResult` (a :class:`~dampax._fit._joint_result.JointResult` for a list
-        of traces);
-        the statistics, checks and failures are described in :func:`~dampax._fit._api.fit`.
+        of traces).
 
     Raises:
         ValueError: bad arguments (the parameter named), a trace without a free decay in it,
