@@ -233,7 +233,7 @@ FIT_LAYERS = (
     ("_core",),  # the models and the solver core
     ("_guess", "_checks", "_assess", "_options"),  # guesses, checks, the option objects
     ("_problem", "_result", "_example"),  # the problem made once; the result; the example
-    ("_starts", "_halts"),  # stages: the batch of starts, the neighbouring halts
+    ("_starts", "_halts", "_answer"),  # stages: the batch of starts, the neighbouring halts
     ("_pipeline",),  # the plan of stages and the assessment
     ("_static", "_stiffness"),  # the searches of mu_s and k3
     ("_api",),  # single-trace entry points

@@ -47,7 +47,7 @@ from ._params import (
     varied_names,
     vary_mask,
 )
-from ._pipeline import FULL, run
+from ._pipeline import DEFAULT, FULL, run
 from ._problem import Settings, bucket, pad, prepare, read_arrays, robust_scale, units_of
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
 from ._static import fit_mu_s
@@ -112,7 +112,11 @@ def fit(trace_or_t, x, settings: Settings) -> FitResult:
         A :class:`FitResult`: of :data:`~dampax._fit._pipeline.FULL`'s plan, or of the mu_s
         or k3 search (``_static.fit_mu_s``, ``_stiffness.fit_k3``) where one is free.
     """
-    check_choice("model", settings.model, MODELS)
+    check_choice("model", settings.model, (*MODELS, "auto"))
+    plan = FULL
+    if settings.model == "auto":  # the exact model, answered by the ansatz where they agree
+        plan = DEFAULT
+        settings = settings._replace(model="reference")
     free = check_free(settings.free, allowed=FREE)
     k3, mu_s = settings.k3, settings.mu_s
     if mu_s is not None or "mu_s" in free:
@@ -133,7 +137,7 @@ def fit(trace_or_t, x, settings: Settings) -> FitResult:
         return fit_mu_s(problem)
     if searched == "k3":
         return fit_k3(problem)
-    return run(problem, FULL)
+    return run(problem, plan)
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

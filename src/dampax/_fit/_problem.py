@@ -39,7 +39,7 @@ class Settings(NamedTuple):
 
     oscillator: object = None
     free: tuple = ("mu", "D")
-    model: str = "ansatz"
+    model: str = "auto"
     fit_omega0: bool | None = None
     offset: bool = True
     start: object = "auto"
@@ -177,6 +177,36 @@ class Problem:
         consts = self.consts._replace(k3=k3, mu_s=mu_s)
         settings = self.settings._replace(k3=k3, mu_s=mu_s)
         return dataclasses.replace(self, consts=consts, settings=settings)
+
+
+def predicted_start(out, name: str, value: float) -> TraceParams:
+    """The start of a refit with ``name`` held at ``value``: the fit's optimum moved along its
+    linearised profile (p_j + C_jh / C_hh (value - p_h), C the fit's covariance), where the
+    other parameters' optimum lies to first order; a damping constant stays within a factor 4
+    of its value (its optimizer coordinate is logarithmic, and the profile bends).
+
+    Arguments:
+        out: the fit's core output (its ``params`` and ``covariance`` in the layout PARAMS).
+        name, value: the held parameter and its value.
+
+    Returns:
+        The start (TraceParams), ``name`` at ``value``.
+    """
+    p = np.asarray(out.params, dtype=float)
+    C = np.asarray(out.covariance, dtype=float)
+    i = PARAMS.index(name)
+    moved = {name: float(value)}
+    if C.shape == (len(PARAMS), len(PARAMS)) and np.isfinite(C[i, i]) and C[i, i] > 0 and \
+            np.all(np.isfinite(C[:, i])) and math.isfinite(value - p[i]):
+        step = C[:, i] / C[i, i] * (float(value) - p[i])
+        for j, other in enumerate(PARAMS):
+            if j == i or not C[j, j] > 0:
+                continue
+            v = p[j] + step[j]
+            if other in ("mu", "b", "D"):
+                v = min(max(v, 0.25 * p[j]), 4.0 * p[j])
+            moved[other] = float(v)
+    return TraceParams(*(float(v) for v in p))._replace(**moved)
 
 
 def _checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
