@@ -20,6 +20,7 @@ from .._oscillator import Oscillator
 from .._solve import solve
 from ._problem import predicted_start
 from ._profile import LR_CHI2, LR_Z
+from ._text import lower_cost
 
 #: step budget of the search's fits with mu held past a threshold: the cost jumps where the
 #: halt moves, so a held fit that has not converged in this many steps sits on that jump
@@ -156,7 +157,7 @@ def search_other_halts(problem, best, last):
         if better is None:
             break
         notes += (f"a motion that halts at another turning point fits better (cost "
-                  f"{0.5 * float(better.chisqr):.4g} < {0.5 * float(best.chisqr):.4g})",)
+                  f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
         others[float(best.params.mu)] = float(best.chisqr)  # the basin left: nearly as good?
         best = better
     return best, last, others, notes

@@ -44,6 +44,7 @@ from ._params import varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
 from ._result import FitContext, FitResult, build_result
 from ._starts import run_starts
+from ._text import lower_cost
 
 
 class Plan(NamedTuple):
@@ -135,7 +136,7 @@ def exact_model(problem: Problem, plan: Plan, state: Fit) -> Fit:
                  f"the {spec.name} model")
         if math.isfinite(c1) and (c1 < c0 or not math.isfinite(c0)):
             out = last.out
-            text += f" found a lower cost ({0.5 * c1:.4g} < {0.5 * c0:.4g})"
+            text += f" found a lower cost ({lower_cost(0.5 * c1, 0.5 * c0)})"
         else:
             text += " found no lower cost"
     return Fit(out, last, found, state.notes + (text,))

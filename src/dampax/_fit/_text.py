@@ -1,0 +1,30 @@
+"""Numbers in the fit's one-line messages, written so that they say what the sentence claims:
+two costs that differ print different digits, and a stretch of time prints two different
+ends (issue 36: "found a lower cost (0.03239 < 0.03239)", "worst around t = 2333-2333 s")."""
+
+from __future__ import annotations
+
+import math
+
+
+def _digits(a: float, b: float, least: int = 4) -> int:
+    """Significant digits that tell a and b apart (at least ``least``, at most 15)."""
+    if not (math.isfinite(a) and math.isfinite(b)) or a == b:
+        return least
+    size = max(abs(a), abs(b))
+    return min(max(least, int(math.ceil(math.log10(size / abs(a - b)))) + 1), 15)
+
+
+def lower_cost(new: float, old: float) -> str:
+    """"new < old (x % lower)" with the digits that tell them apart."""
+    d = _digits(new, old)
+    rel = f", {100.0 * (old - new) / old:.2g} % lower" if old > 0 and math.isfinite(old) else ""
+    return f"{new:.{d}g} < {old:.{d}g}{rel}"
+
+
+def time_span(lo: float, hi: float) -> str:
+    """"lo-hi s" with the digits that tell the ends apart (one time where they coincide)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo == hi:
+        return f"{lo:.6g} s"
+    d = _digits(lo, hi)
+    return f"{lo:.{d}g}-{hi:.{d}g} s"
