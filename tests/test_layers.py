@@ -229,7 +229,7 @@ def test_each_public_call_validates_once():
 #: and the ones below it. The result (built from the checks' findings) sits below the
 #: pipeline that builds it; the searches of k3 and mu_s above the pipeline they run.
 FIT_LAYERS = (
-    ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text"),  # ground
+    ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text", "_linalg"),  # ground
     ("_core",),  # the models and the solver core
     ("_guess", "_checks", "_assess", "_options"),  # guesses, checks, the option objects
     ("_problem", "_result", "_example"),  # the problem made once; the result; the example

@@ -1,0 +1,48 @@
+"""The tall least squares of the fit's core (``_fit._linalg``) against numpy's LAPACK."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+from dampax._fit._linalg import tall_lstsq, tall_r, tall_svd
+
+
+def _matrix(n, scales, seed=0, zero=()):
+    A = np.random.default_rng(seed).standard_normal((n, len(scales))) * np.asarray(scales)
+    for j in zero:  # a fixed parameter's column
+        A[:, j] = 0.0
+    return A
+
+
+@pytest.mark.parametrize("n", [5, 100, 4103])
+def test_singular_values_and_r_match_lapack(n):
+    A = _matrix(n, [1.0, 1e-4, 1e3, 1.0, 1.0, 1e-6, 1.0])
+    s, vt = jax.jit(tall_svd)(A)
+    s_np, vt_np = np.linalg.svd(A, full_matrices=False)[1:]
+    k = min(n, 7)
+    assert np.allclose(np.asarray(s)[:k], s_np[:k], rtol=1e-10)
+    if n >= 7:  # R^T R = A^T A, and the right vectors agree up to sign
+        R = np.asarray(tall_r(A))
+        assert np.allclose(R.T @ R, A.T @ A, rtol=1e-10, atol=1e-10 * np.abs(A.T @ A).max())
+        assert np.allclose(np.abs(np.asarray(vt)), np.abs(vt_np), atol=1e-8)
+
+
+@pytest.mark.parametrize("zero", [(), (1, 4)])
+def test_lstsq_matches_numpy_with_zero_columns(zero):
+    A = _matrix(4103, [1.0, 1e-3, 1e2, 1.0, 1.0, 1e-5, 1.0], seed=1, zero=zero)
+    b = np.random.default_rng(2).standard_normal(4103)
+    x = np.asarray(jax.jit(tall_lstsq)(A, b))
+    x_np = np.linalg.lstsq(A, b, rcond=None)[0]
+    assert np.allclose(x, x_np, rtol=1e-9, atol=1e-12 * np.abs(x_np).max())
+    assert np.all(np.abs(x[list(zero)]) <= 1e-9 * np.abs(x).max())  # (numpy: 0)
+
+
+def test_lstsq_under_vmap_and_grad():
+    A = _matrix(300, [1.0, 2.0, 0.5])
+    bs = np.random.default_rng(3).standard_normal((4, 300))
+    xs = jax.vmap(lambda b: tall_lstsq(A, b))(bs)
+    assert np.allclose(xs, np.linalg.lstsq(A, bs.T, rcond=None)[0].T, rtol=1e-10)
+    g = jax.grad(lambda b: tall_lstsq(A, b)[0])(bs[0])  # linear in b: the pseudo-inverse's row
+    assert np.allclose(g, np.linalg.pinv(A)[0], rtol=1e-8, atol=1e-12)
