@@ -126,12 +126,14 @@ class Trace:
         """
         if not (self.time_column or self.position_column):
             return ""
-        if self.time_column == "sample index":
+        if self.time_column == "sample index" and self.rate is not None:
             time = f"time from the sample index at {self.rate:.6g} samples/s"
-        else:
+        elif self.time_column:
             time = f"time from column {self.time_column!r}"
             if self.rate is not None:
                 time += f" (rebuilt at {self.rate:.6g} samples/s)"
+        else:
+            time = "time as given"
         where = f" of {os.path.basename(self.source)}" if self.source else ""
         return f"{time}, position from column {self.position_column!r}{where}"
 
@@ -314,8 +316,9 @@ def _choose_columns(names: list[str], i_time: int | None, i_pos: int | None, nee
         top = max((meaning[i][1] for i in ranked), default=0)
         return [i for i in ranked if meaning[i][1] == top]
 
-    def unknown(exclude):
-        return [i for i, (k, _) in enumerate(meaning) if not k and i not in exclude]
+    def unknown(exclude):  # named columns whose names say nothing (an empty name: no column)
+        return [i for i, (k, _) in enumerate(meaning)
+                if not k and names[i].strip() and i not in exclude]
 
     if i_time is None and need_time:
         timed = best("time", {i_pos})

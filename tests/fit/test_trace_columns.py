@@ -107,6 +107,13 @@ def test_names_that_say_nothing(tmp_path):
     # two columns: the first is the time, the second the position (as without a header)
     tr = load_trace(_write(tmp_path, ["ch1", "ch2"], ["time", "pos"]))
     assert (tr.time_column, tr.position_column) == ("ch1", "ch2")
+    # a trailing separator (an empty name, an empty field) is no candidate
+    path = tmp_path / "trailing.csv"
+    path.write_text("ch1;ch2;\n" + "".join(f"{a:g};{b:g};\n" for a, b in zip(TIME, POS,
+                                                                              strict=True)))
+    tr = load_trace(path)
+    assert (tr.time_column, tr.position_column) == ("ch1", "ch2")
+    np.testing.assert_array_equal(tr.x, POS)
     # a named time and one column that says nothing: that one is the position
     tr = load_trace(_write(tmp_path, ["time", "Channel A", "speed"], ["time", "pos", "vel"]))
     assert tr.position_column == "Channel A"
