@@ -5,7 +5,15 @@ Windows line ends, comment lines, separator lines ("-----"), empty trailing fiel
 column that a data logger writes in buffers (many rows share one stamp). The reader accepts
 all of that, and it never guesses silently: a row whose time or position cannot be read is
 dropped and counted (``Trace.n_dropped``), and a file without usable rows is an error that
-names the file.
+names the file and the columns.
+
+With a header line the time and position columns are chosen by what their names mean (a
+time: "t", "time", "Time_Elapsed(s)", a unit "(s)", before a clock "Timestamp"; a position:
+"x", "position", "Angle(deg)", "displacement", a unit "(m)", "(deg)", "(rad)"; never a
+velocity, an acceleration or an error column), so ``Timestamp, Time_Elapsed(s), Angle(deg)``
+reads the angle against the elapsed time; a choice the names do not settle is a ValueError
+naming the columns found. The chosen names are in ``Trace.time_column`` and
+``Trace.position_column`` (and in its repr); columns given by the caller always win.
 """
 
 from __future__ import annotations
@@ -108,12 +116,36 @@ class Trace:
     def __len__(self) -> int:
         return int(np.shape(self.t)[0])
 
+    def describe_columns(self) -> str:
+        """Which columns of which file the trace was read from, for messages about the data.
+
+        Returns:
+            E.g. "time from column 'Time_Elapsed(s)' (rebuilt at 260.1 samples/s), position
+            from column 'Angle(deg)' of release_60deg.txt"; "" for a trace built by hand
+            (no column names).
+        """
+        if not (self.time_column or self.position_column):
+            return ""
+        if self.time_column == "sample index" and self.rate is not None:
+            time = f"time from the sample index at {self.rate:.6g} samples/s"
+        elif self.time_column:
+            time = f"time from column {self.time_column!r}"
+            if self.rate is not None:
+                time += f" (rebuilt at {self.rate:.6g} samples/s)"
+        else:
+            time = "time as given"
+        where = f" of {os.path.basename(self.source)}" if self.source else ""
+        return f"{time}, position from column {self.position_column!r}{where}"
+
     def __repr__(self) -> str:
         n = len(self)
         span = f"{float(self.t[0]):g} .. {float(self.t[-1]):g} s" if n else "empty"
         src = f", source={self.source!r}" if self.source else ""
         rate = f", rate={self.rate:.6g}" if self.rate is not None else ""
-        return f"Trace({n} samples, t = {span}, n_dropped={self.n_dropped}{rate}{src})"
+        cols = (f", columns t={self.time_column!r} x={self.position_column!r}"
+                if self.time_column or self.position_column else "")
+        return (f"Trace({n} samples, t = {span}, n_dropped={self.n_dropped}{rate}{cols}"
+                f"{src})")
 
 
 jax.tree_util.register_dataclass(
@@ -187,6 +219,144 @@ def _normalise(name: str) -> str:
     return re.sub(r"\s+", " ", name.strip().strip('"').strip("'")).lower()
 
 
+# what a header's column names mean (``_meaning``): the words of a name (split at spaces,
+# "_", "-", "." and case changes) and its unit, "(s)", "[deg]" or "/ m" after the name
+_TIME_WORDS = frozenset({"t", "time", "times", "elapsed", "seconds", "sec", "secs", "zeit",
+                         "tempo", "temps", "tiempo", "tijd"})
+_CLOCK_WORDS = frozenset({"timestamp", "timestamps", "stamp", "clock", "date", "datetime",
+                          "daytime"})
+_POSITION_WORDS = frozenset({"x", "y", "z", "pos", "position", "positions", "displacement",
+                             "disp", "angle", "theta", "phi", "deflection", "elongation",
+                             "extension", "amplitude", "height", "distance", "posizione",
+                             "angolo", "spostamento", "auslenkung", "winkel", "weg"})
+#: names of other quantities (never the position): derivatives, errors, counters, ...
+_OTHER_WORDS = frozenset({"vel", "velocity", "speed", "omega", "acc", "accel", "acceleration",
+                          "err", "error", "errors", "xerr", "yerr", "terr", "sigma", "std",
+                          "stdev", "uncertainty", "unc", "index", "idx", "sample", "samples",
+                          "count", "frame", "force", "energy", "frequency", "freq",
+                          "temperature", "voltage", "current", "velocita", "velocità",
+                          "accelerazione", "geschwindigkeit", "beschleunigung"})
+#: short names of other quantities, when they are the whole name ("v", but "Channel A" says
+#: nothing)
+_OTHER_ALONE = frozenset({"v", "vx", "vy", "vz", "a", "ax", "ay", "az", "n", "no", "i"})
+_TIME_UNITS = frozenset({"s", "sec", "secs", "second", "seconds", "ms", "us", "µs", "min"})
+_POSITION_UNITS = frozenset({"m", "mm", "cm", "um", "µm", "nm", "in", "ft", "deg", "degree",
+                             "degrees", "°", "rad", "radian", "radians", "mrad"})
+
+
+def _name_and_unit(name: str) -> tuple[list[str], str]:
+    """(the words of a column name, its unit or ""), lower case: "Time_Elapsed(s)" ->
+    (["time", "elapsed"], "s"); "x [m]" -> (["x"], "m"); "t / s" -> (["t"], "s")."""
+    text = name.strip().strip('"').strip("'").strip()
+    unit = ""
+    found = re.search(r"[\(\[]\s*([^\)\]]*?)\s*[\)\]]\s*$", text)
+    if found:
+        unit, text = found.group(1), text[:found.start()]
+    else:
+        slash = re.fullmatch(r"(.*?\S)\s*/\s*([^\s/]+)", text)
+        if slash and slash.group(2).lower() in _TIME_UNITS | _POSITION_UNITS:
+            text, unit = slash.group(1), slash.group(2)
+    text = re.sub(r"([a-z])([A-Z])", r"\1 \2", text)  # TimeElapsed -> Time Elapsed
+    words = [w for w in re.split(r"[\s_\-.:,;]+", text.lower()) if w]
+    return words, unit.strip().lower()
+
+
+def _meaning(name: str) -> tuple[str, int]:
+    """What a column holds by its header name: ("time", 2) for a time by name ("t", "time",
+    "Time_Elapsed(s)", "seconds"), ("time", 1) for a clock ("Timestamp") or a bare time
+    unit ("Channel (s)"); ("position", 2) for a position by name ("x", "position", "Angle",
+    "displacement"), ("position", 1) for a bare position unit ("Sensor (mm)", "(deg)");
+    ("other", 0) for another quantity (a velocity, an acceleration, an error column, a rate
+    unit such as "m/s"); ("", 0) for a name that says nothing."""
+    words, unit = _name_and_unit(name)
+    rate_unit = "/" in unit or "per" in unit.split()
+    if words and (set(words) & _OTHER_WORDS or words[-1].endswith(("err", "error"))
+                  or (len(words) == 1 and words[0] in _OTHER_ALONE) or rate_unit):
+        return "other", 0
+    if set(words) & _CLOCK_WORDS:
+        return "time", 1
+    if set(words) & _TIME_WORDS and unit not in _POSITION_UNITS:
+        return "time", 2
+    if set(words) & _POSITION_WORDS and unit not in _TIME_UNITS:
+        return "position", 2
+    if rate_unit:
+        return "other", 0
+    if unit in _TIME_UNITS:
+        return "time", 1
+    if unit in _POSITION_UNITS:
+        return "position", 1
+    return "", 0
+
+
+def _listed(names, indices) -> str:
+    """'a', 'b' and 'c': the header names of some columns, for messages."""
+    quoted = [repr(names[i].strip()) for i in indices]
+    return quoted[0] if len(quoted) == 1 else ", ".join(quoted[:-1]) + " and " + quoted[-1]
+
+
+def _choose_columns(names: list[str], i_time: int | None, i_pos: int | None, need_time: bool,
+                    path: str) -> tuple[int | None, int]:
+    """(time column, position column) of a file with a header, by what the names mean.
+
+    A column the caller chose is kept; the others are chosen among the remaining columns:
+    the time as the one column of the best rank of :func:`_meaning` ("t", "time",
+    "Time_Elapsed(s)" before a clock "Timestamp"), else the first column whose name says
+    nothing; the position as the one position-like column of the best rank ("x", "position",
+    "Angle(deg)" before a bare unit "(mm)"), else the one column whose name says nothing.
+    Two candidates of the same rank, or none, are a ValueError that names the columns found
+    and how to choose.
+    """
+    meaning = [_meaning(n) for n in names]
+    found = ", ".join(repr(n.strip()) for n in names)
+    how = ("give the columns by name or index (load_trace(time=..., position=...), "
+           "dampax fit --time ... --position ...)")
+
+    def best(kind, exclude):
+        ranked = [i for i, (k, _) in enumerate(meaning) if k == kind and i not in exclude]
+        top = max((meaning[i][1] for i in ranked), default=0)
+        return [i for i in ranked if meaning[i][1] == top]
+
+    def unknown(exclude):  # named columns whose names say nothing (an empty name: no column)
+        return [i for i, (k, _) in enumerate(meaning)
+                if not k and names[i].strip() and i not in exclude]
+
+    if i_time is None and need_time:
+        timed = best("time", {i_pos})
+        if len(timed) > 1:
+            raise ValueError(f"{path}: which column is the time? {_listed(names, timed)} "
+                             f"all look like times (the header has {found}); {how}")
+    else:
+        timed = []
+    if i_pos is None:
+        placed = best("position", {i_time, *timed[:1]})
+        if len(placed) > 1:
+            raise ValueError(f"{path}: which column is the position? "
+                             f"{_listed(names, placed)} all look like positions (the header "
+                             f"has {found}); {how}")
+        if not placed:
+            rest = unknown({i_time, *timed[:1]})
+            if i_time is None and need_time and not timed:
+                rest = rest[1:]  # the first unnamed column is the time (below)
+            if len(rest) != 1:
+                which = (f"{_listed(names, rest)} could each be it" if rest else
+                         "no column is named like one (x, position, angle, displacement, "
+                         "or a unit such as (m) or (deg))")
+                raise ValueError(f"{path}: which column is the position? {which} (the header "
+                                 f"has {found}); {how}")
+            placed = rest
+        i_pos = placed[0]
+    if i_time is None and need_time:
+        if not timed:
+            timed = unknown({i_pos})[:1]
+        if not timed:
+            raise ValueError(f"{path}: which column is the time? No column is named like "
+                             f"one (t, time, elapsed, or a unit such as (s)) (the header has "
+                             f"{found}); {how}, or rebuild time from the sample rate "
+                             "(load_trace(rate=...), dampax fit --rate)")
+        i_time = timed[0]
+    return i_time, i_pos
+
+
 def _strip_unit(name: str) -> str:
     return re.sub(r"\s*[\(\[].*?[\)\]]\s*$", "", name).strip()
 
@@ -230,10 +400,18 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
 
     Arguments:
         path: the file.
-        time: the time column, by header name or index (default: the first column). Ignored
-            when ``rate`` is a number: time is then rebuilt from the sample index.
-        position: the position column, by name or index (default: the second column, or the
-            only one when ``rate`` is a number and the file has a single column).
+        time: the time column, by header name or index. Default: with a header, the column
+            whose name means a time ("t", "time", "elapsed", "seconds", a unit "(s)"; a
+            clock "Timestamp" only when there is no other), else the first column whose
+            name says nothing; without a header, the first column. Not read when ``rate``
+            is a number and ``time`` is not given: time is then rebuilt from the sample
+            index.
+        position: the position column, by name or index. Default: with a header, the one
+            column whose name means a position ("x", "position", "angle", "theta",
+            "displacement", "amplitude", or a unit "(m)", "(mm)", "(deg)", "(rad)"), never a
+            velocity, acceleration or error column, else the one column whose name says
+            nothing; without a header, the second column (the only one when ``rate`` is a
+            number and the file has a single column).
         rate: None (read time as is); a sample rate [1/s] (time = t_first + i / rate with i
             the data-row index, dropped rows included; t_first = 0 without a time column);
             or "auto" for buffered time stamps (many rows share one stamp): the rate is
@@ -243,13 +421,16 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
         scale: factor applied to the positions (e.g. ``math.pi / 180`` for degrees).
 
     Returns:
-        A :class:`Trace` with float64 ``t`` and ``x``; ``n_dropped`` counts the rows left out.
+        A :class:`Trace` with float64 ``t`` and ``x``; ``n_dropped`` counts the rows left out;
+        ``time_column`` and ``position_column`` name the columns read.
 
     Raises:
         ValueError: not a regular file or larger than :data:`MAX_TRACE_BYTES`; the file has
             no data, only one column (and no ``rate``), no usable rows
             (every row has text or nothing in the chosen columns), an unknown column name,
-            an index out of range, or a bad ``rate``. The message names the file.
+            an index out of range, or a bad ``rate``; the header does not say which column
+            is the time or the position (two alike, or none: give ``time`` / ``position``).
+            The message names the file (and the columns).
         OSError: the file cannot be read.
 
     A FIFO, a device, a folder or a file larger than :data:`MAX_TRACE_BYTES` is refused before
@@ -291,12 +472,16 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
                          f"{'whitespace' if delim is None else repr(delim)}); a trace needs a "
                          "time and a position column, or pass rate=<samples per second> to "
                          "build time from the sample index")
-    if position is None:
-        position = 1 if n_fields >= 2 else 0
-    i_pos = _column(position, names, n_fields, "position", path_str)
     use_time = not from_rate or time is not None
-    i_time = _column(0 if time is None else time, names, n_fields, "time", path_str) \
-        if use_time else None
+    i_pos = None if position is None else _column(position, names, n_fields, "position",
+                                                  path_str)
+    i_time = None if time is None else _column(time, names, n_fields, "time", path_str)
+    if names is not None and (i_pos is None or (use_time and i_time is None)):
+        i_time, i_pos = _choose_columns(names, i_time, i_pos, use_time, path_str)
+    if i_pos is None:  # no header: the second column (the only one with a rate)
+        i_pos = 1 if n_fields >= 2 else 0
+    if i_time is None and use_time:  # no header: the first column
+        i_time = 0
     if i_time is not None and i_time == i_pos:
         raise ValueError(f"{path_str}: the time and position columns are the same "
                          f"(column {i_pos})")
@@ -335,15 +520,18 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
         t = times
         keep = finite_x & finite_t
     n_keep = int(np.sum(keep))
-    if n_keep == 0:
-        cols = f"column {i_pos}" if i_time is None else f"columns {i_time} and {i_pos}"
-        raise ValueError(f"{path_str}: no usable rows: none of the {n_rows} data rows has "
-                         f"numbers in {cols} (text, empty fields or a wrong delimiter?)")
-
     def label(i):
         if i is None:
             return "sample index"
         return names[i].strip() if names is not None and i < len(names) else f"#{i}"
+
+    if n_keep == 0:
+        cols = (f"the position column {label(i_pos)!r}" if i_time is None else
+                f"the time column {label(i_time)!r} and the position column {label(i_pos)!r}")
+        raise ValueError(f"{path_str}: no usable rows: none of the {n_rows} data rows has "
+                         f"numbers in {cols} (text, empty fields or a wrong delimiter? choose "
+                         "the columns: load_trace(time=..., position=...), dampax fit --time "
+                         "... --position ...)")
 
     return Trace(t=np.asarray(t[keep], dtype=float),
                  x=np.asarray(xs[keep], dtype=float) * float(scale),

@@ -243,9 +243,14 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fit a synthetic trace with known constants (m = 0.2 kg, "
                              "k = 15 N/m, mu = 0.002, D = 0.02 kg/m, noise 0.2 mm)")
     read = parser.add_argument_group("reading the file")
-    read.add_argument("--time", metavar="COL", help="time column, name or index (default: 0)")
+    read.add_argument("--time", metavar="COL",
+                      help="time column, name or index (default: the column the header names "
+                           "a time, e.g. 'time', 'Time_Elapsed(s)'; without a header the "
+                           "first)")
     read.add_argument("--position", metavar="COL",
-                      help="position column, name or index (default: 1)")
+                      help="position column, name or index (default: the column the header "
+                           "names a position, e.g. 'x', 'position', 'Angle(deg)'; without a "
+                           "header the second)")
     read.add_argument("--rate", metavar="HZ|auto",
                       help="rebuild time from the sample index: a rate [1/s], or 'auto' for "
                            "buffered time stamps")

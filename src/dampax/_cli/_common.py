@@ -45,6 +45,76 @@ def silenced(quiet: bool):
             _ERROR_STREAMS.pop()
 
 
+#: JAX's monitoring events: the duration of a compilation request (an XLA compilation, or
+#: the time to read the program from the persistent cache) and a persistent-cache hit
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"
+_CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
+
+
+class CompileClock:
+    """The XLA compilations of this process while a :func:`compile_clock` block runs.
+
+    Attributes:
+        count: programs compiled (a program read from JAX's persistent cache, or run from
+            dampax's kept executables, is not compiled and not counted).
+        seconds: the time they took to compile [s].
+    """
+
+    def __init__(self):
+        self.count = 0
+        self.seconds = 0.0
+
+    def text(self) -> str:
+        """" (3.1 s compiling)" when something was compiled in the block, else ""."""
+        if not self.count:
+            return ""
+        s = self.seconds
+        return f" ({s:.1f} s compiling)" if s >= 1.0 else f" ({s:.2g} s compiling)"
+
+
+@contextlib.contextmanager
+def compile_clock():
+    """Count what XLA compiles in this process inside the block (for the commands' timings).
+
+    JAX reports every compilation request as a duration event; a request answered from the
+    persistent compilation cache reports a cache hit first, in the same thread, and is not
+    counted. Programs compiled by other processes (``dampax errormap --processes``) are not
+    seen.
+
+    Yields:
+        A :class:`CompileClock`, filled in as the block runs.
+    """
+    import threading
+
+    import jax
+
+    clock = CompileClock()
+    hit: dict = {}
+    lock = threading.Lock()
+
+    def on_event(event, **_):
+        if event == _CACHE_HIT_EVENT:
+            with lock:
+                hit[threading.get_ident()] = True
+
+    def on_duration(event, duration_secs, **_):
+        if event != _COMPILE_EVENT:
+            return
+        with lock:
+            if hit.pop(threading.get_ident(), False):
+                return
+            clock.count += 1
+            clock.seconds += float(duration_secs)
+
+    jax.monitoring.register_event_listener(on_event)
+    jax.monitoring.register_event_duration_secs_listener(on_duration)
+    try:
+        yield clock
+    finally:
+        jax.monitoring.unregister_event_listener(on_event)
+        jax.monitoring.unregister_event_duration_listener(on_duration)
+
+
 def show_progress(args: argparse.Namespace, stream=None) -> bool:
     """Whether to draw progress bars: only when stderr (``stream``) is a terminal, and neither
     ``--no-progress`` nor ``--quiet`` was given (no bars in logs and pipes)."""

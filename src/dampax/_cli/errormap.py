@@ -19,7 +19,7 @@ from dampax_cli._arguments import add_errormap_arguments as add_arguments  # noq
 
 from .._models._registry import ANALYTIC, MODELS, check_models
 from .._studies._maps import largest_ratio_below, worst_in_box
-from ._common import PROG, error, fmt, prepare_out_dir, show_progress
+from ._common import PROG, compile_clock, error, fmt, prepare_out_dir, show_progress
 
 
 def _ratio_text(value) -> str:
@@ -178,10 +178,12 @@ def run(args: argparse.Namespace) -> int:
               f"periods, {spp} samples/period" + (f"; {size} processes" if size > 1 else ""))
     start = time.perf_counter()
     try:
-        ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
-                       phi0=axes["phi0"], models=models, periods=periods,
-                       samples_per_period=spp, chunk_size=chunk, reference=args.reference,
-                       progress=show_progress(args), processes=processes, timeout=timeout)
+        with compile_clock() as clock:
+            ds = error_map(d0_ratio=axes["d0"], d1_ratio=axes["d1"], d2_ratio=axes["d2"],
+                           phi0=axes["phi0"], models=models, periods=periods,
+                           samples_per_period=spp, chunk_size=chunk, reference=args.reference,
+                           progress=show_progress(args), processes=processes,
+                           timeout=timeout)
     except DistributedError as err:
         error(f"{PROG}: error: {err}")
         if joining:  # the run is broken: jax's shutdown at exit would wait for the dead
@@ -202,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
             from .._plot import plot_error_map
 
             written += [plot_error_map(ds, metric, out / f"{metric}.png") for metric in metrics]
-    print(f"  {n} points in {elapsed:.1f} s (compilation included); written: "
+    print(f"  {n} points in {elapsed:.1f} s{clock.text()}; written: "
           + ", ".join(str(p) for p in written))
     print()
     _print_errormap_summary(ds)

@@ -11,6 +11,7 @@ The results are written in every case but 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
@@ -34,8 +35,9 @@ from .._fit import (
 )
 from .._io import write_text
 from .._oscillator import Oscillator
+from .._plot import plot_fit, plot_joint_fit
 from .._trace import load_trace
-from ._common import PROG, error, fmt, prepare_out_dir, split_names
+from ._common import PROG, compile_clock, error, fmt, prepare_out_dir, split_names
 
 
 def _parse_rate(text):
@@ -73,7 +75,9 @@ def _cli_words(text: str) -> str:
     """A library message with the Python argument names replaced by the command's flags."""
     for api, flag in (("fit_omega0=True", "--fit-omega0"), ("fit_omega0=False", "--k"),
                       ("fit_omega0", "--fit-omega0"), ("loss=", "--loss "),
-                      ("load_trace(rate=...), ", ""), ("LeastSquares.max_steps", "--max-steps"),
+                      ("load_trace(rate=...), ", ""),
+                      ("load_trace(time=..., position=...), ", ""),
+                      ("LeastSquares.max_steps", "--max-steps"),
                       ("max_steps", "--max-steps"), ("LeastSquares.starts", "--starts"),
                       ("LeastSquares.", "--"), ("Window.", "--")):
         text = text.replace(api, flag)
@@ -159,7 +163,8 @@ def run_fit(args: argparse.Namespace) -> int:
         print(f"{PROG}: note: {trace.n_dropped} unreadable rows were dropped", file=sys.stderr)
     began = time.perf_counter()
     post = None
-    with warnings.catch_warnings(record=True) as caught:
+    with compile_clock() as clock, warnings.catch_warnings(record=True) as caught, \
+            _columns_named(None if args.example else trace):
         warnings.simplefilter("always")
         if args.envelope:
             kw = dict(omega0=args.omega0, oscillator=osc, offset=False, loss=args.loss,
@@ -224,7 +229,9 @@ def run_fit(args: argparse.Namespace) -> int:
                 "intervals": {k: list(v) for k, v in result.conf_interval(args.level).items()}}
         except (ValueError, np.linalg.LinAlgError):
             pass
-    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "fit")
+    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "fit",
+                            compiling=clock.text(),
+                            data="" if args.example else trace.describe_columns())
     if failed is not None:
         return failed
     if not result.adequate:
@@ -252,7 +259,8 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     for tr in traces:
         print(f"{PROG} fit: {tr!r}")
     began = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
+    with compile_clock() as clock, warnings.catch_warnings(record=True) as caught, \
+            _columns_named(*traces):
         warnings.simplefilter("always")
         result = fit(traces, shared=split_names(args.shared) if args.shared else None,
                      free=free, oscillator=osc, fit_omega0=fit_omega0,
@@ -283,7 +291,9 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
                "traces": [{"source": tr.source, "n": len(tr), "n_dropped": tr.n_dropped,
                            "rate": tr.rate} for tr in traces]}
     written = [out_dir / "fit.json", out_dir / "fit.png"]
-    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "joint fit")
+    failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "joint fit",
+                            compiling=clock.text(),
+                            data="; ".join(tr.describe_columns() for tr in traces))
     if failed is not None:
         return failed
     if not result.adequate:
@@ -298,10 +308,18 @@ def _jsonable(value):
     return v if math.isfinite(v) else None
 
 
-def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what: str):
+def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what: str, *,
+                   compiling: str = "", data: str = ""):
     """The common end of a single and a joint fit: the posterior's report and files, fit.json,
     fit.png, the list of files; returns EXIT_FAILED (after the message) when the fit failed,
-    else None."""
+    else None.
+
+    Arguments:
+        compiling: " (3.1 s compiling)" when the fit compiled programs in this process, else
+            "" (:func:`~dampax._cli._common.compile_clock`).
+        data: which columns of which files were read (``Trace.describe_columns``), named in
+            the message of a failed fit; "" for the example.
+    """
     if post is not None:
         print()
         print(post.report(args.level))
@@ -309,11 +327,26 @@ def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what:
         written += [post.to_netcdf(out_dir / "posterior.nc"),
                     post.corner(out_dir / "corner.png")]
     write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
-    result.plot(out_dir / "fit.png")
+    (plot_joint_fit if hasattr(result, "runs") else plot_fit)(result, out_dir / "fit.png")
     print()
-    print(f"  {elapsed:.1f} s (compilation included); written: "
-          f"{', '.join(str(p) for p in written)}")
+    print(f"  {elapsed:.1f} s{compiling}; written: {', '.join(str(p) for p in written)}")
     if not result.success:
-        error(f"{PROG}: {what} failed: {_cli_words(result.reason)}")
+        read = f" (data: {data})" if data else ""
+        error(f"{PROG}: {what} failed: {_cli_words(result.reason)}{read}")
         return EXIT_FAILED
     return None
+
+
+@contextlib.contextmanager
+def _columns_named(*traces):
+    """Within the block, a ValueError about the data also says which columns of which file
+    were read (a wrong column is the commonest cause: a time column read as the position
+    gives "0 turning points"), and how to choose others."""
+    try:
+        yield
+    except ValueError as err:
+        read = "; ".join(tr.describe_columns() for tr in traces if tr is not None)
+        if not read:
+            raise
+        raise ValueError(f"{err} (data: {read}; choose other columns with --time and "
+                         "--position)") from None

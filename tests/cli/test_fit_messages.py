@@ -1,0 +1,112 @@
+"""What ``dampax fit`` and ``dampax errormap`` tell the experimenter (issue 36, item 5): the
+time spent compiling only when this process compiled something (a repeated command that reuses
+the cached programs says nothing of it), and the columns read from the file in an error about
+the data."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import dampax
+from dampax._cli import main
+
+#: the source folder of the dampax under test, for the subprocesses
+SRC = str(Path(dampax.__file__).resolve().parents[1])
+
+
+def _run_twice(args, cache: Path) -> list[str]:
+    """The stdout of the command run twice in fresh processes on one (empty) cache folder."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DAMPAX_CACHE", "JAX_COMPILATION_CACHE_DIR")}
+    env.update(DAMPAX_CACHE_DIR=str(cache),
+               PYTHONPATH=os.pathsep.join([SRC, *filter(None, [env.get("PYTHONPATH")])]))
+    outs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-m", "dampax._cli", *args], env=env,
+                              capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr
+        outs.append(proc.stdout)
+    return outs
+
+
+def test_compile_clock_counts_what_this_process_compiles():
+    """A new program counts; the same one again (in memory) and one read back from JAX's
+    persistent cache (after jax.clear_caches()) do not."""
+    import jax
+    import jax.numpy as jnp
+
+    from dampax._cache import keep_every_program
+    from dampax._cli._common import compile_clock
+
+    salt = float(np.random.default_rng().integers(1, 10**9))  # a program no one compiled
+
+    @jax.jit
+    def f(x):
+        return jnp.sin(x) * salt + 1.0
+
+    x = jnp.arange(3.0)
+    with keep_every_program() as kept:  # written to the session's cache, however quick
+        with compile_clock() as first:
+            f(x).block_until_ready()
+        with compile_clock() as again:
+            f(x).block_until_ready()
+        jax.clear_caches()
+        with compile_clock() as cached:
+            f(x).block_until_ready()
+    assert first.count >= 1 and first.seconds > 0.0
+    assert re.fullmatch(r" \(\d[\d.e-]* s compiling\)", first.text()), first.text()
+    assert again.count == 0 and again.text() == ""
+    if kept:
+        assert cached.count == 0 and cached.text() == ""
+
+
+def test_errormap_says_compiling_only_when_it_compiled(tmp_path):
+    args = ["errormap", "--d0", "0:0.1:2", "--d2", "0", "--phi0", "0", "--models", "matched",
+            "--reference", "coulomb_exact", "--periods", "5", "--plots", "none",
+            "--no-progress", "--out", str(tmp_path / "maps")]
+    cold, warm = _run_twice(args, tmp_path / "cache")
+    timing = r"  2 points in [\d.]+ s"
+    assert re.search(timing + r" \([\d.]+ s compiling\); written: ", cold), cold
+    assert re.search(timing + "; written: ", warm), warm
+    assert "s compiling)" not in warm
+
+
+def test_fit_says_compiling_only_when_it_compiled(tmp_path):
+    t = np.arange(0.0, 3.0, 0.005)
+    x = 0.2 * np.exp(-0.3 * t) * np.cos(5.4 * t) + 1e-3 * np.random.default_rng(1).normal(
+        size=t.size)
+    path = tmp_path / "decay.txt"
+    path.write_text("time position\n" + "".join(f"{a:.3f} {b:.6f}\n" for a, b in zip(t, x,
+                                                                                  strict=True)))
+    args = ["fit", str(path), "--free", "b", "--no-compare", "--starts", "1", "--out",
+            str(tmp_path / "out")]
+    cold, warm = _run_twice(args, tmp_path / "cache")
+    assert re.search(r"\n  [\d.]+ s \([\d.]+ s compiling\); written: ", cold), cold
+    assert re.search(r"\n  [\d.]+ s; written: ", warm), warm
+    assert "s compiling)" not in warm
+
+
+def test_fit_error_about_the_data_names_the_columns(tmp_path, capsys):
+    """A torsion export read without --rate: its buffered time stamps are refused, and the
+    message says which columns of which file were read (chosen by the header's meaning)."""
+    n = 520
+    i = np.arange(n)
+    stamps = 100.0 + np.floor(i / 26) * 0.1
+    angle = 40.0 * np.exp(-0.2 * i / 260) * np.cos(2 * np.pi * 4 * i / 260)
+    path = tmp_path / "torsion.txt"
+    path.write_text("Timestamp, Time_Elapsed(s), Angle(deg)\n" + "-" * 30 + "\n" + "".join(
+        f"16:15:58.{k % 1000:03d}, {s:.3f}, {a:.2f}\n" for k, s, a in zip(i, stamps, angle,
+                                                                           strict=True)))
+    assert main(["fit", str(path), "--free", "mu,b", "--no-compare", "--out",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dampax: error: t: ") and err.count("\n") == 1
+    assert ("(data: time from column 'Time_Elapsed(s)', position from column 'Angle(deg)' of "
+            "torsion.txt; choose other columns with --time and --position)") in err
+    assert "load_trace" not in err  # the command's flags, not the library's arguments

@@ -1,0 +1,177 @@
+"""dampax.load_trace chooses the time and position columns by what the header's names mean
+(issue 36, item 5): a torsion export ``Timestamp, Time_Elapsed(s), Angle(deg)`` reads the angle
+against the elapsed time (it read the elapsed time as the position), the caller's choice wins,
+and a header that does not settle it is an error naming the columns."""
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dampax._trace import load_trace
+
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
+
+# the columns' numbers: the time, the position, and decoys (a clock, a velocity, an error)
+N = 12
+TIME = np.round(np.arange(N) * 0.01 + 5.0, 4)
+POS = np.round(0.4 + 0.05 * np.cos(8.6 * TIME), 6)
+VALUES = {
+    "time": TIME,
+    "pos": POS,
+    "vel": np.round(-0.43 * np.sin(8.6 * TIME), 6),
+    "err": np.full(N, 0.008),
+    "clock": np.round(58558.125 + np.arange(N) * 0.004, 3),
+    "other": np.round(np.linspace(1.0, 2.0, N), 6),
+}
+
+
+def _clock(seconds: float) -> str:
+    h, rest = divmod(seconds, 3600.0)
+    m, s = divmod(rest, 60.0)
+    return f"{int(h):02d}:{int(m):02d}:{s:06.3f}"
+
+
+def _write(tmp_path, header: list[str], kinds: list[str], sep: str = ",",
+           name: str = "trace.csv"):
+    """A file with that header and columns of ``VALUES`` (a clock column as H:MM:SS.fff)."""
+    rows = []
+    for i in range(N):
+        fields = [_clock(VALUES[k][i]) if k == "clock" else f"{VALUES[k][i]:g}" for k in kinds]
+        rows.append(sep.join(fields))
+    path = tmp_path / name
+    path.write_text(sep.join(header) + "\n" + "\n".join(rows) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("header, kinds, sep", [
+    # the torsion pendulum's export: a clock, the elapsed time, the angle
+    (["Timestamp", " Time_Elapsed(s)", " Angle(deg)"], ["clock", "time", "pos"], ","),
+    # the position first, then the time
+    (["x [m]", "t [s]"], ["pos", "time"], "\t"),
+    # a velocity and an acceleration around them, in a logger's order
+    (["velocity (m/s)", "time", "acceleration (m/s^2)", "position"],
+     ["vel", "time", "vel", "pos"], ";"),
+    # error columns beside the value (the video-tracked pendulum's layout)
+    (["t", "amplitude", "xerr", "yerr"], ["time", "pos", "err", "err"], " "),
+    # units only, DIN style, and a counter column
+    (["index", "Zeit / s", "Weg / mm"], ["other", "time", "pos"], ";"),
+    # camel case and an angle in radians
+    (["SampleNo", "ElapsedTime", "theta (rad)"], ["other", "time", "pos"], ","),
+    # a clock stamp and a displacement: the clock is the only time
+    (["Timestamp", "displacement (cm)"], ["clock", "pos"], ","),
+    # a bare unit for the position, a name for the time
+    (["time (s)", "Sensor 1 (mm)", "omega (rad/s)"], ["time", "pos", "vel"], ","),
+])
+def test_columns_by_meaning(tmp_path, header, kinds, sep):
+    path = _write(tmp_path, header, kinds, sep)
+    tr = load_trace(path)
+    want_t = kinds.index("time") if "time" in kinds else kinds.index("clock")
+    want_x = kinds.index("pos")
+    assert tr.time_column == header[want_t].strip()
+    assert tr.position_column == header[want_x].strip()
+    np.testing.assert_array_equal(tr.x, POS)
+    if kinds[want_t] == "clock":
+        np.testing.assert_allclose(tr.t, VALUES["clock"], atol=1e-9)
+    else:
+        np.testing.assert_array_equal(tr.t, TIME)
+    assert repr(header[want_x].strip()) in repr(tr)  # the repr names the columns
+    assert f"position from column {header[want_x].strip()!r}" in tr.describe_columns()
+
+
+def test_caller_choice_wins(tmp_path):
+    path = _write(tmp_path, ["Timestamp", "Time_Elapsed(s)", "Angle(deg)"],
+                  ["clock", "time", "pos"])
+    # the position chosen, the time by meaning from the rest
+    tr = load_trace(path, position="Time_Elapsed(s)")
+    assert tr.position_column == "Time_Elapsed(s)" and tr.time_column == "Timestamp"
+    np.testing.assert_array_equal(tr.x, TIME)
+    # the time chosen, the position by meaning
+    tr = load_trace(path, time=0)
+    assert tr.time_column == "Timestamp" and tr.position_column == "Angle(deg)"
+    # both, by index (as before)
+    tr = load_trace(path, time=1, position=2, scale=math.pi / 180)
+    np.testing.assert_allclose(tr.x, POS * math.pi / 180)
+    # rate given and no time: the position still by meaning, time from the index
+    tr = load_trace(path, rate=100.0)
+    assert tr.position_column == "Angle(deg)" and tr.time_column == "sample index"
+    np.testing.assert_allclose(tr.t, np.arange(N) / 100.0)
+    # rate="auto" reads the time column it chose
+    tr = load_trace(path, rate="auto")
+    assert tr.time_column == "Time_Elapsed(s)"
+    assert tr.rate == pytest.approx((N - 1) / (TIME[-1] - TIME[0]))
+
+
+def test_names_that_say_nothing(tmp_path):
+    # two columns: the first is the time, the second the position (as without a header)
+    tr = load_trace(_write(tmp_path, ["ch1", "ch2"], ["time", "pos"]))
+    assert (tr.time_column, tr.position_column) == ("ch1", "ch2")
+    # a trailing separator (an empty name, an empty field) is no candidate
+    path = tmp_path / "trailing.csv"
+    path.write_text("ch1;ch2;\n" + "".join(f"{a:g};{b:g};\n" for a, b in zip(TIME, POS,
+                                                                              strict=True)))
+    tr = load_trace(path)
+    assert (tr.time_column, tr.position_column) == ("ch1", "ch2")
+    np.testing.assert_array_equal(tr.x, POS)
+    # a named time and one column that says nothing: that one is the position
+    tr = load_trace(_write(tmp_path, ["time", "Channel A", "speed"], ["time", "pos", "vel"]))
+    assert tr.position_column == "Channel A"
+    np.testing.assert_array_equal(tr.x, POS)
+    # no header at all: the first and second columns
+    path = tmp_path / "nohead.txt"
+    path.write_text("".join(f"{a:g} {b:g} {c:g}\n" for a, b, c in
+                            zip(TIME, POS, VALUES["vel"], strict=True)))
+    tr = load_trace(path)
+    np.testing.assert_array_equal(tr.t, TIME)
+    np.testing.assert_array_equal(tr.x, POS)
+
+
+@pytest.mark.parametrize("header, kinds, what, names", [
+    (["time", "x (m)", "y (m)"], ["time", "pos", "other"], "position", ["x (m)", "y (m)"]),
+    (["t", "time", "x"], ["time", "other", "pos"], "time", ["t", "time"]),
+    (["ch1", "ch2", "ch3"], ["time", "pos", "other"], "position", ["ch2", "ch3"]),
+    (["time", "velocity", "acceleration"], ["time", "vel", "vel"], "position", []),
+])
+def test_ambiguous_headers_name_the_columns(tmp_path, header, kinds, what, names):
+    path = _write(tmp_path, header, kinds, name="amb.csv")
+    with pytest.raises(ValueError) as info:
+        load_trace(path)
+    text = str(info.value)
+    assert text.startswith(f"{path}: which column is the {what}?"), text
+    for name in names:
+        assert repr(name) in text
+    assert "the header has " + ", ".join(repr(h) for h in header) in text
+    assert "load_trace(time=..., position=...)" in text and "--position" in text
+    # the caller settles it
+    tr = load_trace(path, time=0, position=1)
+    np.testing.assert_array_equal(tr.t, TIME)
+
+
+def test_no_usable_rows_names_the_columns(tmp_path):
+    path = tmp_path / "text.csv"
+    path.write_text("Time_Elapsed(s), Angle(deg)\n1.0, n/a\n2.0, n/a\n")
+    with pytest.raises(ValueError, match=r"text\.csv: no usable rows: .* the time column "
+                                         r"'Time_Elapsed\(s\)' and the position column "
+                                         r"'Angle\(deg\)'"):
+        load_trace(path)
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason=f"measured data not found at {DATA} (the "
+                    "shared data folder beside the checkout); skipping the real-file check")
+def test_shared_torsion_file_reads_the_angle():
+    """The torsion release's angle, not its elapsed time, with no column named by the caller;
+    with rate="auto" the same columns as named by hand."""
+    path = DATA / "torsion_pendulum_friction" / "release_100deg.txt"
+    tr = load_trace(path)
+    assert (tr.time_column, tr.position_column) == ("Time_Elapsed(s)", "Angle(deg)")
+    assert np.max(np.abs(tr.x)) <= 180.0 and np.ptp(tr.x) > 100.0  # degrees, swinging
+    # the elapsed time, read as the position before, is monotone: the angle swings
+    assert np.sum(np.diff(np.sign(tr.x - np.median(tr.x))) != 0) > 20
+    auto = load_trace(path, rate="auto")
+    named = load_trace(path, time="Time_Elapsed(s)", position="Angle(deg)", rate="auto")
+    np.testing.assert_array_equal(auto.t, named.t)
+    np.testing.assert_array_equal(auto.x, named.x)
+    assert 255 < auto.rate < 265
+    spring = load_trace(DATA / "spring_mass_airdrag" / "run1.csv")
+    assert (spring.time_column, spring.position_column) == ("time", "position")
