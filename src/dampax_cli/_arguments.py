@@ -286,9 +286,12 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                        help="several files: the parameters common to all runs, comma list of "
                             "mu, b, D, w0 and k3 (default: the --free constants); each run "
                             "keeps its own start, offset and window")
-    model.add_argument("--model", default="ansatz", choices=tuple(FIT_MODELS),
-                       help="; ".join(f"{name}: {FIT_MODELS[name]}"
-                                      for name in FIT_MODELS) + " (default: %(default)s)")
+    model.add_argument("--model", default="auto", choices=("auto", *FIT_MODELS),
+                       help="auto: the exact model's answer, given by the ansatz where one "
+                            "Gauss-Newton step of the exact model moves no parameter by more "
+                            "than 0.1 interval sd (the report says which model answered); "
+                            + "; ".join(f"{name}: {FIT_MODELS[name]}" for name in FIT_MODELS)
+                            + " (default: %(default)s)")
     model.add_argument("--fit-omega0", action="store_true",
                        help="with --m and --k: also fit w0 (k = m w0^2), needed when k/m is not "
                             "known exactly (without --k w0 is always fitted)")

@@ -134,10 +134,11 @@ def run_fit(args: argparse.Namespace) -> int:
                            or args.warmup < 10):
         raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10, "
                          "--chains >= 1 and --warmup >= 10")
-    if (args.mu_s is not None or "mu_s" in free) and (args.model != "reference"
+    if (args.mu_s is not None or "mu_s" in free) and (args.model == "ansatz"
                                                        or args.envelope):
-        raise ValueError("--mu-s and --free ...,mu_s (static friction) need --model reference "
-                         "and a trace (the other models assume mu_s = mu)")
+        raise ValueError("--mu-s and --free ...,mu_s (static friction) need the exact model "
+                         "(--model auto or reference) and a trace (the ansatz assumes "
+                         "mu_s = mu)")
     start = _parse_start(args.start)
     truth = None
     units = args.units
@@ -176,7 +177,7 @@ def run_fit(args: argparse.Namespace) -> int:
                       window=window, solver=solver)
             result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
             # the ranking fits the candidates with the ansatz: this fit is one of them
-            done = {free: result} if args.model == "ansatz" else None
+            done = {free: result} if result.model == "ansatz" else None
             if args.example:
                 # the example's cost is smooth: its fit's global starts all reach one optimum,
                 # and so does each candidate's turning-point guess (the ranking is the same
@@ -187,7 +188,7 @@ def run_fit(args: argparse.Namespace) -> int:
             if args.posterior:
                 from .._fit import posterior
 
-                post = posterior(trace, oscillator=osc, free=free, model=args.model,
+                post = posterior(trace, oscillator=osc, free=free, model=result.model,
                                  fit_omega0=fit_omega0, offset=not args.no_offset,
                                  start=start, end=args.end, num_samples=args.draws,
                                  num_chains=args.chains, num_warmup=args.warmup,
@@ -215,7 +216,7 @@ def run_fit(args: argparse.Namespace) -> int:
         print(f"    noise true {fmt(truth['noise'], 3)}   rms residual {fmt(result.rms, 3)}")
     if comparison is not None:
         print()
-        if args.model != "ansatz" and not args.envelope:
+        if result.model != "ansatz" and not args.envelope:
             print("(ranking with the ansatz model)")
         print(comparison.report())
     summary = {"fit": result.to_dict(), "ranking": comparison.to_dict() if comparison else None,
@@ -273,7 +274,7 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
         if args.posterior:  # the joint fit's posterior, started from it
             from .._fit import posterior
 
-            post = posterior(traces, free=free, model=args.model, num_samples=args.draws,
+            post = posterior(traces, free=free, model=result.model, num_samples=args.draws,
                              num_chains=args.chains, num_warmup=args.warmup, seed=args.seed,
                              start_fit=result)
     for w in {str(w.message) for w in caught}:

@@ -22,6 +22,8 @@ def fit_flat(trace_or_t, x=None, **kwargs):
             raise ValueError("mu_s: static friction is not supported by a joint fit of "
                              "several runs; fit each run alone")
         kwargs = {k: v for k, v in kwargs.items() if k not in ("p0", "mu_s")}
+        if kwargs.get("model", "auto") == "auto":  # a joint fit answers with the exact model
+            kwargs["model"] = "reference"
         return fit_joint(list(trace_or_t), **kwargs)
     return _api.fit(trace_or_t, x, Settings(**kwargs))
 
