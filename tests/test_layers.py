@@ -239,7 +239,7 @@ FIT_LAYERS = (
     ("_api",),  # single-trace entry points
     ("_joint_problem", "_joint_result", "_joint_build", "_joint_stages", "_joint"),  # joint fits
     ("_entry",),  # dp.fit
-    ("_posterior_result", "_posterior"),  # the posterior
+    ("_posterior_result", "_posterior_joint", "_posterior"),  # the posterior
     ("__init__",),
 )
 
