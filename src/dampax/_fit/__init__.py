@@ -11,8 +11,9 @@ Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``
 ``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
 ``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``, ``_example``;
 ``_starts`` (vmapped global starts), ``_halts``; ``_pipeline``; ``_static``, ``_stiffness``;
-``_api`` (single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint``;
-``_entry`` (``dp.fit``); ``_posterior_result``, ``_posterior``. The command ``dampax fit``
+``_api`` (single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint_build``,
+``_joint_stages``, ``_joint``; ``_entry`` (``dp.fit``); ``_posterior_result``,
+``_posterior_joint``, ``_posterior``. The command ``dampax fit``
 lives in ``dampax._cli.fit``.
 """
 
