@@ -183,6 +183,156 @@ def _merge_wiggles(y, idx, t, half):
     return np.asarray(idx, dtype=int)
 
 
+def _search_band(T: float, dt: float) -> tuple[float, float]:
+    """(lo, hi): the angular frequencies a least-squares sinusoid over a span ``T`` is sought
+    in (from a quarter of a half swing over the span to 8, below a quarter of the sampling's
+    Nyquist frequency)."""
+    lo = 0.25 * math.pi / max(T, 1e-300)
+    hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
+    return lo, hi
+
+
+def _half_period(t, y, idx, level: float, dt: float, omega0: float | None) -> float:
+    """The half period: the given one (pi/omega0), else the duration of the largest swing
+    between two turning points (a noisy tail cannot disturb it), else a least-squares sinusoid
+    over the part of the trace that moves (NaN for fewer than 8 samples).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``: its turning points; ``level``: the reversal they
+            need; ``dt``: the sampling step; ``omega0``: the known frequency, or None.
+    """
+    if omega0 is not None:
+        return math.pi / omega0
+    if idx.size >= 2:
+        k = int(np.argmax(np.abs(np.diff(y[idx]))))
+        return float(t[idx[k + 1]] - t[idx[k]])
+    if t.size < 8:
+        return math.nan
+    ref = float(np.median(y[-max(t.size // 8, 4):]))
+    moving = np.flatnonzero(np.abs(y - ref) > level)
+    stop = max(int(moving[-1]) + 1 if moving.size else t.size, 8)
+    lo, hi = _search_band(float(t[stop - 1] - t[0]), dt)
+    return math.pi / _sinusoid_frequency(t[:stop], y[:stop], lo, hi)
+
+
+def _drop_pauses(y, idx, t, half: float):
+    """(turning points, truncated): the noise's wiggles merged away (:func:`_merge_wiggles`)
+    and, as a free oscillation reverses every half period, the turning points after a pause
+    longer than 1.6 half periods dropped (the data had stopped: what follows are the noise's
+    reversals); unchanged where the half period is unknown (NaN)."""
+    if not math.isfinite(half):
+        return idx, False
+    idx = _merge_wiggles(y, idx, t, half)
+    long = np.flatnonzero(np.diff(t[idx]) > 1.6 * half)
+    if long.size:
+        return idx[: long[0] + 1], True
+    return idx, False
+
+
+def _halt(t, y, idx, level: float, half: float, dt: float, truncated: bool):
+    """(turning points, halted): whether after the last turning point the data come to rest
+    and stay there (for half a period at least; at once where ``truncated``: a pause was
+    cut off); the arrival at rest is appended as a turning point where the last swing ends
+    outside the rest band. Else the pending extreme is the window's edge (not halted).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``: its turning points; ``level``: the reversal they
+            need; ``half``: the half period (NaN: unknown); ``dt``: the sampling step.
+    """
+    last = int(idx[-1]) if idx.size else 0
+    tail = y[last:]
+    if tail.size <= 8:
+        return idx, False
+    end_part = tail[-max(tail.size // 4, 4):]
+    rest = float(np.median(end_part))
+    band = max(0.5 * level, 3.0 * MAD * float(np.median(np.abs(end_part - rest))))
+    inside = np.abs(tail - rest) <= band
+    # arrival: the first sample after which 95 % of the samples stay inside the band
+    later_out = np.cumsum(~inside[::-1])[::-1]
+    frac = later_out / np.arange(tail.size, 0, -1)
+    ok = np.flatnonzero(inside & (frac <= 0.05))
+    if not ok.size and truncated:
+        ok = np.flatnonzero(inside)
+    if not ok.size:
+        return idx, False
+    arrive = last + int(ok[0])
+    stay = float(t[-1] - t[arrive])
+    ref = half if math.isfinite(half) else float(t[arrive] - t[0])
+    if not (truncated or (stay >= 0.5 * ref and stay > 4 * dt)):
+        return idx, False
+    # the data rest for half a period (a swing would have reversed): they halted, at the
+    # arrival (the last turning point itself when the last swing is within the band)
+    if arrive > last and abs(y[arrive] - y[last]) > level:
+        return np.append(idx, arrive), True
+    return idx, bool(idx.size)
+
+
+def _offset(t, y, idx, tx, halted: bool, end_t: float) -> float:
+    """The offset: the centres of successive half swings alternate about it by the friction's
+    shift (and the decrement): the mean of an even number of them; with fewer than four
+    turning points of data that halt, the rest position (within mu g/w0^2 of it; the centre of
+    one half swing is off by half its decrement, which drag makes large).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``, ``tx``: the turning points and their positions;
+            ``halted``, ``end_t``: whether and where the data stop moving.
+    """
+    if halted and tx.size <= 3 and int(idx[-1]) < t.size - 8:
+        return float(np.median(y[int(idx[-1]):]))
+    if tx.size >= 3:
+        mids = 0.5 * (tx[:-1] + tx[1:])
+        k = min(mids.size, 40)
+        k -= k % 2
+        return float(np.mean(mids[:k]))
+    if tx.size == 2:
+        return float(0.5 * (tx[0] + tx[1]))
+    moving = t <= end_t
+    return float(np.median(y[moving])) if np.any(moving) else float(np.median(y))
+
+
+def _spacing_frequency(t, y, conf, off: float) -> tuple[float, float]:
+    """(omega, spread) from three or more confirmed turning points: pi over the slope of a
+    line through their times (the spectrum's peak where it is not positive); the spread from
+    the slope's standard error."""
+    k = np.arange(conf.size, dtype=float)
+    tk = t[conf]
+    coef = np.polyfit(k, tk, 1)
+    slope = float(coef[0])
+    omega = math.pi / slope if slope > 0 else _frequency_fft(t, y - off)
+    resid = tk - np.polyval(coef, k)
+    se = float(np.sqrt(np.sum(resid * resid) / max(conf.size - 2, 1)
+                       / np.sum((k - k.mean()) ** 2)))
+    return omega, float(min(0.3, max(3e-3, 4.0 * se / max(slope, 1e-300),
+                                     0.5 / conf.size ** 2)))
+
+
+def _frequency(t, y, conf, off: float, end_t: float, half: float, dt: float,
+               omega0: float | None) -> tuple[float, float]:
+    """(omega, spread): the given omega0 (spread 0); else from the spacing of the confirmed
+    turning points ``conf`` (:func:`_spacing_frequency`; two: pi over their distance, spread
+    0.15); else a least-squares sinusoid over the part that moves (the spectrum's peak for
+    fewer than 8 samples), spread 0.3.
+
+    Arguments:
+        t, y: the trace (despiked); ``off``: its offset; ``end_t``: where the data stop
+            moving; ``half``: the half period (NaN: unknown); ``dt``: the sampling step.
+    """
+    if omega0 is not None:
+        return float(omega0), 0.0
+    if conf.size >= 3:
+        return _spacing_frequency(t, y, conf, off)
+    if conf.size == 2:
+        return math.pi / float(t[conf[1]] - t[conf[0]]), 0.15
+    stop = int(np.searchsorted(t, end_t + (0.5 * half if math.isfinite(half) else 0.0)))
+    stop = min(max(stop, 8), t.size)
+    tm, ym = t[:stop], y[:stop]
+    T = float(tm[-1] - tm[0]) if tm.size > 1 else float(t[-1] - t[0])
+    lo, hi = _search_band(T, dt)
+    omega = _sinusoid_frequency(tm, ym, lo, hi) if tm.size >= 8 else \
+        _frequency_fft(t, y - off)
+    return omega, 0.3
+
+
 def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Analysis:
     """Turning points, offset, frequency, noise and where the data stop moving.
 
@@ -198,114 +348,18 @@ def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Ana
     y = despike(x)
     half_range = 0.5 * float(np.ptp(y))
     level = max(8.0 * noise, 0.05 * half_range)
-    idx, pending = zigzag(y, level)
+    idx, _ = zigzag(y, level)
     dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    # the half period: the given one, else the duration of the largest swing between two
-    # turning points (a noisy tail cannot disturb it), else a least-squares sinusoid over
-    # the part of the trace that moves
-    known = omega0 is not None and math.isfinite(omega0) and omega0 > 0
-    if known:
-        half = math.pi / omega0
-    elif idx.size >= 2:
-        k = int(np.argmax(np.abs(np.diff(y[idx]))))
-        half = float(t[idx[k + 1]] - t[idx[k]])
-    elif t.size >= 8:
-        ref = float(np.median(y[-max(t.size // 8, 4):]))
-        moving = np.flatnonzero(np.abs(y - ref) > level)
-        stop = max(int(moving[-1]) + 1 if moving.size else t.size, 8)
-        T = float(t[stop - 1] - t[0])
-        lo = 0.25 * math.pi / max(T, 1e-300)
-        hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
-        half = math.pi / _sinusoid_frequency(t[:stop], y[:stop], lo, hi)
-    else:
-        half = math.nan
-    truncated = False
-    if math.isfinite(half):
-        idx = _merge_wiggles(y, idx, t, half)
-        # a free oscillation reverses every half period: after a longer pause the data had
-        # stopped, and what follows are the noise's reversals
-        gaps = np.diff(t[idx])
-        long = np.flatnonzero(gaps > 1.6 * half)
-        if long.size:
-            idx = idx[: long[0] + 1]
-            truncated = True
-    # halted: after the last turning point the data come to rest and stay there (for half
-    # a period at least); else the pending extreme is the window's edge
-    halted = False
-    last = int(idx[-1]) if idx.size else 0
-    tail = y[last:]
-    if tail.size > 8:
-        end_part = tail[-max(tail.size // 4, 4):]
-        rest = float(np.median(end_part))
-        band = max(0.5 * level, 3.0 * MAD * float(np.median(np.abs(end_part - rest))))
-        inside = np.abs(tail - rest) <= band
-        # arrival: the first sample after which 95 % of the samples stay inside the band
-        later_out = np.cumsum(~inside[::-1])[::-1]
-        frac = later_out / np.arange(tail.size, 0, -1)
-        ok = np.flatnonzero(inside & (frac <= 0.05))
-        if not ok.size and truncated:
-            ok = np.flatnonzero(inside)
-        if ok.size:
-            arrive = last + int(ok[0])
-            stay = float(t[-1] - t[arrive])
-            ref = half if math.isfinite(half) else float(t[arrive] - t[0])
-            if truncated or (stay >= 0.5 * ref and stay > 4 * dt):
-                # the data rest for half a period (a swing would have reversed): they halted,
-                # at the arrival (the last turning point itself when the last swing is within
-                # the band)
-                if arrive > last and abs(y[arrive] - y[last]) > level:
-                    idx = np.append(idx, arrive)
-                    halted = True
-                elif idx.size:
-                    halted = True
+    known = omega0 if omega0 is not None and math.isfinite(omega0) and omega0 > 0 else None
+    half = _half_period(t, y, idx, level, dt, known)
+    idx, truncated = _drop_pauses(y, idx, t, half)
+    idx, halted = _halt(t, y, idx, level, half, dt, truncated)
     end_t = float(t[idx[-1]]) if halted else float(t[-1])
     tx = y[idx]
-    # offset: the centres of successive half swings alternate about it by the friction's
-    # shift (and the decrement): average an even number of them; with fewer than four
-    # turning points of data that halt, the rest position (within mu g/w0^2 of it; the centre
-    # of one half swing is off by half its decrement, which drag makes large)
-    if halted and tx.size <= 3 and int(idx[-1]) < t.size - 8:
-        off = float(np.median(y[int(idx[-1]):]))
-    elif tx.size >= 3:
-        mids = 0.5 * (tx[:-1] + tx[1:])
-        k = min(mids.size, 40)
-        k -= k % 2
-        off = float(np.mean(mids[:k]))
-    elif tx.size == 2:
-        off = float(0.5 * (tx[0] + tx[1]))
-    else:
-        moving = t <= end_t
-        off = float(np.median(y[moving])) if np.any(moving) else float(np.median(y))
-    # frequency: from the turning points that reversals confirmed (the arrival at rest is
+    off = _offset(t, y, idx, tx, halted, end_t)
+    # the frequency from the turning points that reversals confirmed (the arrival at rest is
     # not one: the data reach the rest band a little before they stop)
-    conf = idx[:-1] if halted else idx
-    spread = 0.3
-    if known:
-        omega = float(omega0)
-        spread = 0.0
-    elif conf.size >= 3:
-        k = np.arange(conf.size, dtype=float)
-        tk = t[conf]
-        coef = np.polyfit(k, tk, 1)
-        slope = float(coef[0])
-        omega = math.pi / slope if slope > 0 else _frequency_fft(t, y - off)
-        resid = tk - np.polyval(coef, k)
-        se = float(np.sqrt(np.sum(resid * resid) / max(conf.size - 2, 1)
-                           / np.sum((k - k.mean()) ** 2)))
-        spread = float(min(0.3, max(3e-3, 4.0 * se / max(slope, 1e-300),
-                                    0.5 / conf.size ** 2)))
-    elif conf.size == 2:
-        omega = math.pi / float(t[conf[1]] - t[conf[0]])
-        spread = 0.15
-    else:
-        stop = int(np.searchsorted(t, end_t + (0.5 * half if math.isfinite(half) else 0.0)))
-        stop = min(max(stop, 8), t.size)
-        tm, ym = t[:stop], y[:stop]
-        T = float(tm[-1] - tm[0]) if tm.size > 1 else float(t[-1] - t[0])
-        lo = 0.25 * math.pi / max(T, 1e-300)
-        hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
-        omega = _sinusoid_frequency(tm, ym, lo, hi) if tm.size >= 8 else \
-            _frequency_fft(t, y - off)
+    omega, spread = _frequency(t, y, idx[:-1] if halted else idx, off, end_t, half, dt, known)
     return Analysis(offset=off, omega=omega, noise=noise, ext_i=idx, ext_t=t[idx],
                     ext_x=tx - off, n_turns=int(idx.size), halted=halted, end_t=end_t,
                     omega_spread=spread, level=level)
