@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._analysis import Analysis
 from ._checks import (
     END_P,
     STRUCTURE_P,
@@ -34,7 +35,6 @@ from ._checks import (
     residual_structure,
 )
 from ._dist import chi2_isf
-from ._guess import Analysis
 from ._intervals import hac_covariance
 from ._profile import (
     LR_CHI2,
