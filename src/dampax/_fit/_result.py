@@ -7,21 +7,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
 from .._cache import call_cached
-from .._io import save_figure
 from .._models._decay import decay, halt_time
-from .._plot import _place
 from . import _intervals
 from ._assess import Inputs, assess
-from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
+from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
 from ._dist import norm_ppf
-from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
+from ._params import DAMPING, Constants, check_choice, damping_d, varied_names
+from ._report import fit_figure, fit_report
 
 
 def _jsonable(v):
@@ -178,109 +176,16 @@ class FitResult:
                 f"rms={self.rms:.3g}, bic={self.bic:.1f}, success={self.success})")
 
     def report(self, *, min_correl: float = 0.1) -> str:
-        """A text report like lmfit's fit_report: statistics, values, correlations."""
-        method = METHOD_NAMES.get(self.optimizer, self.optimizer)
-        lines = []
-        if not self.success:
-            lines.append(f"FIT FAILED: {self.reason}")
-        if not self.adequate:
-            lines.append("MODEL DOES NOT DESCRIBE THE DATA: " + "; ".join(self.inadequacy))
-        lines += ["[[Model]]",
-                 f"    {self.kind} fit, model = {self.model!r}, free damping = "
-                 f"{', '.join(self.free) or 'none'}, loss = {self.loss}"
-                 + (f" (f_scale = {self.f_scale:.4g})" if math.isfinite(self.f_scale) else ""),
-                 ]
-        if self.source:
-            lines.append(f"    data: {self.source}")
-        if self.per_mass and self.kind == "trace":
-            lines.append("    no oscillator given: w0 fitted, unit mass (m = 1 kg): b and D are "
-                         f"per unit mass (b/m in 1/s, D/m in 1/{self.units}); positions in "
-                         f"{self.units}")
-        elif self.kind == "trace":
-            lines.append(f"    positions in {self.units}")
-        if self.starts is not None:
-            lines.append(f"    global starts: {self.starts.summary()}")
-        lines += [
-            "[[Fit Statistics]]",
-            f"    # fitting method   = {method}",
-            f"    # iterations       = {self.n_iterations}",
-            f"    # data points      = {self.ndata}",
-            f"    # variables        = {self.nvarys}",
-            f"    chi-square         = {self.chisqr:.6g}",
-            f"    reduced chi-square = {self.redchi:.6g}",
-            f"    Akaike info crit   = {self.aic:.6g}",
-            f"    Bayesian info crit = {self.bic:.6g}",
-            f"    rms residual       = {self.rms:.6g}",
-            f"    success            = {self.success} ({self.message})",
-            f"    model adequate     = {self.adequate}",
-        ]
-        if self.kind == "trace":
-            lines.append(f"    fit start t0       = {self.t_start:.6g}")
-        lines.append("[[Variables]]")
-        width = max(len(k) for k in self.params) + 1
-        for name, value in self.params.items():
-            unit = unit_of(name, self.units, self.per_mass)
-            if name in self.varied:
-                err = self.stderr[name]
-                rel = abs(err / value) * 100 if value != 0 and math.isfinite(err) else math.nan
-                rel_text = f" ({rel:.2f}%)" if math.isfinite(rel) else ""
-                init = self.init.get(name)
-                init_text = f" (init = {init:.6g})" if init is not None else ""
-                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {err:.4g}{rel_text}"
-                             f"{init_text} {unit}".rstrip())
-            elif name in self.profiled:  # k3 of fit(free=(..., "k3")): profiled
-                sd = self.profiled[name]["stderr"]
-                how = ("every value in its interval gives the same halt"
-                       if "interval" in self.profiled[name]
-                       else "sd from the curvature of S, AR(1)-inflated")
-                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {sd:.4g} (profiled: "
-                             f"{how}) {unit}".rstrip())
-            else:
-                lines.append(f"    {name + ':':<{width}} {value:.6g} (fixed) {unit}".rstrip())
-        if self.derived:
-            lines.append("[[Derived]]")
-            for name, value in self.derived.items():
-                lines.append(f"    {name + ':':<{width}} {value:.6g} "
-                             f"{unit_of(name, self.units, self.per_mass)}".rstrip())
-        if self.jac is not None and self.varied:
-            try:
-                ci = self.conf_interval(0.95)
-                _, lags = self._hac()
-            except (ValueError, np.linalg.LinAlgError):
-                ci = None
-            if ci is not None:
-                lines.append(f"[[Intervals]] 95 %, allowing for correlated residuals "
-                             f"({_intervals.METHOD}, L = {lags} samples); delta-method "
-                             "stderr beside")
-                for name in self.varied:
-                    lo, hi = ci[name]
-                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  "
-                                 f"(stderr {self.stderr[name]:.4g}, HAC sd "
-                                 f"{self.hac_stderr[name]:.4g})")
-                for name in self.profiled:
-                    lo, hi = ci[name]
-                    how = ("every value gives the fitted halt" if "interval" in
-                           self.profiled[name] else "the others allow for its uncertainty")
-                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
-                                 f"{how})")
-        pairs = []
-        n = len(self.varied)
-        for i in range(n):
-            for j in range(i + 1, n):
-                c = float(self.correlation[i, j])
-                if math.isfinite(c) and abs(c) >= min_correl:
-                    pairs.append((abs(c), f"    C({self.varied[i]}, {self.varied[j]})", c))
-        lines.append(f"[[Correlations]] (unreported correlations are < {min_correl:.3f})")
-        if pairs:
-            w = max(len(p[1]) for p in pairs)
-            for _, label, c in sorted(pairs, reverse=True):
-                lines.append(f"{label:<{w}} = {c:+.4f}")
-        for note in self.warnings:
-            lines.append(f"[[Warning]] {note}")
-        for key in ("note_decay", "note"):
-            if key in self.diagnostics:
-                lines.append(f"[[Note]] {self.diagnostics[key]}")
-        return "\n".join(lines)
+        """A text report like lmfit's fit_report: statistics, values, correlations
+        (``_report.fit_report``).
+
+        Arguments:
+            min_correl: the smallest correlation reported.
+
+        Returns:
+            The report, one section after another.
+        """
+        return fit_report(self, min_correl)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays of data)."""
@@ -313,51 +218,17 @@ class FitResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state),
-        placed with fixed margins (``dampax._plot._place``).
+        residuals below (``_report.fit_figure``: a bare matplotlib Figure with the Agg canvas,
+        no pyplot state, placed with fixed margins).
+
+        Arguments:
+            path: the file to write.
+            title: the title (default: the data's source, the fitted terms and the rms).
 
         Returns:
             The path written.
         """
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
-        FigureCanvasAgg(fig)
-        ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-        _place(fig, nrows=2, left=0.95, right=0.2, bottom=0.6, top=0.35, hspace=0.2)
-        off = self.params.get("offset", 0.0)
-        if self.full_t is not None and len(self.full_t) > len(self.t):
-            before = self.full_t < self.t[0]
-            if np.any(before):
-                ax.plot(self.full_t[before], self.full_x[before], color="0.7", lw=0.6,
-                        label="data before the fit start")
-        marker = dict(ls="none", marker=".", ms=4) if self.kind == "envelope" or \
-            len(self.t) < 400 else dict(lw=0.6)
-        ax.plot(self.t, self.x, color="tab:blue", label="data", **marker)
-        ax.plot(self.t, self.model_x, color="tab:red", lw=0.9, label=f"fit ({self.model})")
-        if self.envelope is not None and self.kind == "trace":
-            ax.plot(self.t, off + self.envelope, color="k", lw=0.8, ls="--",
-                    label="envelope A f(t)")
-            ax.plot(self.t, off - self.envelope, color="k", lw=0.8, ls="--")
-        xc = self.derived.get("xc", 0.0)
-        if self.kind == "trace" and "mu" in self.free and xc > 0:
-            ax.axhspan(off - xc, off + xc, color="tab:orange", alpha=0.25,
-                       label="sticking band offset +- xc")
-        ax.set_ylabel("amplitude" if self.kind == "envelope" else "position")
-        terms = ", ".join(f"{k} = {self.params[k]:.4g}" for k in self.free)
-        what = self.source or ("maxima" if self.kind == "envelope" else "trace")
-        ax.set_title(title or f"{what}: {terms}  (rms {self.rms:.3g})",
-                     fontsize=9)
-        ax.legend(fontsize=8, loc="upper right")
-        axr.plot(self.t, self.residuals, color="tab:blue", lw=0.5,
-                 **({"marker": ".", "ls": "none"} if self.kind == "envelope" else {}))
-        axr.axhline(0.0, color="k", lw=0.6)
-        axr.set_ylabel("data - fit")
-        axr.set_xlabel("t [s]")
-
-        save_figure(fig, path, dpi=110)
-        return Path(path)
+        return fit_figure(self, path, title)
 
 
 @dataclass
