@@ -1,6 +1,11 @@
 """Results of the fits: :class:`FitResult` (report, plot, JSON), :class:`ModelComparison`
 (candidate damping models ranked by BIC or AIC) and :class:`ArrayFit` (the vmappable arrays of
 ``fit_arrays``). Statistics follow lmfit's definitions (docs/DESIGN.md, fitting).
+
+:func:`build_result` makes a FitResult from the core's output and the fit's
+:class:`~dampax._fit._context.FitContext` (what the fit was asked to do, and the quantities
+derived from its parameters: ``_context``); :func:`rank` ranks fits into a ModelComparison.
+The report's text and the figure are ``_report``'s.
 """
 
 from __future__ import annotations
@@ -12,13 +17,12 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .._cache import call_cached
-from .._models._decay import decay, halt_time
 from . import _intervals
 from ._assess import Inputs, assess
+from ._context import FitContext, envelope_derived, trace_derived
 from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
 from ._dist import norm_ppf
-from ._params import DAMPING, Constants, check_choice, damping_d, varied_names
+from ._params import DAMPING, check_choice, damping_d, varied_names
 from ._report import fit_figure, fit_report
 
 
@@ -338,87 +342,6 @@ class ArrayFit(NamedTuple):
     resid: jax.Array | None = None
 
 
-@dataclass(frozen=True)
-class FitContext:
-    """What a fit was asked to do, besides the core's arrays: what its FitResult reports.
-
-    Attributes:
-        model: name of the fit model (an entry of ``FIT_MODELS``).
-        free: the fitted damping constants.
-        vary: the mask of varied parameters (named booleans).
-        consts: m, g (and w0 of envelope fits), floats.
-        t, x: the fitted window (not padded).
-        loss, optimizer: as asked.
-        f_scale: the soft_l1 scale (inf for the linear loss).
-        init: initial values of the varied parameters.
-        source: where the data came from.
-        full_t, full_x: the whole trace (drawn before the fit start), or None.
-        warnings: notes about the data.
-        stages: how the fit was staged (appended to the message).
-    """
-
-    model: str
-    free: tuple
-    vary: tuple
-    consts: Constants
-    t: np.ndarray
-    x: np.ndarray
-    loss: str
-    optimizer: str
-    f_scale: float = math.inf
-    init: dict = field(default_factory=dict)
-    source: str = ""
-    full_t: np.ndarray | None = None
-    full_x: np.ndarray | None = None
-    warnings: tuple = ()
-    stages: str = ""
-    per_mass: bool = False
-    units: str = "m"
-    analysis: object = None
-    starts: object = None
-    profile: object = None
-
-
-def _envelope_curve(t, a, bp, c):
-    """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
-    (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
-    from the cache in every new process (issue 26); compiled as one, f may differ from the
-    eager value in the last bit. The arguments: concrete numbers."""
-
-    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
-    return call_cached("fit-envelope", (), decay, *args)
-
-
-def _trace_derived(params: dict, coords, ctx: FitContext):
-    """(derived, envelope A f(t), fixed) of a trace fit: eq. 21, xc = mu g/w0^2, k = m w0^2,
-    the ansatz amplitude and phase (eqs. 22-23) and its halt time."""
-    m, g = ctx.consts.m, ctx.consts.g
-    w0 = params["w0"]
-    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
-    derived = {"d0": d0, "d1": d1, "d2": d2, "xc": params["mu"] * g / w0 ** 2,
-               "k": m * w0 ** 2, "mu_g": params["mu"] * g, "b/m": params["b"] / m,
-               "D/m": params["D"] / m}
-    A, phi = FIT_MODELS[ctx.model].amplitude_phase(params, coords, m, g)
-    envelope = None
-    t_start = float(ctx.t[0])
-    if math.isfinite(A) and A > 0:
-        envelope = A * np.asarray(_envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A))
-        derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
-    derived["A"], derived["phi"] = A, phi
-    fixed = {"m": m, "g": g}
-    if not ctx.vary.w0:
-        fixed["k"] = m * params["w0"] ** 2
-    return derived, envelope, fixed
-
-
-def _envelope_derived(params: dict, coords, ctx: FitContext):
-    """(derived, None, fixed) of an envelope fit: eq. 21 at the fixed w0."""
-    m, g, w0 = ctx.consts.m, ctx.consts.g, ctx.consts.w0
-    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
-    return ({"d0": d0, "d1": d1, "d2": d2, "w0": w0, "mu_g": params["mu"] * g,
-             "b/m": params["b"] / m, "D/m": params["D"] / m}, None, {"m": m, "g": g, "w0": w0})
-
-
 def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     """The :class:`FitResult` of the core's output ``out`` for the fit described by ``ctx``."""
     mask = ctx.vary._asdict()
@@ -437,7 +360,7 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     text = FIT_RESULTS[out.code]
     message = f"{text}; {ctx.stages}" if ctx.stages else text
     kind = FIT_MODELS[ctx.model].kind
-    derive = _trace_derived if kind == "trace" else _envelope_derived
+    derive = trace_derived if kind == "trace" else envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
     converged = bool(out.code == FIT_RESULTS.successful)
     capped = bool(out.code == FIT_RESULTS.max_steps_reached)
