@@ -231,8 +231,8 @@ def test_each_public_call_validates_once():
 FIT_LAYERS = (
     ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler"),  # ground
     ("_core",),  # the models and the solver core
-    ("_guess", "_checks", "_assess", "_options"),  # guesses, checks, the option objects
-    ("_problem", "_result", "_example"),  # the problem made once; the result; the example
+    ("_analysis", "_guess", "_checks", "_assess", "_options"),  # guesses, checks, options
+    ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example
     ("_starts", "_halts"),  # stages: the batch of starts, the neighbouring halts
     ("_pipeline",),  # the plan of stages and the assessment
     ("_static", "_stiffness"),  # the searches of mu_s and k3
