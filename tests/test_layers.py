@@ -229,17 +229,18 @@ def test_each_public_call_validates_once():
 #: and the ones below it. The result (built from the checks' findings) sits below the
 #: pipeline that builds it; the searches of k3 and mu_s above the pipeline they run.
 FIT_LAYERS = (
-    ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text", "_linalg"),  # ground
+    ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text",
+     "_linalg"),  # ground
     ("_core",),  # the models and the solver core
-    ("_guess", "_checks", "_assess", "_options"),  # guesses, checks, the option objects
-    ("_problem", "_result", "_example"),  # the problem made once; the result; the example
+    ("_analysis", "_guess", "_checks", "_assess", "_options"),  # guesses, checks, options
+    ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example
     ("_starts", "_halts", "_answer"),  # stages: the batch of starts, the neighbouring halts
     ("_pipeline",),  # the plan of stages and the assessment
     ("_static", "_stiffness"),  # the searches of mu_s and k3
     ("_api",),  # single-trace entry points
-    ("_joint_problem", "_joint_result", "_joint"),  # joint fits
+    ("_joint_problem", "_joint_result", "_joint_build", "_joint_stages", "_joint"),  # joint fits
     ("_entry",),  # dp.fit
-    ("_posterior_result", "_posterior"),  # the posterior
+    ("_posterior_result", "_posterior_joint", "_posterior"),  # the posterior
     ("__init__",),
 )
 

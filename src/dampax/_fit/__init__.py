@@ -9,11 +9,13 @@ static halt); ``_assess`` judges the result by a table of checks; the searches o
 
 Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``, ``_profile``,
 ``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
-``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``, ``_example``;
-``_starts`` (vmapped global starts), ``_halts``; ``_pipeline``; ``_static``, ``_stiffness``;
-``_api`` (single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint``;
-``_entry`` (``dp.fit``); ``_posterior_result``, ``_posterior``. The command ``dampax fit``
-lives in ``dampax._cli.fit``.
+``_analysis`` (what a trace says before any fit), ``_guess``, ``_checks``, ``_assess``,
+``_options``; ``_problem``, ``_context`` (what a fit was asked to do), ``_report`` (a result's
+report and figure), ``_result``, ``_example``; ``_starts`` (vmapped global starts), ``_halts``;
+``_pipeline``; ``_static``, ``_stiffness``; ``_api`` (single-trace functions);
+``_joint_problem``, ``_joint_result``, ``_joint_build``, ``_joint_stages``, ``_joint``;
+``_entry`` (``dp.fit``); ``_posterior_result``, ``_posterior_joint``, ``_posterior``. The
+command ``dampax fit`` lives in ``dampax._cli.fit``.
 """
 
 from ._api import compare_envelope_models as compare_envelope_models

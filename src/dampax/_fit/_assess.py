@@ -21,6 +21,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ._analysis import Analysis
 from ._checks import (
     END_P,
     STRUCTURE_P,
@@ -34,9 +35,15 @@ from ._checks import (
     residual_structure,
 )
 from ._dist import chi2_isf
-from ._guess import Analysis
 from ._intervals import hac_covariance
-from ._profile import LR_CHI2, PROFILE_FAIL, PROFILE_REACH, bound_tests, profile_ratios
+from ._profile import (
+    LR_CHI2,
+    PROFILE_FAIL,
+    PROFILE_REACH,
+    Optimum,
+    bound_tests,
+    profile_ratios,
+)
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
 ABSURD = 10.0
@@ -419,9 +426,10 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
             "unidentifiable" in v.diag or not math.isfinite(a.chisqr):
         return Finding()
     names, (damping, _) = _names(a), _damping(a)
-    s2 = a.chisqr / max(m.r.size - len(names), 1)
+    fitted = Optimum(a.params, a.stderr, m.sd, a.chisqr,
+                     a.chisqr / max(m.r.size - len(names), 1))
     which = damping + (["w0"] if "w0" in names else [])
-    prof = profile_ratios(a.profile, a.params, a.stderr, m.sd, which, a.chisqr, s2)
+    prof = profile_ratios(a.profile, fitted, which)
     flat = [(k, c) for k, cs in prof.items() for c in cs if math.isfinite(c)
             and c < PROFILE_FAIL]
     vals = [c for cs in prof.values() for c in cs if math.isfinite(c)]
@@ -435,8 +443,8 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
     # each side of an interval where the cost rises less than assumed is widened
     diag["interval_scale"] = {k: tuple(1.0 / math.sqrt(c) if math.isfinite(c) and c < 1.0
                                        else 1.0 for c in cs) for k, cs in prof.items()}
-    lr = bound_tests(a.profile, a.params, a.stderr, m.sd, damping, a.chisqr, s2,
-                     d_scale=a.d_scale, amplitude=float(a.derived.get("A", math.nan)))
+    lr = bound_tests(a.profile, fitted, damping, d_scale=a.d_scale,
+                     amplitude=float(a.derived.get("A", math.nan)))
     diag.update({f"lr_zero_{k}": x[1] for k, x in lr.items()})
     weak = [(k, z, c) for k, (z, c) in lr.items() if c < LR_CHI2]
     if not weak:

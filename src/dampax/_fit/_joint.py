@@ -32,52 +32,24 @@ prewhitened score covariance: the runs' noises are independent, each may be corr
 For other samplers (the posterior): :meth:`JointResult.problem` returns the joint problem as a
 :class:`JointProblem`, the layout of the joint parameter vector and a pure residual function of
 it (jit / grad-able).
+
+Here the public function and its argument checks; the stages (single fits, starts, the joint
+optimisation) in ``_joint_stages``, the result built in ``_joint_build``.
 """
 
 from __future__ import annotations
 
-import math
-import warnings
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
 from .._trace import Trace, load_trace
-from ._api import _swings_bucket
-from ._core import (
-    FIT_MODELS,
-    FIT_RESULTS,
-    MAX_STEPS,
-    MODELS,
-    ReferenceOptions,
-)
-from ._joint_problem import (
-    CONTINUATIONS,
-    COORDS,
-    SHARED,
-    JointArrays,
-    JointCore,
-    Layout,
-    best_start,
-    run_joint_batch,
-    run_joint_core,
-)
-from ._joint_result import JointResult, _result
+from ._core import MAX_STEPS, MODELS
+from ._joint_build import JointContext, _result
+from ._joint_problem import SHARED
+from ._joint_result import JointResult
+from ._joint_stages import JointSettings, _joint_start, _optimise, _single_fits
 from ._options import LeastSquares, Window
-from ._params import (
-    DAMPING,
-    FREE,
-    Constants,
-    TraceParams,
-    check_choice,
-    check_free,
-    damping_floors,
-    oscillator_values,
-)
-from ._pipeline import INNER, run
-from ._problem import Settings, bucket, pad, prepare, units_of
+from ._params import DAMPING, check_choice, check_free, oscillator_values
+from ._problem import units_of
 
 # ----------------------------------------------------------------------------------------------
 # the public function
@@ -207,226 +179,40 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     checked = LeastSquares(loss=loss, optimizer=optimizer, rtol=rtol, atol=atol,
                            max_steps=max_steps, starts=starts, seed=seed,
                            max_swings=max_swings).checked()
-    max_steps, starts, max_swings = checked.max_steps, checked.starts, checked.max_swings
     units = Window(units=units).checked().units
-    per_mass = oscillator is None
     if fit_omega0 is None:
-        fit_omega0 = per_mass
+        fit_omega0 = oscillator is None
     shared, free = check_shared(shared, free, fit_omega0=bool(fit_omega0), k3=k3)
-    n_runs = len(traces)
+    windows = _windows(start, end, len(traces))
+    cfg = JointSettings(model=model, shared=shared, free=free, oscillator=oscillator,
+                        osc=oscillator_values(oscillator), fit_omega0=fit_omega0,
+                        offset=offset, units=units, starts=checked.starts, seed=seed, k3=k3,
+                        max_steps=int(checked.max_steps or MAX_STEPS["lm"]), rtol=float(rtol),
+                        atol=float(atol), max_swings=checked.max_swings)
+    runs = [_run_input(item, j) for j, item in enumerate(traces)]
+    runs = [(_loaded(tr, j), x) for j, (tr, x) in enumerate(runs)]
+    unit = _common_unit([tr for tr, _ in runs], units)
+    singles, notes = _single_fits(runs, windows, cfg)
+    init = _joint_start(singles, cfg)
+    out, arrays, opts, stages = _optimise(init, cfg)
+    return _result(out, arrays, JointContext(
+        lay=init.lay, singles=singles, sigma=init.data.sigma, free=free, model=model,
+        unit=unit, per_mass=oscillator is None, fit_omega0=bool(fit_omega0), opts=opts,
+        stages=stages, notes=notes, osc=cfg.osc))
+
+
+def _windows(start, end, n_runs: int) -> tuple[list, list]:
+    """(starts, ends) of the runs' windows, one per run, each pair checked as a single fit's.
+
+    Arguments:
+        start, end: one value or one per run.
+        n_runs: the number of runs.
+
+    Returns:
+        The per-run lists.
+    """
     starts_at = _per_run(start, n_runs, "start")
     ends_at = _per_run(end, n_runs, "end")
     for s_at, e_at in zip(starts_at, ends_at, strict=True):  # finite, ordered, as a single fit
         Window(start=s_at, end=e_at)
-    spec = FIT_MODELS[model]
-    first = spec.start_from or model
-    osc = oscillator_values(oscillator)
-    runs = [_run_input(item, j) for j, item in enumerate(traces)]
-    runs = [(_loaded(tr, j), x) for j, (tr, x) in enumerate(runs)]
-    unit = _common_unit([tr for tr, _ in runs], units)
-    singles = []
-    # each run alone (its window, guesses, global starts): the starts of the joint fit
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        for j, (tr, x) in enumerate(runs):
-            try:
-                res = run(prepare(tr, x, Settings(
-                    oscillator=oscillator, free=check_free(free, allowed=FREE), model=first,
-                    fit_omega0=fit_omega0, offset=offset, start=starts_at[j], end=ends_at[j],
-                    units=units, starts=starts, seed=seed, k3=k3)), INNER)
-            except ValueError as err:
-                raise ValueError(f"traces[{j}]: {err}") from err
-            singles.append(res)
-    notes = sorted({str(w.message) for w in caught})
-    # each run's start: its single fit (where that is not finite, a start from its data)
-    own, usable = _start_params(singles, osc)
-    # the common start of the shared constants: the median of the single fits
-    start_vals = {n: float(np.median([p[n] for p in own])) for n in shared if n != "k3"}
-    lay_local = tuple(c for c in COORDS if c not in shared and (
-        (c in DAMPING and c in free) or (c == "w0" and fit_omega0)
-        or (c == "offset" and offset) or c in ("x0", "y")))
-    k3_mode = "shared" if "k3" in shared else ("fixed" if k3 is not None else "none")
-    lay = Layout(model=model, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
-    n_max = max(s.t.size for s in singles)
-    n_pad = bucket(n_max)
-    sigma = np.array([_noise_level(s) for s in singles])
-    w0s = [start_vals.get("w0", p["w0"]) for p in own]
-    amp = np.array([math.hypot(p["x0"], p["v0"] / w) for p, w in zip(own, w0s, strict=True)])
-    k3_start = 0.0 if k3 is None else float(k3)
-    k3_scale = float(osc["m"] * np.median(w0s) ** 2 / np.median(amp) ** 2)
-    consts = Constants(m=osc["m"], g=osc["g"], k3=None if k3_mode == "none" else k3_start)
-    # the starts of the shared constants: the median of the single fits and each single
-    # fit's own values (a poor single fit spoils the median of few runs); all optimised in
-    # one vmapped batch with the approximate model, the best one goes on
-    candidates = [start_vals] + [{n: float(p[n]) for n in start_vals} if ok else start_vals
-                                 for p, ok in zip(own, usable, strict=True)]
-    batch = [_arrays(singles, own, FIT_MODELS[first], lay, consts, sv, sigma, amp, n_pad,
-                     osc=osc, k3_start=k3_start, k3_scale=k3_scale) for sv in candidates]
-    spans = np.asarray(batch[0].span)
-    opts = None
-    if spec.integrates:
-        longest = int(np.argmax(spans))
-        opts = ReferenceOptions(_swings_bucket(max_swings, singles[longest].t,
-                                               max(w0s)), 1e-8, 1e-10)
-    steps = int(max_steps or MAX_STEPS["lm"])
-    stages = []
-    approx = Layout(model=first, n_runs=n_runs, shared=shared, local=lay_local, k3=k3_mode)
-    outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch), lay=approx,
-                           opts=None if spec.start_from else opts, max_steps=steps,
-                           rtol=float(rtol), atol=float(atol))
-    best = best_start(outs)
-    arrays = batch[best]
-    out0 = jax.tree_util.tree_map(lambda v: v[best], outs)
-    which = "the median of the single fits" if best == 0 else f"run {best - 1}'s single fit"
-    stages.append(f"{len(batch)} starts of the shared constants, the best from {which}")
-    if spec.start_from:  # the approximate model's joint optimum first
-        arrays = _restart(arrays, out0, lay, spec, consts)
-        stages.append(f"started from the joint {first} fit ({int(out0.steps)} steps)")
-        out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps, rtol=float(rtol),
-                             atol=float(atol))
-        # a budget ran out on the way (the approximate optimum far from the exact one):
-        # continue from where it stopped, with the same compiled program
-        for _ in range(CONTINUATIONS):
-            if out.code != FIT_RESULTS.max_steps_reached:
-                break
-            arrays = _restart(arrays, out, lay, spec, consts)
-            done = int(out.steps)
-            out = run_joint_core(arrays, lay=lay, opts=opts, max_steps=steps,
-                                 rtol=float(rtol), atol=float(atol))
-            stages.append(f"continued after {done} steps")
-    else:
-        out = out0
-    return _result(out, arrays, lay, singles, sigma, free=free, model=model, unit=unit,
-                   per_mass=per_mass, fit_omega0=bool(fit_omega0), opts=opts, stages=stages,
-                   notes=notes, osc=osc)
-
-
-
-def _noise_level(single) -> float:
-    """A run's weight 1/sigma: the rms of its single fit; where that is not a positive finite
-    number (a failed single fit), the noise of the data's first differences (rms / sqrt 2)."""
-    floor = 1e-12 * max(float(np.ptp(single.x)), 1e-300)
-    rms = float(single.rms)
-    if not (math.isfinite(rms) and rms > 0.0):
-        rms = float(np.std(np.diff(np.asarray(single.x, dtype=float)))) / math.sqrt(2.0)
-    return max(rms, floor) if math.isfinite(rms) else 1.0
-
-
-def _start_params(singles, osc) -> tuple[list, list]:
-    """Each run's start (dicts of the :data:`~dampax._fit._params.PARAMS`) and whether it is
-    its single fit's optimum: where that has a non-finite value, the run starts from its
-    data (offset the median, x0 the first sample about it, v0 the slope of the first samples)
-    with w0 and the damping constants at the median of the finite single fits."""
-    fields = TraceParams._fields
-    usable = [all(math.isfinite(float(s.params[n])) for n in fields) for s in singles]
-    pool = [s.params for s, ok in zip(singles, usable, strict=True) if ok]
-    med = {n: (float(np.median([p[n] for p in pool])) if pool else
-               (float(osc["w0"]) if n == "w0" and osc.get("w0") else 0.0)) for n in fields}
-    if not pool and not med["w0"] > 0:
-        med["w0"] = 1.0
-    out = []
-    for s, ok in zip(singles, usable, strict=True):
-        if ok:
-            out.append({n: float(s.params[n]) for n in fields})
-            continue
-        t, x = np.asarray(s.t, dtype=float), np.asarray(s.x, dtype=float)
-        p = {n: (float(s.params[n]) if math.isfinite(float(s.params[n])) else med[n])
-             for n in fields}
-        if not p["w0"] > 0:
-            p["w0"] = med["w0"]
-        off = float(np.median(x))
-        k = max(2, min(x.size, int(0.1 * 2 * math.pi / p["w0"] / max(t[1] - t[0], 1e-300))))
-        p.update(offset=off, x0=float(x[0] - off),
-                 v0=float(np.polyfit(t[:k] - t[0], x[:k], 1)[0]))
-        out.append(p)
-    return out, usable
-
-
-def _arrays(singles, own, spec, lay: Layout, consts, start_vals, sigma, amp, n_pad, *, osc,
-            k3_start, k3_scale) -> JointArrays:
-    """The arrays of a joint fit started from each run's start ``own`` (the shared parameters
-    at ``start_vals``), in the coordinates of the fit model ``spec``."""
-
-    rows = {k: [] for k in ("tau", "x", "weight", "span", "ref", "scale", "lo", "start")}
-    for j, s in enumerate(singles):
-        tp, xp, wt = pad(s.t, s.x, n_pad)
-        p = TraceParams(**{n: start_vals.get(n, own[j][n]) for n in TraceParams._fields})
-        sx = amp[j] if amp[j] > 0 else 1.0
-        span = max(float(s.t[-1] - s.t[0]), 1e-12)
-        q = spec.to_coords(jax.tree_util.tree_map(jnp.asarray, p), consts)
-        floors = damping_floors(p.w0, sx, consts)
-        ref, lo = [], []
-        for name in COORDS:
-            v = float(getattr(q, name))
-            if name in DAMPING and (name in lay.shared or name in lay.local):
-                fl = float(getattr(floors, name))
-                v = max(v, fl)
-                lo.append(math.log(1e-6 * fl / v))
-            else:
-                lo.append(-math.inf)
-            ref.append(v)
-        scale = [1.0, 1.0, 1.0, 1.0 / span, sx, sx, float(spec.y_scale(p.w0, sx))]
-        rows["tau"].append(tp - tp[0])
-        rows["x"].append(xp)
-        rows["weight"].append(wt / sigma[j])
-        rows["span"].append(span)
-        rows["ref"].append(ref)
-        rows["scale"].append(scale)
-        rows["lo"].append(lo)
-        rows["start"].append([float(v) for v in p])
-    ref = np.array(rows["ref"])
-    lo = np.array(rows["lo"])
-    spans = np.array(rows["span"])
-    sref, sscale, slo = [], [], []
-    for name in lay.shared:
-        if name in DAMPING:
-            i = COORDS.index(name)
-            v = float(np.max(ref[:, i]))
-            sref.append(v)
-            sscale.append(1.0)
-            slo.append(float(np.max(lo[:, i] + np.log(ref[:, i] / v))))
-        elif name == "w0":
-            sref.append(start_vals["w0"])
-            sscale.append(1.0 / float(np.max(spans)))
-            slo.append(-math.inf)
-        else:  # k3, linear around its start in units of m w0^2 / A^2
-            sref.append(k3_start)
-            sscale.append(k3_scale)
-            slo.append(-math.inf)
-    return JointArrays(tau=np.array(rows["tau"]), x=np.array(rows["x"]),
-                       weight=np.array(rows["weight"]), span=spans, ref=ref,
-                       scale=np.array(rows["scale"]), lo=lo, start=np.array(rows["start"]),
-                       sref=np.array(sref), sscale=np.array(sscale), slo=np.array(slo),
-                       m=osc["m"], g=osc["g"], k3=k3_start)
-
-def _restart(a: JointArrays, out: JointCore, lay: Layout, spec, consts) -> JointArrays:
-    """The arrays of a joint fit restarted from ``out``'s optimum (reference points moved)."""
-    P = np.asarray(out.P)
-    k3 = float(out.k3)
-    c = consts._replace(k3=None if lay.k3 == "none" else k3)
-    ref = np.array(a.ref)
-    lo = np.array(a.lo)
-    for j in range(lay.n_runs):
-        q = spec.to_coords(TraceParams(*(jnp.asarray(v) for v in P[j])), c)
-        for i, name in enumerate(COORDS):
-            v = float(getattr(q, name))
-            if name in DAMPING and math.isfinite(lo[j, i]):
-                fl = ref[j, i] * math.exp(lo[j, i]) * 1e6
-                v = max(v, fl)
-                lo[j, i] = math.log(1e-6 * fl / v)
-            ref[j, i] = v
-    sref = np.array(a.sref)
-    slo = np.array(a.slo)
-    for i, name in enumerate(lay.shared):
-        v = float(np.asarray(out.p)[i])
-        if name in DAMPING:
-            fl = sref[i] * math.exp(slo[i]) * 1e6
-            v = max(v, fl)
-            slo[i] = math.log(1e-6 * fl / v)
-        sref[i] = v
-    scale = np.array(a.scale)
-    for j in range(lay.n_runs):
-        scale[j, 6] = float(spec.y_scale(P[j, 3], scale[j, 5]))
-    return a._replace(ref=ref, lo=lo, start=P, sref=sref, slo=slo, scale=scale,
-                      k3=k3 if lay.k3 != "none" else a.k3)
-
+    return starts_at, ends_at

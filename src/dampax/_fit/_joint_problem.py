@@ -315,6 +315,22 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
     init = (theta0, jnp.ones(size), jnp.asarray(steps0), FIT_RESULTS.successful,
             jnp.array(True))
     (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=ROUNDS)
+    return _at_optimum(theta, a, lay, opts, code, steps)
+
+
+def _at_optimum(theta, a: JointArrays, lay: Layout, opts, code, steps) -> JointCore:
+    """The :class:`JointCore` of the optimum ``theta`` (internal coordinates): the physical
+    parameters, the model and the Jacobian of the weighted residuals in the physical vector.
+
+    Arguments:
+        theta: the internal vector at the optimum.
+        a: the arrays of the problem.
+        lay, opts: the layout and the reference options (static).
+        code, steps: the optimizer's result code and its number of steps.
+
+    Returns:
+        The :class:`JointCore`.
+    """
     P, k3 = params_of(theta, lay, a)
     q, _ = coords_of(theta, lay, a)
     p = _physical_vector(P, k3, lay)

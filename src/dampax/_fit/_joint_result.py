@@ -1,6 +1,6 @@
 """The result of a joint fit (``_joint``): :class:`JointResult` (shared and per-run
-parameters, intervals, report, figure), :class:`JointProblem` for samplers built on it, and
-its construction from the joint optimum."""
+parameters, intervals, report, figure) and :class:`JointProblem` for samplers built on it
+(its construction from the joint optimum: ``_joint_build``)."""
 
 from __future__ import annotations
 
@@ -9,34 +9,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._io import save_figure
 from . import _intervals
-from ._core import (
-    FIT_RESULTS,
-    CoreResult,
-)
-from ._guess import analyse
 from ._joint_problem import (
     JointArrays,
-    JointCore,
     Layout,
-    _inverse,
     physical_residuals,
-    score_covariance,
 )
 from ._params import (
     DAMPING,
-    Constants,
-    TraceCoords,
-    TraceParams,
     unit_of,
-    vary_mask,
 )
-from ._result import FitContext, build_result
 
 # ----------------------------------------------------------------------------------------------
 # the result
@@ -294,111 +279,3 @@ class JointResult:
         rms = ", ".join(f"{v:.3g}" for v in self.rms)
         return (f"JointResult({len(self.runs)} runs, model={self.model!r}, {vals}, "
                 f"rms=[{rms}], success={self.success})")
-
-
-def _result(out: JointCore, a: JointArrays, lay: Layout, singles, sigma, *, free, model, unit,
-            per_mass, fit_omega0, opts, stages, notes, osc) -> JointResult:
-    """The :class:`JointResult` (and the per-run FitResults) of the core's output."""
-    names = lay.names()
-    p = np.asarray(out.p, dtype=float)
-    J = np.asarray(out.jac, dtype=float)          # (N, n_pad, size)
-    r = np.asarray(out.resid, dtype=float)        # (N, n_pad)
-    mask = np.asarray(a.weight) > 0
-    ns = [int(m.sum()) for m in mask]
-    Jd = np.concatenate([J[j, :ns[j]] for j in range(lay.n_runs)])
-    rd = np.concatenate([r[j, :ns[j]] for j in range(lay.n_runs)])
-    n, k = rd.size, len(names)
-    chisqr = float(rd @ rd)
-    H = Jd.T @ Jd
-    Hinv = _inverse(H)
-    s2 = chisqr / max(n - k, 1)
-    delta = s2 * Hinv
-    S = np.zeros((k, k))
-    for j in range(lay.n_runs):
-        w0 = float(out.P[j, 3])
-        dt = float(np.median(np.diff(singles[j].t)))
-        period = 2 * math.pi / w0 / dt if math.isfinite(w0) and w0 > 0 else 8.0
-        Jj, rj = J[j, :ns[j]], r[j, :ns[j]]
-        if ns[j] < 3 or not (np.all(np.isfinite(Jj)) and np.all(np.isfinite(rj))):
-            S += np.nan
-            continue
-        S += score_covariance(Jj, rj, period)
-    hac = Hinv @ S @ Hinv
-    hac = 0.5 * (hac + hac.T)
-    active = np.diag(H) > 0
-    sd = np.where(active, np.sqrt(np.clip(np.diag(delta), 0.0, None)), np.nan)
-    values = {nm: float(v) for nm, v in zip(names, p, strict=True)}
-    stderr = {nm: float(v) for nm, v in zip(names, sd, strict=True)}
-    code = out.code
-    converged = bool(code == FIT_RESULTS.successful)
-    text = FIT_RESULTS[code]
-    finite = np.all(np.isfinite(p)) and np.isfinite(chisqr)
-    if not finite:
-        converged, text = False, FIT_RESULTS[FIT_RESULTS.failed]
-    message = "; ".join([text] + stages)
-    # per-run FitResults at the joint optimum (the single fit's checks, on each run)
-    c = Constants(m=osc["m"], g=osc["g"], k3=None if lay.k3 == "none" else float(out.k3))
-    vary = vary_mask(TraceParams, free, fit_omega0=fit_omega0,
-                     offset="offset" in lay.local)
-    runs = []
-    S_ = len(lay.shared)
-    L = len(lay.local)
-    for j, single in enumerate(singles):
-        idx = {}  # field -> column of the joint vector
-        for name in TraceParams._fields:
-            coord = "y" if name == "v0" else name
-            if name in lay.shared:
-                idx[name] = lay.shared.index(name)
-            elif coord in lay.local:
-                idx[name] = S_ + j * L + lay.local.index(coord)
-        fields = TraceParams._fields
-        cov7 = np.zeros((7, 7))
-        jac7 = np.zeros((J.shape[1], 7))
-        for a_, fa in enumerate(fields):
-            if fa in idx:
-                jac7[:, a_] = J[j, :, idx[fa]]
-                for b_, fb in enumerate(fields):
-                    if fb in idx:
-                        cov7[a_, b_] = delta[idx[fa], idx[fb]]
-        sd7 = [math.sqrt(max(cov7[i, i], 0.0)) if f in idx else math.nan
-               for i, f in enumerate(fields)]
-        ctr = r[j] * sigma[j]
-        core = CoreResult(
-            params=TraceParams(*(float(v) for v in np.asarray(out.P)[j])),
-            stderr=TraceParams(*sd7), covariance=cov7, code=code, steps=out.steps,
-            chisqr=float(np.sum(ctr[:ns[j]] ** 2)), ndata=ns[j], nvarys=len(idx),
-            curve=np.asarray(out.curve)[j],
-            coords=TraceCoords(*(float(v) for v in np.asarray(out.q)[j])),
-            jac=jac7, resid=r[j])
-        an = analyse(single.t, single.x, omega0=None if fit_omega0 else osc["w0"])
-        ctx = FitContext(model=model, free=free, vary=vary, consts=c, t=single.t, x=single.x,
-                         loss="linear", optimizer="lm", source=single.source,
-                         full_t=single.full_t, full_x=single.full_x, per_mass=per_mass,
-                         units=unit, analysis=an, stages="joint fit")
-        runs.append(build_result(core, ctx))
-    fails = [f"the standard error of {nm} is not finite" for nm in names
-             if not math.isfinite(stderr[nm])]
-    if not converged:
-        fails.insert(0, f"the optimizer did not converge ({text})")
-    for j, res in enumerate(runs):
-        own = [f for f in res.reason.split("; ") if f and "optimizer" not in f]
-        if own:
-            fails.append(f"run {j}: " + "; ".join(own))
-    arrays = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), a)
-    t_abs = np.asarray(a.tau) + np.array([s.t[0] for s in singles])[:, None]
-
-    def residuals(pv):
-        return physical_residuals(pv, arrays, lay, opts)
-
-    problem = JointProblem(names=names, p0=p, residuals=residuals, mask=mask, t=t_abs,
-                           x=np.asarray(a.x), sigma=np.asarray(sigma),
-                           nonneg=tuple(nm for nm in names if nm.split("[")[0] in DAMPING),
-                           residual=JointResidual(lay, opts), args=arrays)
-    return JointResult(
-        names=names, values=values, stderr=stderr, covariance=hac, delta_covariance=delta,
-        shared=lay.shared, free=free, runs=runs, singles=singles,
-        success=converged and not fails, converged=converged, reason="; ".join(fails),
-        adequate=all(res.adequate for res in runs), message=message,
-        n_iterations=int(out.steps), chisqr=chisqr, ndata=n, nvarys=k, sigma=np.asarray(sigma),
-        model=model, per_mass=per_mass, units=unit, fit_omega0=fit_omega0,
-        warnings=list(notes), _problem=problem)

@@ -8,6 +8,7 @@ when it is made (a ValueError naming the field), so ``fit`` receives them valid.
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from collections.abc import Mapping
@@ -152,6 +153,32 @@ class _LeastSquaresFields(NamedTuple):
     max_swings: int | None = None
 
 
+#: a call with a wrong argument is reported as the constructor's (``LeastSquares.__new__() got
+#: an unexpected keyword argument ...``): the fields' constructor binds the arguments
+_LeastSquaresFields.__new__.__qualname__ = "LeastSquares.__new__"
+
+
+def _solver_values(given: _LeastSquaresFields) -> tuple:
+    """The checked, normalised fields of a :class:`LeastSquares` (ValueError naming the field).
+
+    Arguments:
+        given: the fields as given to the constructor.
+
+    Returns:
+        The fields, in order.
+    """
+    check_choice("LeastSquares.loss", given.loss, LOSSES)
+    check_choice("LeastSquares.optimizer", given.optimizer, OPTIMIZERS)
+    seed = given.seed
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"LeastSquares.seed must be an integer >= 0, got {seed!r}")
+    return (given.loss, given.optimizer, _positive_float("LeastSquares.rtol", given.rtol),
+            _positive_float("LeastSquares.atol", given.atol),
+            _positive_int("LeastSquares.max_steps", given.max_steps, allow_none=True),
+            _positive_int("LeastSquares.starts", given.starts), int(seed), check_p0(given.p0),
+            _positive_int("LeastSquares.max_swings", given.max_swings, allow_none=True))
+
+
 class LeastSquares(_LeastSquaresFields):
     """How the least-squares problem is solved; checked when made (a ValueError naming the
     field, ``LeastSquares.rtol`` ..., and the reason).
@@ -172,18 +199,15 @@ class LeastSquares(_LeastSquaresFields):
 
     __slots__ = ()
 
-    def __new__(cls, loss="linear", optimizer="lm", rtol=1e-8, atol=1e-10, max_steps=None,
-                starts=32, seed=0, p0=None, max_swings=None):
-        check_choice("LeastSquares.loss", loss, LOSSES)
-        check_choice("LeastSquares.optimizer", optimizer, OPTIMIZERS)
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
-            raise ValueError(f"LeastSquares.seed must be an integer >= 0, got {seed!r}")
-        return super().__new__(
-            cls, loss, optimizer, _positive_float("LeastSquares.rtol", rtol),
-            _positive_float("LeastSquares.atol", atol),
-            _positive_int("LeastSquares.max_steps", max_steps, allow_none=True),
-            _positive_int("LeastSquares.starts", starts), int(seed), check_p0(p0),
-            _positive_int("LeastSquares.max_swings", max_swings, allow_none=True))
+    #: the signature ``help`` and ``inspect`` show: the fields, with their defaults
+    __signature__ = inspect.Signature([
+        inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=default)
+        for name, default in _LeastSquaresFields._field_defaults.items()])
+
+    def __new__(cls, *args, **kwargs):
+        """The settings, checked: the arguments bound as the fields' (their names, order and
+        defaults: :attr:`__signature__`), each then checked (:func:`_solver_values`)."""
+        return super().__new__(cls, *_solver_values(_LeastSquaresFields(*args, **kwargs)))
 
     def _replace(self, **changes) -> LeastSquares:
         """A copy with some fields changed, checked as when made."""

@@ -12,7 +12,8 @@ density is built from a residual function ``residual(p, args) -> r`` of a physic
 vector ``p`` whose entries a :class:`Layout` names (and says which are sampled as logarithms),
 plus the two noise parameters; :func:`sample` runs the mode search, the Laplace
 preconditioning and NUTS for any such residual. :func:`posterior` builds the residual of one
-trace (:class:`TraceResidual`) from a least-squares fit.
+trace (:class:`TraceResidual`) from a least-squares fit; ``_posterior_joint`` that of a joint
+fit of several runs (``JointResidual``), with one AR(1) noise series per run.
 
 Parameters sampled (unconstrained): log of every free damping constant, w0 (when fitted), the
 offset (when fitted), the cubic stiffness k3 itself (when free: it has either sign), x0, y
@@ -45,7 +46,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,7 +54,7 @@ import numpy as np
 
 from ._core import FIT_MODELS, MODELS, ReferenceOptions, reference_solution, swing_budget
 from ._entry import fit_flat
-from ._joint_result import JointResidual, JointResult
+from ._joint_result import JointResult
 from ._options import LeastSquares, Window, options
 from ._params import (
     DAMPING,
@@ -64,6 +65,7 @@ from ._params import (
     check_choice,
     check_free,
 )
+from ._posterior_joint import _joint_groups, _joint_setup
 from ._posterior_result import Posterior
 from ._sampler import (
     GRADIENTS,
@@ -74,7 +76,6 @@ from ._sampler import (
     REFERENCE_RTOL,
     Draws,
     Layout,
-    _base,
     physical,
     sample,
 )
@@ -203,78 +204,98 @@ def static_friction(res) -> float | None:
     return None if value is None else float(value)
 
 
-def _joint_setup(res, stride: int):
-    """(residual, args, layout, centre, width, theta0, mask) of the joint fit ``res`` (a
-    :class:`~dampax._fit._joint_result.JointResult`): the joint problem's residuals of every run,
-    thinned by ``stride``, its padding masked out, one AR(1) noise series per run; the priors
-    of :data:`PRIORS` per parameter (a shared one centred on the runs' median)."""
+def _trace_groups(out: Draws, layout: Layout, res, names_in: tuple, stride: int) -> tuple:
+    """The posterior group and the observed data of a trace's posterior (xarray Datasets):
+    the sampled parameters in physical units (v0 for y), the fixed ones as attributes.
 
-    pr = res.problem()
-    lay = pr.residual.layout
-    opts = pr.residual.opts
-    if opts is not None:
-        opts = ReferenceOptions(opts.max_swings, REFERENCE_RTOL, REFERENCE_ATOL)
-    a = pr.args
-    # the padding beyond the longest run dropped (to a power of two: similar sets share the
-    # compiled sampler), then every stride-th sample
-    n_max = int(np.max(np.sum(pr.mask, axis=1)))
-    keep = min(a.tau.shape[1], max(256, 1 << int(math.ceil(math.log2(max(n_max, 1))))))
-    args = a._replace(tau=a.tau[:, :keep:stride], x=a.x[:, :keep:stride],
-                      weight=a.weight[:, :keep:stride])
-    mask = np.asarray(args.weight) > 0.0
-    residual = JointResidual(lay, opts)
-    singles, runs = res.singles, res.runs
-    amp = [max(float(s.derived["A"]), 1e-300) for s in singles]
-    w_turn = [s.params["w0"] / (1.0 + float(s.diagnostics.get("w0/turning - 1", 0.0)))
-              for s in singles]
-    m = float(runs[0].fixed["m"])
-    names, log, centre, width, theta0 = [], [], [], [], []
-    for name, v in zip(pr.names, np.asarray(pr.p0, dtype=float), strict=True):
-        base = _base(name)
-        j = int(name[len(base) + 1:-1]) if "[" in name else None
-        if base in DAMPING:
-            guesses = [max(float(s.init.get(base, s.params[base])), 1e-30)
-                       for s in (singles if j is None else [singles[j]])]
-            guess = float(np.median(guesses))
-            c, w, start, is_log = math.log(guess), 3.0, math.log(max(v, guess * 1e-6)), True
-        elif base == "w0":
-            wt = float(np.median(w_turn)) if j is None else w_turn[j]
-            c, w, start, is_log = wt, 0.05 * wt, v, False
-        elif base == "k3":  # k3 A^2/(m w0^2) ~ N(0, 0.5) at the runs' median
-            scale = m * float(np.median([r.params["w0"] for r in runs])) ** 2
-            c, w, start, is_log = 0.0, 0.5 * scale / float(np.median(amp)) ** 2, v, False
-        elif base == "offset":
-            c, w, start, is_log = v, amp[j], v, False
-        elif base == "x0":
-            c, w, start, is_log = v, 2 * amp[j], v, False
-        else:  # v0
-            c, w, start, is_log = v, 2 * amp[j] * runs[j].params["w0"], v, False
-        names.append(name)
-        log.append(is_log)
-        centre.append(c)
-        width.append(w)
-        theta0.append(start)
-    r = np.asarray(residual(jnp.asarray(pr.p0, dtype=float), args))
-    log_rms, log_sig, atanh_phi = [], [], []
-    for j in range(len(runs)):
-        rj = r[j][mask[j]]
-        phi_hat = float(np.clip(np.corrcoef(rj[:-1], rj[1:])[0, 1], -0.9, 0.995))
-        log_rms.append(math.log(float(np.sqrt(np.mean(rj * rj))) or 1e-12))
-        log_sig.append(math.log(float(np.std(rj[1:] - phi_hat * rj[:-1])) or 1e-12))
-        atanh_phi.append(math.atanh(phi_hat))
-    n = len(runs)
-    centre += log_rms + [0.0] * n
-    width += [2.0] * (2 * n)
-    theta0 += log_sig + atanh_phi
-    layout = Layout(tuple(names), tuple(log), noise=n)
-    return residual, args, layout, centre, width, theta0, mask
+    Arguments:
+        out: the sampler's draws.
+        layout: the sampled parameters' layout.
+        res: the start fit.
+        names_in: the free constants as given (the damping constants, k3, mu_s).
+        stride: the likelihood's thinning.
 
-
-def _joint_posterior(traces, *, start_fit, shared, free, model, num_samples, num_chains,
-                     num_warmup, seed, bar, began, fit_kw) -> Posterior:
-    """The posterior of a joint fit of several runs (:func:`posterior` with a list)."""
+    Returns:
+        (draws, observed).
+    """
     import xarray as xr
 
+    model = res.model
+    vary_k3 = "k3" in names_in
+    free = tuple(c for c in names_in if c not in ("k3", "mu_s"))  # the damping constants
+    # the posterior group: the sampled parameters in physical units, v0 for y
+    nch, nd, dim = out.theta.shape
+    flat = jnp.asarray(out.theta.reshape(-1, dim))
+    P, sigma, phi_n = jax.vmap(lambda th: physical(th, layout))(flat)
+    P = np.asarray(P)
+    vals = {n: P[:, i] for i, n in enumerate(layout.names)}
+    if model == "ansatz":
+        full = {f: vals.get(f, float(res.params[f])) for f in ("mu", "b", "D", "w0")}
+        vals["v0"] = np.asarray(ansatz_v0(vals["x0"], vals.pop("y"), full["mu"], full["b"],
+                                          full["D"], full["w0"], float(res.fixed["m"]),
+                                          float(res.fixed["g"])))
+    vals["sigma"] = np.asarray(sigma)
+    vals["phi_noise"] = np.asarray(phi_n)
+    order = [*free, *(("k3",) if vary_k3 else ()),
+             *(n for n in ("w0", "offset") if n in layout.names), "x0", "v0", "sigma",
+             "phi_noise"]
+    coords = {"chain": np.arange(nch), "draw": np.arange(nd)}
+    sampled = set(order)
+    fixed = {f"fixed_{n}": float(res.params[n]) for n in (*DAMPING, "w0", "offset")
+             if n not in sampled}
+    fixed.update(fixed_m=float(res.fixed["m"]), fixed_g=float(res.fixed["g"]))
+    if static_friction(res) is not None:  # held (not sampled): see static_friction
+        fixed["fixed_mu_s"] = static_friction(res)
+        if "mu_s" in res.free:
+            fixed["mu_s_interval"] = [float(v) for v in res.profiled["mu_s"]["interval"]]
+    attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
+             "model": f"{model} + AR(1) noise", "units": res.units,
+             "per_mass": int(res.per_mass), "free": ",".join(names_in), "t_start": float(res.t[0]),
+             "stride": stride, "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items()),
+             **fixed}
+    draws = xr.Dataset({n: (("chain", "draw"), np.asarray(vals[n], dtype=float).reshape(nch, nd))
+                        for n in order}, coords=coords, attrs=attrs)
+    observed = xr.Dataset({"x": (("t",), np.asarray(res.x, dtype=float))},
+                          coords={"t": np.asarray(res.t, dtype=float)},
+                          attrs={"units": res.units, "source": str(res.source),
+                                 "stride": stride})
+    return draws, observed
+
+
+class Request(NamedTuple):
+    """A posterior call's model, sampler settings and progress (:func:`posterior`).
+
+    Attributes:
+        model: the fit model sampled.
+        num_samples, num_chains, num_warmup, seed: as in :func:`posterior`.
+        bar: the tqdm bar over the stages.
+        began: ``time.perf_counter()`` at the call's start.
+    """
+
+    model: str
+    num_samples: int
+    num_chains: int
+    num_warmup: int
+    seed: int
+    bar: Any
+    began: float
+
+
+def _joint_posterior(traces, req: Request, *, start_fit, shared, free, fit_kw) -> Posterior:
+    """The posterior of a joint fit of several runs (:func:`posterior` with a list).
+
+    Arguments:
+        traces: the runs.
+        req: the model, the sampler's settings and the progress.
+        start_fit, shared, free: as in :func:`posterior` (free: the damping constants).
+        fit_kw: the start fit's other settings (checked).
+
+    Returns:
+        A :class:`Posterior`.
+    """
+    model, bar, began = req.model, req.bar, req.began
+    num_samples, num_chains, num_warmup, seed = (req.num_samples, req.num_chains,
+                                                 req.num_warmup, req.seed)
     res = start_fit if start_fit is not None else fit_flat(
         list(traces), shared=shared, free=free, model=model, **fit_kw)
     bar.update()
@@ -285,7 +306,6 @@ def _joint_posterior(traces, *, start_fit, shared, free, model, num_samples, num
     if shared is not None and set(_names(shared)) != set(res.shared):
         raise ValueError(f"start_fit: its shared parameters {res.shared!r} are not "
                          f"shared={_names(shared)!r}")
-    n_runs = len(res.runs)
     stride = max(1, math.ceil(max(r.ndata for r in res.runs) / MAX_SAMPLES))
     residual, args, layout, centre, width, theta0, mask = _joint_setup(res, stride)
     out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
@@ -293,43 +313,7 @@ def _joint_posterior(traces, *, start_fit, shared, free, model, num_samples, num
                  seed=seed, mask=mask)
     bar.update(2)
     bar.close()
-    nch, nd, dim = out.theta.shape
-    flat = jnp.asarray(out.theta.reshape(-1, dim))
-    P, sigma, phi_n = (np.asarray(v) for v in jax.vmap(lambda th: physical(th, layout))(flat))
-    coords = {"chain": np.arange(nch), "draw": np.arange(nd), "run": np.arange(n_runs)}
-    data = {}
-    shared_names = [nm for nm in layout.names if "[" not in nm]
-    for nm in shared_names:
-        data[nm] = (("chain", "draw"), P[:, layout.names.index(nm)].reshape(nch, nd))
-    per_run = [_base(nm) for nm in layout.names if nm.endswith("[0]")]
-    for base in per_run:
-        cols = [layout.names.index(f"{base}[{j}]") for j in range(n_runs)]
-        data[base] = (("chain", "draw", "run"), P[:, cols].reshape(nch, nd, n_runs))
-    data["sigma"] = (("chain", "draw", "run"), sigma.reshape(nch, nd, n_runs))
-    data["phi_noise"] = (("chain", "draw", "run"), phi_n.reshape(nch, nd, n_runs))
-    r0 = res.runs[0]
-    sampled = set(shared_names) | set(per_run)
-    fixed = {f"fixed_{nm}": float(r0.params[nm]) for nm in (*DAMPING, "w0")
-             if nm not in sampled}
-    fixed.update(fixed_m=float(r0.fixed["m"]), fixed_g=float(r0.fixed["g"]))
-    attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
-             "model": f"joint {model} fit of {n_runs} runs + AR(1) noise per run",
-             "units": res.units, "per_mass": int(res.per_mass), "free": ",".join(res.free),
-             "shared": ",".join(res.shared), "stride": stride,
-             "t_start": [float(r.t[0]) for r in res.runs],
-             "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items()), **fixed}
-    draws = xr.Dataset(data, coords=coords, attrs=attrs)
-    n_max = max(r.ndata for r in res.runs)
-    tt = np.full((n_runs, n_max), np.nan)
-    xx = np.full((n_runs, n_max), np.nan)
-    for j, r in enumerate(res.runs):
-        tt[j, :r.ndata] = r.t
-        xx[j, :r.ndata] = r.x
-    observed = xr.Dataset({"x": (("run", "sample"), xx), "t": (("run", "sample"), tt)},
-                          coords={"run": np.arange(n_runs), "sample": np.arange(n_max)},
-                          attrs={"units": res.units, "stride": stride,
-                                 "sources": [str(r.source) for r in res.runs],
-                                 "padding": "NaN after each run's last sample"})
+    draws, observed = _joint_groups(out, layout, res, stride)
     return _finish(out, draws, observed, res, model, began, stride, free=tuple(res.free))
 
 
@@ -408,7 +392,6 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     Returns:
         A :class:`Posterior`.
     """
-    import xarray as xr
     from tqdm import tqdm
 
     check_choice("model", model, MODELS)
@@ -430,10 +413,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     if isinstance(trace_or_t, (list, tuple)) and x is None:
         if vary_k3:
             raise ValueError("free: a joint posterior samples k3 only as shared=(..., 'k3')")
-        return _joint_posterior(
-            trace_or_t, start_fit=start_fit, shared=shared, free=free, model=model,
-            num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup, seed=seed,
-            bar=bar, began=began, fit_kw=fit_kw)
+        req = Request(model, num_samples, num_chains, num_warmup, seed, bar, began)
+        return _joint_posterior(trace_or_t, req, start_fit=start_fit, shared=shared, free=free,
+                                fit_kw=fit_kw)
     if shared is not None:
         raise ValueError("shared: names constants common to several runs; it needs a list of "
                          "two or more traces, not a single trace")
@@ -454,40 +436,5 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                  seed=seed)
     bar.update(2)
     bar.close()
-    # the posterior group: the sampled parameters in physical units, v0 for y
-    nch, nd, dim = out.theta.shape
-    flat = jnp.asarray(out.theta.reshape(-1, dim))
-    P, sigma, phi_n = jax.vmap(lambda th: physical(th, layout))(flat)
-    P = np.asarray(P)
-    vals = {n: P[:, i] for i, n in enumerate(layout.names)}
-    if model == "ansatz":
-        full = {f: vals.get(f, float(res.params[f])) for f in ("mu", "b", "D", "w0")}
-        vals["v0"] = np.asarray(ansatz_v0(vals["x0"], vals.pop("y"), full["mu"], full["b"],
-                                          full["D"], full["w0"], float(res.fixed["m"]),
-                                          float(res.fixed["g"])))
-    vals["sigma"] = np.asarray(sigma)
-    vals["phi_noise"] = np.asarray(phi_n)
-    order = [*free, *(("k3",) if vary_k3 else ()),
-             *(n for n in ("w0", "offset") if n in layout.names), "x0", "v0", "sigma",
-             "phi_noise"]
-    coords = {"chain": np.arange(nch), "draw": np.arange(nd)}
-    sampled = set(order)
-    fixed = {f"fixed_{n}": float(res.params[n]) for n in (*DAMPING, "w0", "offset")
-             if n not in sampled}
-    fixed.update(fixed_m=float(res.fixed["m"]), fixed_g=float(res.fixed["g"]))
-    if static_friction(res) is not None:  # held (not sampled): see static_friction
-        fixed["fixed_mu_s"] = static_friction(res)
-        if "mu_s" in res.free:
-            fixed["mu_s_interval"] = [float(v) for v in res.profiled["mu_s"]["interval"]]
-    attrs = {"inference_library": "blackjax", "sampler": "NUTS, window adaptation",
-             "model": f"{model} + AR(1) noise", "units": res.units,
-             "per_mass": int(res.per_mass), "free": ",".join(names_in), "t_start": float(res.t[0]),
-             "stride": stride, "priors": "; ".join(f"{k}: {v}" for k, v in PRIORS.items()),
-             **fixed}
-    draws = xr.Dataset({n: (("chain", "draw"), np.asarray(vals[n], dtype=float).reshape(nch, nd))
-                        for n in order}, coords=coords, attrs=attrs)
-    observed = xr.Dataset({"x": (("t",), np.asarray(res.x, dtype=float))},
-                          coords={"t": np.asarray(res.t, dtype=float)},
-                          attrs={"units": res.units, "source": str(res.source),
-                                 "stride": stride})
+    draws, observed = _trace_groups(out, layout, res, names_in, stride)
     return _finish(out, draws, observed, res, model, began, stride, free=names_in)

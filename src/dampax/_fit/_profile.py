@@ -8,6 +8,7 @@ chi-square with that parameter held and the rest refitted."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 #: with a parameter held 2 interval sd from its value and the others refitted, the cost rises
 #: c times what the intervals assume (c = 1 where the model is linear in its parameters): the
@@ -29,6 +30,25 @@ PROFILE_FAIL = 1.0 / PROFILE_REACH ** 2
 LR_LEVEL = 0.01
 LR_Z = 2.5758293035489004
 LR_CHI2 = LR_Z * LR_Z
+
+
+class Optimum(NamedTuple):
+    """The fit whose intervals are held against its cost (:func:`profile_ratios`,
+    :func:`bound_tests`).
+
+    Attributes:
+        params: the fitted values by name.
+        stderr: their delta-method standard errors.
+        sd: their interval sd (allowing for correlated noise).
+        chisqr: the fit's chi-square.
+        s2: the noise variance of its residuals (chisqr over the degrees of freedom).
+    """
+
+    params: dict
+    stderr: dict
+    sd: dict
+    chisqr: float
+    s2: float
 
 
 #: which power of the amplitude each damping constant's decay rate carries (eq. 21: the
@@ -57,8 +77,8 @@ def transferred_start(name: str, params: dict, others, d_scale: dict, amplitude:
     return {o: params[o] + rate / (a ** _POWER[o] * d_scale[o]) for o in others}
 
 
-def bound_tests(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
-                s2: float, *, d_scale: dict | None = None, amplitude: float = math.nan) -> dict:
+def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,
+                amplitude: float = math.nan) -> dict:
     """Wald against likelihood ratio at the bound: each damping constant of ``names`` whose
     interval excludes 0 at 1 % (value / sd > :data:`LR_Z`) is held at 0 and the others are
     fitted again (``profile(name, 0)``, from the fit's values, and where that rises beyond the
@@ -70,9 +90,18 @@ def bound_tests(profile, params: dict, stderr: dict, sd: dict, names, chisqr: fl
     1 % point while the Wald z is beyond it means a valley in the cost: the decay the constant
     explains is explained nearly as well by the others, far outside the intervals.
 
+    Arguments:
+        profile: ``profile(name, value, start=None, batch=False)`` -> the chi-square of the fit
+            with that parameter held at that value.
+        fitted: the fit (its values, errors, interval sd, chi-square and s2).
+        names: the damping constants to test.
+        d_scale: d per unit of each constant at the fitted w0 (eq. 21; the transferred starts).
+        amplitude: the fitted initial amplitude A.
+
     Returns:
         {name: (Wald z, likelihood-ratio chi2)} for the constants tested.
     """
+    params, stderr, sd, chisqr, s2 = fitted
     out = {}
     for name in names:
         v, s, se = params[name], sd.get(name, math.nan), stderr.get(name, math.nan)
@@ -150,8 +179,7 @@ def profile_side(rise, d0: float, c0: float, *, limit: float = math.inf) -> floa
     return 0.0
 
 
-def profile_ratios(profile, params: dict, stderr: dict, sd: dict, names, chisqr: float,
-                   s2: float, z: float = 2.0) -> dict:
+def profile_ratios(profile, fitted: Optimum, names, z: float = 2.0) -> dict:
     """The intervals against the cost itself: each parameter of ``names`` is held at its
     value -+ z interval sd and the others are fitted again (``profile(name, value)`` returns
     that fit's chi-square); the rise of the cost over the rise the intervals assume (z^2
@@ -159,9 +187,17 @@ def profile_ratios(profile, params: dict, stderr: dict, sd: dict, names, chisqr:
     A side that rises less than :data:`PROFILE_MEASURE` is followed out
     (:func:`profile_side`): its value is then the effective ratio of where it ends.
 
+    Arguments:
+        profile: ``profile(name, value)`` -> the chi-square of the fit with that parameter held
+            at that value.
+        fitted: the fit (its values, errors, interval sd, chi-square and s2).
+        names: the parameters to profile.
+        z: the distance of the profile's points, in interval sd.
+
     Returns:
         {name: (ratio below, ratio above)} (NaN where a side leaves the allowed range).
     """
+    params, stderr, sd, chisqr, s2 = fitted
     out = {}
     for name in names:
         v, s, se = params[name], sd.get(name, math.nan), stderr.get(name, math.nan)

@@ -1,27 +1,29 @@
 """Results of the fits: :class:`FitResult` (report, plot, JSON), :class:`ModelComparison`
 (candidate damping models ranked by BIC or AIC) and :class:`ArrayFit` (the vmappable arrays of
 ``fit_arrays``). Statistics follow lmfit's definitions (docs/DESIGN.md, fitting).
+
+:func:`build_result` makes a FitResult from the core's output and the fit's
+:class:`~dampax._fit._context.FitContext` (what the fit was asked to do, and the quantities
+derived from its parameters: ``_context``); :func:`rank` ranks fits into a ModelComparison.
+The report's text and the figure are ``_report``'s.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from .._cache import call_cached
-from .._io import save_figure
-from .._models._decay import decay, halt_time
-from .._plot import _place
 from . import _intervals
 from ._assess import Inputs, assess
-from ._core import FIT_MODELS, FIT_RESULTS, METHOD_NAMES, CoreResult
+from ._context import FitContext, envelope_derived, trace_derived
+from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
 from ._dist import norm_ppf
-from ._params import DAMPING, Constants, check_choice, damping_d, unit_of, varied_names
+from ._params import DAMPING, check_choice, damping_d, varied_names
+from ._report import fit_figure, fit_report
 
 
 def _jsonable(v):
@@ -178,109 +180,16 @@ class FitResult:
                 f"rms={self.rms:.3g}, bic={self.bic:.1f}, success={self.success})")
 
     def report(self, *, min_correl: float = 0.1) -> str:
-        """A text report like lmfit's fit_report: statistics, values, correlations."""
-        method = METHOD_NAMES.get(self.optimizer, self.optimizer)
-        lines = []
-        if not self.success:
-            lines.append(f"FIT FAILED: {self.reason}")
-        if not self.adequate:
-            lines.append("MODEL DOES NOT DESCRIBE THE DATA: " + "; ".join(self.inadequacy))
-        lines += ["[[Model]]",
-                 f"    {self.kind} fit, model = {self.model!r}, free damping = "
-                 f"{', '.join(self.free) or 'none'}, loss = {self.loss}"
-                 + (f" (f_scale = {self.f_scale:.4g})" if math.isfinite(self.f_scale) else ""),
-                 ]
-        if self.source:
-            lines.append(f"    data: {self.source}")
-        if self.per_mass and self.kind == "trace":
-            lines.append("    no oscillator given: w0 fitted, unit mass (m = 1 kg): b and D are "
-                         f"per unit mass (b/m in 1/s, D/m in 1/{self.units}); positions in "
-                         f"{self.units}")
-        elif self.kind == "trace":
-            lines.append(f"    positions in {self.units}")
-        if self.starts is not None:
-            lines.append(f"    global starts: {self.starts.summary()}")
-        lines += [
-            "[[Fit Statistics]]",
-            f"    # fitting method   = {method}",
-            f"    # iterations       = {self.n_iterations}",
-            f"    # data points      = {self.ndata}",
-            f"    # variables        = {self.nvarys}",
-            f"    chi-square         = {self.chisqr:.6g}",
-            f"    reduced chi-square = {self.redchi:.6g}",
-            f"    Akaike info crit   = {self.aic:.6g}",
-            f"    Bayesian info crit = {self.bic:.6g}",
-            f"    rms residual       = {self.rms:.6g}",
-            f"    success            = {self.success} ({self.message})",
-            f"    model adequate     = {self.adequate}",
-        ]
-        if self.kind == "trace":
-            lines.append(f"    fit start t0       = {self.t_start:.6g}")
-        lines.append("[[Variables]]")
-        width = max(len(k) for k in self.params) + 1
-        for name, value in self.params.items():
-            unit = unit_of(name, self.units, self.per_mass)
-            if name in self.varied:
-                err = self.stderr[name]
-                rel = abs(err / value) * 100 if value != 0 and math.isfinite(err) else math.nan
-                rel_text = f" ({rel:.2f}%)" if math.isfinite(rel) else ""
-                init = self.init.get(name)
-                init_text = f" (init = {init:.6g})" if init is not None else ""
-                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {err:.4g}{rel_text}"
-                             f"{init_text} {unit}".rstrip())
-            elif name in self.profiled:  # k3 of fit(free=(..., "k3")): profiled
-                sd = self.profiled[name]["stderr"]
-                how = ("every value in its interval gives the same halt"
-                       if "interval" in self.profiled[name]
-                       else "sd from the curvature of S, AR(1)-inflated")
-                lines.append(f"    {name + ':':<{width}} {value:.6g} +/- {sd:.4g} (profiled: "
-                             f"{how}) {unit}".rstrip())
-            else:
-                lines.append(f"    {name + ':':<{width}} {value:.6g} (fixed) {unit}".rstrip())
-        if self.derived:
-            lines.append("[[Derived]]")
-            for name, value in self.derived.items():
-                lines.append(f"    {name + ':':<{width}} {value:.6g} "
-                             f"{unit_of(name, self.units, self.per_mass)}".rstrip())
-        if self.jac is not None and self.varied:
-            try:
-                ci = self.conf_interval(0.95)
-                _, lags = self._hac()
-            except (ValueError, np.linalg.LinAlgError):
-                ci = None
-            if ci is not None:
-                lines.append(f"[[Intervals]] 95 %, allowing for correlated residuals "
-                             f"({_intervals.METHOD}, L = {lags} samples); delta-method "
-                             "stderr beside")
-                for name in self.varied:
-                    lo, hi = ci[name]
-                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  "
-                                 f"(stderr {self.stderr[name]:.4g}, HAC sd "
-                                 f"{self.hac_stderr[name]:.4g})")
-                for name in self.profiled:
-                    lo, hi = ci[name]
-                    how = ("every value gives the fitted halt" if "interval" in
-                           self.profiled[name] else "the others allow for its uncertainty")
-                    lines.append(f"    {name + ':':<{width}} [{lo:.6g}, {hi:.6g}]  (profiled; "
-                                 f"{how})")
-        pairs = []
-        n = len(self.varied)
-        for i in range(n):
-            for j in range(i + 1, n):
-                c = float(self.correlation[i, j])
-                if math.isfinite(c) and abs(c) >= min_correl:
-                    pairs.append((abs(c), f"    C({self.varied[i]}, {self.varied[j]})", c))
-        lines.append(f"[[Correlations]] (unreported correlations are < {min_correl:.3f})")
-        if pairs:
-            w = max(len(p[1]) for p in pairs)
-            for _, label, c in sorted(pairs, reverse=True):
-                lines.append(f"{label:<{w}} = {c:+.4f}")
-        for note in self.warnings:
-            lines.append(f"[[Warning]] {note}")
-        for key in ("note_decay", "note"):
-            if key in self.diagnostics:
-                lines.append(f"[[Note]] {self.diagnostics[key]}")
-        return "\n".join(lines)
+        """A text report like lmfit's fit_report: statistics, values, correlations
+        (``_report.fit_report``).
+
+        Arguments:
+            min_correl: the smallest correlation reported.
+
+        Returns:
+            The report, one section after another.
+        """
+        return fit_report(self, min_correl)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (no arrays of data)."""
@@ -313,51 +222,17 @@ class FitResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-        residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state),
-        placed with fixed margins (``dampax._plot._place``).
+        residuals below (``_report.fit_figure``: a bare matplotlib Figure with the Agg canvas,
+        no pyplot state, placed with fixed margins).
+
+        Arguments:
+            path: the file to write.
+            title: the title (default: the data's source, the fitted terms and the rms).
 
         Returns:
             The path written.
         """
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
-
-        fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
-        FigureCanvasAgg(fig)
-        ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-        _place(fig, nrows=2, left=0.95, right=0.2, bottom=0.6, top=0.35, hspace=0.2)
-        off = self.params.get("offset", 0.0)
-        if self.full_t is not None and len(self.full_t) > len(self.t):
-            before = self.full_t < self.t[0]
-            if np.any(before):
-                ax.plot(self.full_t[before], self.full_x[before], color="0.7", lw=0.6,
-                        label="data before the fit start")
-        marker = dict(ls="none", marker=".", ms=4) if self.kind == "envelope" or \
-            len(self.t) < 400 else dict(lw=0.6)
-        ax.plot(self.t, self.x, color="tab:blue", label="data", **marker)
-        ax.plot(self.t, self.model_x, color="tab:red", lw=0.9, label=f"fit ({self.model})")
-        if self.envelope is not None and self.kind == "trace":
-            ax.plot(self.t, off + self.envelope, color="k", lw=0.8, ls="--",
-                    label="envelope A f(t)")
-            ax.plot(self.t, off - self.envelope, color="k", lw=0.8, ls="--")
-        xc = self.derived.get("xc", 0.0)
-        if self.kind == "trace" and "mu" in self.free and xc > 0:
-            ax.axhspan(off - xc, off + xc, color="tab:orange", alpha=0.25,
-                       label="sticking band offset +- xc")
-        ax.set_ylabel("amplitude" if self.kind == "envelope" else "position")
-        terms = ", ".join(f"{k} = {self.params[k]:.4g}" for k in self.free)
-        what = self.source or ("maxima" if self.kind == "envelope" else "trace")
-        ax.set_title(title or f"{what}: {terms}  (rms {self.rms:.3g})",
-                     fontsize=9)
-        ax.legend(fontsize=8, loc="upper right")
-        axr.plot(self.t, self.residuals, color="tab:blue", lw=0.5,
-                 **({"marker": ".", "ls": "none"} if self.kind == "envelope" else {}))
-        axr.axhline(0.0, color="k", lw=0.6)
-        axr.set_ylabel("data - fit")
-        axr.set_xlabel("t [s]")
-
-        save_figure(fig, path, dpi=110)
-        return Path(path)
+        return fit_figure(self, path, title)
 
 
 @dataclass
@@ -467,87 +342,6 @@ class ArrayFit(NamedTuple):
     resid: jax.Array | None = None
 
 
-@dataclass(frozen=True)
-class FitContext:
-    """What a fit was asked to do, besides the core's arrays: what its FitResult reports.
-
-    Attributes:
-        model: name of the fit model (an entry of ``FIT_MODELS``).
-        free: the fitted damping constants.
-        vary: the mask of varied parameters (named booleans).
-        consts: m, g (and w0 of envelope fits), floats.
-        t, x: the fitted window (not padded).
-        loss, optimizer: as asked.
-        f_scale: the soft_l1 scale (inf for the linear loss).
-        init: initial values of the varied parameters.
-        source: where the data came from.
-        full_t, full_x: the whole trace (drawn before the fit start), or None.
-        warnings: notes about the data.
-        stages: how the fit was staged (appended to the message).
-    """
-
-    model: str
-    free: tuple
-    vary: tuple
-    consts: Constants
-    t: np.ndarray
-    x: np.ndarray
-    loss: str
-    optimizer: str
-    f_scale: float = math.inf
-    init: dict = field(default_factory=dict)
-    source: str = ""
-    full_t: np.ndarray | None = None
-    full_x: np.ndarray | None = None
-    warnings: tuple = ()
-    stages: str = ""
-    per_mass: bool = False
-    units: str = "m"
-    analysis: object = None
-    starts: object = None
-    profile: object = None
-
-
-def _envelope_curve(t, a, bp, c):
-    """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
-    (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
-    from the cache in every new process (issue 26); compiled as one, f may differ from the
-    eager value in the last bit. The arguments: concrete numbers."""
-
-    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
-    return call_cached("fit-envelope", (), decay, *args)
-
-
-def _trace_derived(params: dict, coords, ctx: FitContext):
-    """(derived, envelope A f(t), fixed) of a trace fit: eq. 21, xc = mu g/w0^2, k = m w0^2,
-    the ansatz amplitude and phase (eqs. 22-23) and its halt time."""
-    m, g = ctx.consts.m, ctx.consts.g
-    w0 = params["w0"]
-    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
-    derived = {"d0": d0, "d1": d1, "d2": d2, "xc": params["mu"] * g / w0 ** 2,
-               "k": m * w0 ** 2, "mu_g": params["mu"] * g, "b/m": params["b"] / m,
-               "D/m": params["D"] / m}
-    A, phi = FIT_MODELS[ctx.model].amplitude_phase(params, coords, m, g)
-    envelope = None
-    t_start = float(ctx.t[0])
-    if math.isfinite(A) and A > 0:
-        envelope = A * np.asarray(_envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A))
-        derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
-    derived["A"], derived["phi"] = A, phi
-    fixed = {"m": m, "g": g}
-    if not ctx.vary.w0:
-        fixed["k"] = m * params["w0"] ** 2
-    return derived, envelope, fixed
-
-
-def _envelope_derived(params: dict, coords, ctx: FitContext):
-    """(derived, None, fixed) of an envelope fit: eq. 21 at the fixed w0."""
-    m, g, w0 = ctx.consts.m, ctx.consts.g, ctx.consts.w0
-    d0, d1, d2 = damping_d(params["mu"], params["b"], params["D"], w0, m, g)
-    return ({"d0": d0, "d1": d1, "d2": d2, "w0": w0, "mu_g": params["mu"] * g,
-             "b/m": params["b"] / m, "D/m": params["D"] / m}, None, {"m": m, "g": g, "w0": w0})
-
-
 def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     """The :class:`FitResult` of the core's output ``out`` for the fit described by ``ctx``."""
     mask = ctx.vary._asdict()
@@ -566,7 +360,7 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     text = FIT_RESULTS[out.code]
     message = f"{text}; {ctx.stages}" if ctx.stages else text
     kind = FIT_MODELS[ctx.model].kind
-    derive = _trace_derived if kind == "trace" else _envelope_derived
+    derive = trace_derived if kind == "trace" else envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
     converged = bool(out.code == FIT_RESULTS.successful)
     capped = bool(out.code == FIT_RESULTS.max_steps_reached)

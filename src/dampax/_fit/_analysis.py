@@ -1,0 +1,353 @@
+"""What a trace says before any fit (numpy): :func:`analyse` and its :class:`Analysis`.
+
+Noise from higher differences; the turning points (velocity zeros) by a zigzag with a noise
+and range based reversal, the noise's wiggles merged away and the data's halt found where
+they come to rest; the offset from the midpoints of successive turning points, the frequency
+from their spacing (pi/w0 for Coulomb friction, which moves the zero crossings but not them;
+a least-squares sinusoid when there are fewer than two) (docs/DESIGN.md, fitting). The
+initial guesses built on it are ``_guess``'s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._params import MAD
+
+
+@dataclass
+class Analysis:
+    """What :func:`analyse` finds in a trace, before any fit.
+
+    Everything comes from the turning points (velocity zeros), which friction and drag do not
+    move off the motion's own clock: Coulomb friction shifts the centre of each half swing by
+    +-mu m g/k, which moves the zero crossings, but the turning points of eq. 3 stay pi/w0
+    apart (pi/w_d with viscous damping).
+
+    Attributes:
+        offset: the equilibrium position (mean of the centres of successive half swings).
+        omega: angular frequency: pi / the spacing of the turning points, or a least-squares
+            sinusoid over the moving part when there are fewer than two.
+        noise: sigma of the white part of the measurement noise (second differences).
+        ext_i, ext_t: sample index and time of every turning point inside the trace (the
+            rest point last when the data halt).
+        ext_x: the turning points, relative to the offset.
+        n_turns: number of turning points.
+        halted: the data stop moving inside the trace (no reversal after the last turning
+            point for at least half a period).
+        end_t: where the data stop moving (the last turning point when halted, else t[-1]).
+        omega_spread: relative uncertainty of ``omega`` as a start (a few turning points
+            fix it to a few per cent, many to a few per mille).
+        level: the reversal a turning point needs (noise and range based).
+    """
+
+    offset: float
+    omega: float
+    noise: float
+    ext_i: np.ndarray
+    ext_t: np.ndarray
+    ext_x: np.ndarray
+    n_turns: int = 0
+    halted: bool = False
+    end_t: float = math.nan
+    omega_spread: float = 0.3
+    level: float = 0.0
+
+
+def _noise_sigma(x: np.ndarray) -> float:
+    """sigma of the white part of the noise: the MAD of the k-th differences (var =
+    C(2k, k) sigma^2), the smallest over k = 2..5 (a smooth signal adds (w dt)^k A to the
+    k-th differences, which the higher orders shed where the sampling is coarse)."""
+    if x.size < 8:
+        return 0.0
+    best = math.inf
+    d = np.asarray(x, dtype=float)
+    for k in range(1, 6):
+        d = np.diff(d)
+        if k < 2:
+            continue
+        s = float(MAD * np.median(np.abs(d - np.median(d))) / math.sqrt(math.comb(2 * k, k)))
+        best = min(best, s)
+    return best
+
+
+def _frequency_fft(t: np.ndarray, y: np.ndarray) -> float:
+    """Angular frequency of the highest peak of the (zero-padded, Hann-windowed) spectrum."""
+    dt = float(np.median(np.diff(t)))
+    n = 1 << int(math.ceil(math.log2(max(len(y), 8)))) + 2
+    spec = np.abs(np.fft.rfft((y - y.mean()) * np.hanning(len(y)), n))
+    spec[0] = 0.0
+    k = int(np.argmax(spec))
+    if 0 < k < len(spec) - 1:
+        a, b, c = np.log(spec[k - 1: k + 2] + 1e-300)
+        k = k + 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else k
+    return 2.0 * math.pi * k / (n * dt)
+
+
+def despike(x: np.ndarray, width: int = 5) -> np.ndarray:
+    """Running median over ``width`` samples: removes glitches of one or two samples."""
+    if x.size < 3 * width:
+        return x
+    half = width // 2
+    padded = np.concatenate([np.full(half, x[0]), x, np.full(half, x[-1])])
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=1)
+
+
+def zigzag(y: np.ndarray, h: float):
+    """Turning points of a trace: the extremes confirmed by a reversal of more than ``h``.
+
+    Returns:
+        (indices, pending): the confirmed extremes in time order (an extreme at the first
+        sample is the window's edge, not a reversal, and is left out) and the index of the
+        extreme after the last one, which no reversal has confirmed (the data halt there, or
+        the trace ends).
+    """
+    n = y.size
+    out = []
+    imax = imin = 0
+    trend = 0
+    for i in range(1, n):
+        v = y[i]
+        if trend >= 0 and v > y[imax]:
+            imax = i
+        if trend <= 0 and v < y[imin]:
+            imin = i
+        if trend >= 0 and y[imax] - v > h:
+            out.append(imax)
+            trend, imin = -1, i
+        elif trend <= 0 and v - y[imin] > h:
+            out.append(imin)
+            trend, imax = 1, i
+    pending = imax if trend == 1 else imin if trend == -1 else -1
+    out = [i for i in out if i > 0]
+    return np.asarray(out, dtype=int), pending
+
+
+def _sinusoid_frequency(t, y, lo, hi):
+    """Angular frequency in [lo, hi] of the least-squares c + (a + a' s) cos(w s) +
+    (b + b' s) sin(w s) (a scan on a log grid, then a finer one around the best)."""
+    s = t - t[0]
+    span = max(float(s[-1]), 1e-300)
+
+    def rss(w):
+        cw, sw = np.cos(w * s), np.sin(w * s)
+        X = np.stack([np.ones_like(s), cw, sw, (s / span) * cw, (s / span) * sw], axis=1)
+        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
+        r = y - X @ coef
+        return float(r @ r)
+
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), 160))
+    best = grid[int(np.argmin([rss(w) for w in grid]))]
+    fine = np.linspace(best / 1.03, best * 1.03, 61)
+    return float(fine[int(np.argmin([rss(w) for w in fine]))])
+
+
+def _merge_wiggles(y, idx, t, half):
+    """Turning points without the noise's wiggles: while two successive ones are closer than
+    0.4 half periods, the pair is dropped (keeping, of the two extremes of the same kind, the
+    more extreme one)."""
+    idx = list(idx)
+    while len(idx) >= 2:
+        gaps = np.diff(t[idx])
+        j = int(np.argmin(gaps))
+        if not gaps[j] < 0.4 * half:
+            break
+        a, b = idx[j], idx[j + 1]  # a short swing a -> b
+        # b is a max (min) when y[b] > y[a]; the previous extreme of b's kind is idx[j - 1]
+        if j >= 1:
+            prev = idx[j - 1]
+            b_more = (y[b] > y[prev]) if y[b] > y[a] else (y[b] < y[prev])
+            drop = (j - 1, j) if b_more else (j, j + 1)
+        elif j + 2 < len(idx):
+            nxt = idx[j + 2]
+            a_more = (y[a] > y[nxt]) if y[a] > y[b] else (y[a] < y[nxt])
+            drop = (j + 1, j + 2) if a_more else (j, j + 1)
+        else:
+            drop = (j, j + 1)
+        idx = [i for k, i in enumerate(idx) if k not in drop]
+    return np.asarray(idx, dtype=int)
+
+
+def _search_band(T: float, dt: float) -> tuple[float, float]:
+    """(lo, hi): the angular frequencies a least-squares sinusoid over a span ``T`` is sought
+    in (from a quarter of a half swing over the span to 8, below a quarter of the sampling's
+    Nyquist frequency)."""
+    lo = 0.25 * math.pi / max(T, 1e-300)
+    hi = max(min(8.0 * math.pi / max(T, 1e-300), math.pi / (4.0 * dt)), 1.01 * lo)
+    return lo, hi
+
+
+def _half_period(t, y, idx, level: float, dt: float, omega0: float | None) -> float:
+    """The half period: the given one (pi/omega0), else the duration of the largest swing
+    between two turning points (a noisy tail cannot disturb it), else a least-squares sinusoid
+    over the part of the trace that moves (NaN for fewer than 8 samples).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``: its turning points; ``level``: the reversal they
+            need; ``dt``: the sampling step; ``omega0``: the known frequency, or None.
+    """
+    if omega0 is not None:
+        return math.pi / omega0
+    if idx.size >= 2:
+        k = int(np.argmax(np.abs(np.diff(y[idx]))))
+        return float(t[idx[k + 1]] - t[idx[k]])
+    if t.size < 8:
+        return math.nan
+    ref = float(np.median(y[-max(t.size // 8, 4):]))
+    moving = np.flatnonzero(np.abs(y - ref) > level)
+    stop = max(int(moving[-1]) + 1 if moving.size else t.size, 8)
+    lo, hi = _search_band(float(t[stop - 1] - t[0]), dt)
+    return math.pi / _sinusoid_frequency(t[:stop], y[:stop], lo, hi)
+
+
+def _drop_pauses(y, idx, t, half: float):
+    """(turning points, truncated): the noise's wiggles merged away (:func:`_merge_wiggles`)
+    and, as a free oscillation reverses every half period, the turning points after a pause
+    longer than 1.6 half periods dropped (the data had stopped: what follows are the noise's
+    reversals); unchanged where the half period is unknown (NaN)."""
+    if not math.isfinite(half):
+        return idx, False
+    idx = _merge_wiggles(y, idx, t, half)
+    long = np.flatnonzero(np.diff(t[idx]) > 1.6 * half)
+    if long.size:
+        return idx[: long[0] + 1], True
+    return idx, False
+
+
+def _halt(t, y, idx, level: float, half: float, dt: float, truncated: bool):
+    """(turning points, halted): whether after the last turning point the data come to rest
+    and stay there (for half a period at least; at once where ``truncated``: a pause was
+    cut off); the arrival at rest is appended as a turning point where the last swing ends
+    outside the rest band. Else the pending extreme is the window's edge (not halted).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``: its turning points; ``level``: the reversal they
+            need; ``half``: the half period (NaN: unknown); ``dt``: the sampling step.
+    """
+    last = int(idx[-1]) if idx.size else 0
+    tail = y[last:]
+    if tail.size <= 8:
+        return idx, False
+    end_part = tail[-max(tail.size // 4, 4):]
+    rest = float(np.median(end_part))
+    band = max(0.5 * level, 3.0 * MAD * float(np.median(np.abs(end_part - rest))))
+    inside = np.abs(tail - rest) <= band
+    # arrival: the first sample after which 95 % of the samples stay inside the band
+    later_out = np.cumsum(~inside[::-1])[::-1]
+    frac = later_out / np.arange(tail.size, 0, -1)
+    ok = np.flatnonzero(inside & (frac <= 0.05))
+    if not ok.size and truncated:
+        ok = np.flatnonzero(inside)
+    if not ok.size:
+        return idx, False
+    arrive = last + int(ok[0])
+    stay = float(t[-1] - t[arrive])
+    ref = half if math.isfinite(half) else float(t[arrive] - t[0])
+    if not (truncated or (stay >= 0.5 * ref and stay > 4 * dt)):
+        return idx, False
+    # the data rest for half a period (a swing would have reversed): they halted, at the
+    # arrival (the last turning point itself when the last swing is within the band)
+    if arrive > last and abs(y[arrive] - y[last]) > level:
+        return np.append(idx, arrive), True
+    return idx, bool(idx.size)
+
+
+def _offset(t, y, idx, tx, halted: bool, end_t: float) -> float:
+    """The offset: the centres of successive half swings alternate about it by the friction's
+    shift (and the decrement): the mean of an even number of them; with fewer than four
+    turning points of data that halt, the rest position (within mu g/w0^2 of it; the centre of
+    one half swing is off by half its decrement, which drag makes large).
+
+    Arguments:
+        t, y: the trace (despiked); ``idx``, ``tx``: the turning points and their positions;
+            ``halted``, ``end_t``: whether and where the data stop moving.
+    """
+    if halted and tx.size <= 3 and int(idx[-1]) < t.size - 8:
+        return float(np.median(y[int(idx[-1]):]))
+    if tx.size >= 3:
+        mids = 0.5 * (tx[:-1] + tx[1:])
+        k = min(mids.size, 40)
+        k -= k % 2
+        return float(np.mean(mids[:k]))
+    if tx.size == 2:
+        return float(0.5 * (tx[0] + tx[1]))
+    moving = t <= end_t
+    return float(np.median(y[moving])) if np.any(moving) else float(np.median(y))
+
+
+def _spacing_frequency(t, y, conf, off: float) -> tuple[float, float]:
+    """(omega, spread) from three or more confirmed turning points: pi over the slope of a
+    line through their times (the spectrum's peak where it is not positive); the spread from
+    the slope's standard error."""
+    k = np.arange(conf.size, dtype=float)
+    tk = t[conf]
+    coef = np.polyfit(k, tk, 1)
+    slope = float(coef[0])
+    omega = math.pi / slope if slope > 0 else _frequency_fft(t, y - off)
+    resid = tk - np.polyval(coef, k)
+    se = float(np.sqrt(np.sum(resid * resid) / max(conf.size - 2, 1)
+                       / np.sum((k - k.mean()) ** 2)))
+    return omega, float(min(0.3, max(3e-3, 4.0 * se / max(slope, 1e-300),
+                                     0.5 / conf.size ** 2)))
+
+
+def _frequency(t, y, conf, off: float, end_t: float, half: float, dt: float,
+               omega0: float | None) -> tuple[float, float]:
+    """(omega, spread): the given omega0 (spread 0); else from the spacing of the confirmed
+    turning points ``conf`` (:func:`_spacing_frequency`; two: pi over their distance, spread
+    0.15); else a least-squares sinusoid over the part that moves (the spectrum's peak for
+    fewer than 8 samples), spread 0.3.
+
+    Arguments:
+        t, y: the trace (despiked); ``off``: its offset; ``end_t``: where the data stop
+            moving; ``half``: the half period (NaN: unknown); ``dt``: the sampling step.
+    """
+    if omega0 is not None:
+        return float(omega0), 0.0
+    if conf.size >= 3:
+        return _spacing_frequency(t, y, conf, off)
+    if conf.size == 2:
+        return math.pi / float(t[conf[1]] - t[conf[0]]), 0.15
+    stop = int(np.searchsorted(t, end_t + (0.5 * half if math.isfinite(half) else 0.0)))
+    stop = min(max(stop, 8), t.size)
+    tm, ym = t[:stop], y[:stop]
+    T = float(tm[-1] - tm[0]) if tm.size > 1 else float(t[-1] - t[0])
+    lo, hi = _search_band(T, dt)
+    omega = _sinusoid_frequency(tm, ym, lo, hi) if tm.size >= 8 else \
+        _frequency_fft(t, y - off)
+    return omega, 0.3
+
+
+def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Analysis:
+    """Turning points, offset, frequency, noise and where the data stop moving.
+
+    Arguments:
+        t, x: the trace (sorted, finite).
+        omega0: the angular frequency when it is known (an oscillator without
+            ``fit_omega0``): it sets the half period that separates a halt from a pause.
+
+    Returns:
+        An :class:`Analysis`.
+    """
+    noise = _noise_sigma(x)
+    y = despike(x)
+    half_range = 0.5 * float(np.ptp(y))
+    level = max(8.0 * noise, 0.05 * half_range)
+    idx, _ = zigzag(y, level)
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    known = omega0 if omega0 is not None and math.isfinite(omega0) and omega0 > 0 else None
+    half = _half_period(t, y, idx, level, dt, known)
+    idx, truncated = _drop_pauses(y, idx, t, half)
+    idx, halted = _halt(t, y, idx, level, half, dt, truncated)
+    end_t = float(t[idx[-1]]) if halted else float(t[-1])
+    tx = y[idx]
+    off = _offset(t, y, idx, tx, halted, end_t)
+    # the frequency from the turning points that reversals confirmed (the arrival at rest is
+    # not one: the data reach the rest band a little before they stop)
+    omega, spread = _frequency(t, y, idx[:-1] if halted else idx, off, end_t, half, dt, known)
+    return Analysis(offset=off, omega=omega, noise=noise, ext_i=idx, ext_t=t[idx],
+                    ext_x=tx - off, n_turns=int(idx.size), halted=halted, end_t=end_t,
+                    omega_spread=spread, level=level)
