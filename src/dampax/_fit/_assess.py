@@ -44,6 +44,7 @@ from ._profile import (
     bound_tests,
     profile_ratios,
 )
+from ._text import time_span
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
 ABSURD = 10.0
@@ -100,6 +101,7 @@ class Inputs(NamedTuple):
     profile: Callable | None = None
     chisqr: float = math.nan
     d_scale: dict | None = None
+    search: object = None
 
 
 class Finding(NamedTuple):
@@ -384,25 +386,78 @@ def motion_ends(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
+#: a half swing's residuals count as beyond the noise above this many noise sd (rms); below,
+#: a small swing near the rest point, whose residuals are the noise, would read as a large
+#: fraction of its amplitude
+SWING_NOISE = 3.0
+
+
+def worst_swing(a: Inputs, m: Measures) -> tuple[float, float, float, float]:
+    """The half swing (between the data's turning points) whose residuals, beyond
+    :data:`SWING_NOISE` times the noise, are largest against its own amplitude: (start, end,
+    its residual rms, its amplitude); the whole window where no swing's are."""
+    edges = np.concatenate([[a.t[0]], np.asarray(a.an.ext_t, dtype=float), [a.t[-1]]])
+    offset = a.params.get("offset", 0.0)
+    best = (float(a.t[0]), float(a.t[-1]), m.rms, float(np.max(np.abs(a.x - offset))))
+    score = -1.0
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = (a.t >= lo) & (a.t <= hi)
+        if np.count_nonzero(sel) < 4:
+            continue
+        rms = float(np.sqrt(np.mean(m.r[sel] ** 2)))
+        amp = float(np.max(np.abs(a.x[sel] - offset)))
+        if amp > 0 and rms > SWING_NOISE * a.an.noise and rms / amp > score:
+            score, best = rms / amp, (float(lo), float(hi), rms, amp)
+    return best
+
+
+def _structure_text(a: Inputs, m: Measures) -> str:
+    """Where the structure sits and how large it is, for the reasons."""
+    lo, hi, rms, amp = worst_swing(a, m)
+    noise = a.an.noise
+    times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
+    return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "
+            f"{rms:.3g} ({times}{100 * rms / amp:.1f} % of its amplitude)")
+
+
 def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
-    """Eq. 3 integrated exactly: structure the noise cannot produce is a local optimum (or
-    physics that eq. 3 lacks)."""
+    """Eq. 3 integrated exactly: structure the noise cannot produce is a local optimum or
+    physics that eq. 3 lacks. The fit's own search of the exact model's starts (``a.search``,
+    run where the first exact fit looked stuck) tells them apart: where its starts found no
+    lower cost and at least two reached this optimum, the optimum stands (a success) and the
+    model is inadequate, the structure named; where no search ran, or it did not settle
+    (one start alone reached the optimum), the fit fails as a possible local optimum."""
     if not (m.st["p"] < STRUCTURE_P and a.model == "reference"):
         return Finding()
-    lo, hi = m.st["worst"]
-    return Finding(fails=(f"the residuals are not noise (p = {m.st['p']:.1g}, worst around t = "
-                          f"{lo:.4g}-{hi:.4g} s): a local optimum, or the data hold what eq. 3 "
-                          "lacks",))
+    where = _structure_text(a, m)
+    search = a.search
+    if search is not None and search.reached >= 2:
+        return Finding(bad=(f"the residuals hold structure that eq. 3 with these terms lacks "
+                            f"({where}): {search.n} starts of the exact model found no lower "
+                            f"cost, {search.reached} reached this optimum",))
+    why = ("no search of the exact model ran (starts=1)" if search is None else
+           f"of {search.n} starts of the exact model {search.reached} reached the best optimum")
+    return Finding(fails=(f"the residuals are not noise ({where}): a local optimum, or the data "
+                          f"hold what eq. 3 lacks; {why}",),
+                   bad=(f"the residuals hold structure beyond the noise ({where})",))
 
 
 def size(a: Inputs, m: Measures, v: Verdict) -> Finding:
-    """Structured residuals above :data:`RMS_AMPLITUDE` of the amplitude: inadequate."""
+    """An approximate model's structured residuals above :data:`RMS_AMPLITUDE` of the
+    amplitude, overall or in one half swing: inadequate (the exact model's structure is
+    :func:`exact_structure`'s)."""
     A, noise = a.derived["A"], a.an.noise
-    if not (m.st["p"] < STRUCTURE_P and m.rms > RMS_AMPLITUDE * A):
+    if not m.st["p"] < STRUCTURE_P or a.model == "reference":
         return Finding()
-    return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} times "
-                        f"the noise level of the data ({noise:.3g}) and "
-                        f"{100 * m.rms / A:.1f} % of the amplitude",))
+    lo, hi, rms, amp = worst_swing(a, m)
+    if m.rms > RMS_AMPLITUDE * A:
+        return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} "
+                            f"times the noise level of the data ({noise:.3g}) and "
+                            f"{100 * m.rms / A:.1f} % of the amplitude",))
+    if rms > RMS_AMPLITUDE * amp:
+        return Finding(bad=(f"the residuals are {100 * rms / amp:.1f} % of the amplitude in the "
+                            f"swing at t = {time_span(lo, hi)} (rms {rms:.3g})",))
+    return Finding()
 
 
 def drift(a: Inputs, m: Measures, v: Verdict) -> Finding:

@@ -56,6 +56,7 @@ class FitContext:
     analysis: object = None
     starts: object = None
     profile: object = None
+    search: object = None  # the exact model's own batch of starts, where it ran
 
 
 def _envelope_curve(t, a, bp, c):

@@ -82,6 +82,7 @@ class Fit(NamedTuple):
     last: Solved
     starts: object = None
     notes: tuple = ()
+    search: object = None  # the exact model's own batch, where it ran
 
 
 def first_model(problem: Problem, plan: Plan) -> str:
@@ -139,7 +140,8 @@ def exact_model(problem: Problem, plan: Plan, state: Fit) -> Fit:
             text += f" found a lower cost ({lower_cost(0.5 * c1, 0.5 * c0)})"
         else:
             text += " found no lower cost"
-    return Fit(out, last, found, state.notes + (text,))
+    search = found if found is not state.starts else None
+    return Fit(out, last, found, state.notes + (text,), search)
 
 
 def continue_budget(problem: Problem, state: Fit) -> Fit:
@@ -151,7 +153,7 @@ def continue_budget(problem: Problem, state: Fit) -> Fit:
     last = problem.solve(state.best.params, problem.settings.model, state.last.fs)
     if float(last.out.chisqr) < float(state.best.chisqr):
         note = f"the step budget ran out: continued ({int(last.out.steps)} more steps)"
-        return Fit(last.out, last, state.starts, state.notes + (note,))
+        return Fit(last.out, last, state.starts, state.notes + (note,), state.search)
     return state._replace(last=last)
 
 
@@ -163,7 +165,7 @@ def neighbouring_halts(problem: Problem, plan: Plan, state: Fit) -> tuple[Fit, d
             and problem.consts.mu_s is None and s.loss == "linear"):
         return state, {}
     best, last, others, notes = search_other_halts(problem, state.best, state.last)
-    return Fit(best, last, state.starts, state.notes + notes), others
+    return Fit(best, last, state.starts, state.notes + notes, state.search), others
 
 
 def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, start=None,
@@ -224,7 +226,7 @@ def assess(problem: Problem, plan: Plan, state: Fit) -> FitResult:
         init={name: getattr(problem.guess, name) for name in varied_names(problem.vary)},
         source=data.source, full_t=data.t_all, full_x=data.x_all, warnings=problem.warnings,
         stages="; ".join(state.notes), per_mass=problem.per_mass, units=problem.units,
-        analysis=data.analysis, starts=state.starts, profile=profile))
+        analysis=data.analysis, starts=state.starts, profile=profile, search=state.search))
     if "unidentifiable" in res.diagnostics and plan.refuse_unidentifiable:
         raise ValueError(res.diagnostics["unidentifiable"])
     return res
