@@ -8,7 +8,7 @@ static halt); ``_assess`` judges the result by a table of checks; the searches o
 (``_stiffness``) and mu_s (``_static``) run plans on held problems.
 
 Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``, ``_profile``,
-``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
+``_mcmc``, ``_sampler``; ``_curves`` (the fit models); ``_core`` (the solver: pure, vmappable);
 ``_guess``, ``_checks``, ``_assess``, ``_options``; ``_problem``, ``_result``, ``_example``;
 ``_starts`` (vmapped global starts), ``_halts``; ``_pipeline``; ``_static``, ``_stiffness``;
 ``_api`` (single-trace functions); ``_joint_problem``, ``_joint_result``, ``_joint_build``,
