@@ -325,10 +325,27 @@ def _covariance(J, params_of, theta, vary, s2):
     return cov, stderr, jnp.where(vary[None, :], Jp, 0.0)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "optimizer", "max_steps", "rtol", "atol",
-                                             "opts"))
-def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps, rtol, atol,
-         opts) -> CoreResult:
+class CoreOptions(NamedTuple):
+    """The static settings of :func:`core` (hashable: equal settings share one compiled
+    program).
+
+    Attributes:
+        model: the name of an entry of :data:`FIT_MODELS`.
+        optimizer: "lm", "adam" or "lbfgs".
+        max_steps, rtol, atol: budget and tolerances (internal coordinates).
+        opts: :class:`ReferenceOptions` for models that integrate, else None.
+    """
+
+    model: str
+    optimizer: str
+    max_steps: int
+    rtol: float
+    atol: float
+    opts: ReferenceOptions | None = None
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreResult:
     """One fit, pure: optimise, then the covariance by the delta method.
 
     Arguments:
@@ -337,14 +354,13 @@ def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps
         vary: the mask, same type, booleans (traced: one compilation for every candidate).
         consts: :class:`~dampax._fit._params.Constants`.
         f_scale: soft_l1 scale in data units (inf: linear loss).
-        model: the name of an entry of :data:`FIT_MODELS` (static, as all the rest).
-        optimizer: "lm", "adam" or "lbfgs".
-        max_steps, rtol, atol: budget and tolerances (internal coordinates).
-        opts: :class:`ReferenceOptions` for models that integrate, else None.
+        options: the model, the optimizer, its budget and tolerances, the integrator's
+            options (:class:`CoreOptions`, static).
 
     Returns:
         A :class:`CoreResult`.
     """
+    model, optimizer, max_steps, rtol, atol, opts = options
     spec = FIT_MODELS[model]
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
@@ -404,7 +420,8 @@ def core(t, x, weight, p0, vary, consts, f_scale, *, model, optimizer, max_steps
 
 def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
-    the same shapes shares one compiled function. ``static``: the keyword arguments of core.
+    the same shapes shares one compiled function. ``static``: the fields of
+    :class:`CoreOptions` by name.
 
     Called with concrete values (an eager fit), the compiled program is kept
     (``_cache.call_cached_tree``): a repeated fit, also in a new process, neither traces nor
@@ -412,7 +429,8 @@ def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
     args = (jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
             jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
             as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+    options = CoreOptions(**static)
     if is_concrete(args):
         return call_cached_tree("fit-core", sorted(static.items()),
-                                functools.partial(core, **static), *args)
-    return core(*args, **static)
+                                functools.partial(core, options=options), *args)
+    return core(*args, options=options)
