@@ -135,7 +135,7 @@ def _params_with(q: TraceCoords, v0) -> TraceParams:
 
 
 def _ansatz_coords(p: TraceParams, consts: Constants) -> TraceCoords:
-    return _coords_with(p, ansatz_y(p.x0, p.v0, p.mu, p.b, p.D, p.w0, consts.m, consts.g))
+    return _coords_with(p, ansatz_y(p, consts))
 
 
 def _ansatz_params(q: TraceCoords, consts: Constants) -> TraceParams:
