@@ -230,7 +230,8 @@ def test_each_public_call_validates_once():
 #: pipeline that builds it; the searches of k3 and mu_s above the pipeline they run.
 FIT_LAYERS = (
     ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler"),  # ground
-    ("_core",),  # the models and the solver core
+    ("_curves",),  # the fit models: their curves and settings
+    ("_core",),  # the solver core
     ("_analysis", "_guess", "_checks", "_assess", "_options"),  # guesses, checks, options
     ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example
     ("_starts", "_halts"),  # stages: the batch of starts, the neighbouring halts
