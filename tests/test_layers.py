@@ -231,7 +231,8 @@ def test_each_public_call_validates_once():
 FIT_LAYERS = (
     ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text",
      "_linalg"),  # ground
-    ("_core",),  # the models and the solver core
+    ("_curves",),  # the fit models: their curves and settings
+    ("_core",),  # the solver core
     ("_analysis", "_guess", "_checks", "_assess", "_options"),  # guesses, checks, options
     ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example
     ("_starts", "_halts", "_answer"),  # stages: the batch of starts, the neighbouring halts
@@ -275,3 +276,57 @@ def test_fit_functions_take_no_private_or_fit_function_parameters():
                 bad += [f"{path.name}:{getattr(node, 'name', 'lambda')}({n})" for n in names
                         if n.startswith("_") or n == "fit"]
     assert not bad, bad
+
+
+#: issue 33's limits on the fit layer: lines per function (its docstring excluded), lines per
+#: module, parameters per private function (the public entry points keep their signatures)
+FIT_FUNCTION_LINES, FIT_MODULE_LINES, FIT_PRIVATE_PARAMETERS = 60, 500, 8
+
+
+def _public_fit_functions() -> set[tuple[str, str]]:
+    """(module file name, function name) of the functions that ``dampax`` exports from _fit/
+    (their signatures are the public interface, docs/DESIGN.md)."""
+    import inspect
+
+    import dampax
+
+    out = set()
+    for name in dir(dampax):
+        obj = getattr(dampax, name)
+        module = getattr(obj, "__module__", "") or ""
+        if module.startswith("dampax._fit.") and inspect.isfunction(obj):
+            out.add((module.rsplit(".", 1)[1] + ".py", obj.__name__))
+    return out
+
+
+def _body_lines(node) -> int:
+    """Lines of a function from its first statement after the docstring to its end."""
+    body = node.body
+    doc = (isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant)
+           and isinstance(body[0].value.value, str))
+    if doc and len(body) == 1:
+        return 0
+    return node.end_lineno - body[1 if doc else 0].lineno + 1
+
+
+def test_fit_functions_and_modules_are_small():
+    """No function of _fit/ is longer than 60 lines (docstring excluded), no module longer
+    than 500 lines, and no private function (every one but the public entry points) takes more
+    than 8 parameters: a long list of switches is a problem or an option value."""
+    public = _public_fit_functions()
+    bad = []
+    for path in sorted((SRC / "_fit").glob("*.py")):
+        text = path.read_text()
+        if len(text.splitlines()) > FIT_MODULE_LINES:
+            bad.append(f"{path.name}: {len(text.splitlines())} lines")
+        for node in ast.walk(ast.parse(text)):
+            if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            if _body_lines(node) > FIT_FUNCTION_LINES:
+                bad.append(f"{path.name}:{node.name}: {_body_lines(node)} lines")
+            a = node.args
+            n = len([x for x in (*a.posonlyargs, *a.args, *a.kwonlyargs)
+                     if x.arg not in ("self", "cls")])
+            if n > FIT_PRIVATE_PARAMETERS and (path.name, node.name) not in public:
+                bad.append(f"{path.name}:{node.name}: {n} parameters")
+    assert not bad, "\n".join(bad)

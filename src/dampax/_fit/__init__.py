@@ -8,7 +8,7 @@ static halt); ``_assess`` judges the result by a table of checks; the searches o
 (``_stiffness``) and mu_s (``_static``) run plans on held problems.
 
 Layers, bottom up (tests/test_layers.py): ``_params``, ``_dist``, ``_intervals``, ``_profile``,
-``_mcmc``, ``_sampler``; ``_core`` (the fit models, residuals, optimisers: pure, vmappable);
+``_mcmc``, ``_sampler``; ``_curves`` (the fit models); ``_core`` (the solver: pure, vmappable);
 ``_analysis`` (what a trace says before any fit), ``_guess``, ``_checks``, ``_assess``,
 ``_options``; ``_problem``, ``_context`` (what a fit was asked to do), ``_report`` (a result's
 report and figure), ``_result``, ``_example``; ``_starts`` (vmapped global starts), ``_halts``;

@@ -301,12 +301,22 @@ def phase_rate(w0, d1):
     return w0 * jnp.sqrt(jnp.clip(1.0 - r * r, 1e-6, 1.0))
 
 
-def ansatz_y(x0, v0, mu, b, D, w0, m, g, iters=40):
+def ansatz_y(p: TraceParams, consts: Constants, iters: int = 40):
     """y = A sin(phi) of the ansatz through (x0, v0), eqs. 22-23 with x0 = A cos(phi):
     v0 = -(d2 A + d1 + d0/A) x0 - wd y, A = sqrt(x0^2 + y^2), by fixed-point iteration
-    (wd: :func:`phase_rate`)."""
-    d0, d1, d2 = damping_d(mu, b, D, w0, m, g)
-    w0 = phase_rate(w0, d1)
+    (wd: :func:`phase_rate`).
+
+    Arguments:
+        p: the trace parameters (x0, v0, the damping constants and w0).
+        consts: the fixed constants (m and g).
+        iters: iterations of the fixed point.
+
+    Returns:
+        y, of the shape of p's entries.
+    """
+    x0, v0 = p.x0, p.v0
+    d0, d1, d2 = damping_d(p.mu, p.b, p.D, p.w0, consts.m, consts.g)
+    w0 = phase_rate(p.w0, d1)
 
     def body(index, w):
         A = jnp.sqrt(x0 * x0 + w * w)

@@ -74,8 +74,10 @@ from ._sampler import (
     PRIORS,
     REFERENCE_ATOL,
     REFERENCE_RTOL,
+    Chains,
     Draws,
     Layout,
+    Prior,
     physical,
     sample,
 )
@@ -308,9 +310,8 @@ def _joint_posterior(traces, req: Request, *, start_fit, shared, free, fit_kw) -
                          f"shared={_names(shared)!r}")
     stride = max(1, math.ceil(max(r.ndata for r in res.runs) / MAX_SAMPLES))
     residual, args, layout, centre, width, theta0, mask = _joint_setup(res, stride)
-    out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
-                 num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup,
-                 seed=seed, mask=mask)
+    out = sample(residual, args, layout, Prior(centre, width), theta0, mode=GRADIENTS[model],
+                 chains=Chains(num_samples, num_chains, num_warmup, seed), mask=mask)
     bar.update(2)
     bar.close()
     draws, observed = _joint_groups(out, layout, res, stride)
@@ -431,9 +432,8 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
                          f"mu_s={res.fixed.get('mu_s')!r}")
     stride = max(1, math.ceil(len(res.t) / MAX_SAMPLES))
     residual, args, layout, centre, width, theta0 = _trace_setup(res, stride, vary_k3)
-    out = sample(residual, args, layout, centre, width, theta0, mode=GRADIENTS[model],
-                 num_samples=num_samples, num_chains=num_chains, num_warmup=num_warmup,
-                 seed=seed)
+    out = sample(residual, args, layout, Prior(centre, width), theta0, mode=GRADIENTS[model],
+                 chains=Chains(num_samples, num_chains, num_warmup, seed))
     bar.update(2)
     bar.close()
     draws, observed = _trace_groups(out, layout, res, names_in, stride)

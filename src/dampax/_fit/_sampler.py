@@ -213,6 +213,34 @@ def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
     return jax.vmap(one_chain)(keys, u0)
 
 
+class Prior(NamedTuple):
+    """The independent normal priors N(centre, width) on theta (``Layout.dim`` entries each).
+
+    Attributes:
+        centre: the prior centres.
+        width: the prior widths.
+    """
+
+    centre: Any
+    width: Any
+
+
+class Chains(NamedTuple):
+    """How :func:`sample` runs NUTS.
+
+    Attributes:
+        num_samples: draws per chain.
+        num_chains: chains.
+        num_warmup: warm-up (window adaptation) steps per chain.
+        seed: random seed.
+    """
+
+    num_samples: int = 1000
+    num_chains: int = 4
+    num_warmup: int = 500
+    seed: int = 0
+
+
 class Draws(NamedTuple):
     """What :func:`sample` returns: theta (chain, draw, dim), the sample stats (each (chain,
     draw)), the mode and the Laplace factor, and the seconds of the mode search and of the
@@ -226,26 +254,26 @@ class Draws(NamedTuple):
     seconds_chains: float
 
 
-def sample(residual: Callable, args, layout: Layout, centre, width, theta0, *,
-           mode: str = "reverse", num_samples: int = 1000, num_chains: int = 4,
-           num_warmup: int = 500, seed: int = 0, mask=None) -> Draws:
+def sample(residual: Callable, args, layout: Layout, prior: Prior, theta0, *,
+           mode: str = "reverse", chains: Chains | None = None, mask=None) -> Draws:
     """NUTS draws of theta = (the layout's entries, log sigma and atanh phi_n of each noise
     series) for any residual.
 
-    The posterior: independent normal priors N(centre, width) on theta, AR(1) noise on
-    ``residual(p, args)`` (:func:`ar1_loglik`, the samples of ``mask``), p = :func:`physical`
-    (theta). Mode by L-BFGS from theta0, Laplace preconditioning, window adaptation and
-    sampling vmapped over chains.
+    The posterior: independent normal priors N(``prior.centre``, ``prior.width``) on theta,
+    AR(1) noise on ``residual(p, args)`` (:func:`ar1_loglik`, the samples of ``mask``),
+    p = :func:`physical` (theta). Mode by L-BFGS from theta0, Laplace preconditioning, window
+    adaptation and sampling vmapped over chains.
 
     Arguments:
         residual: ``residual(p, args) -> r`` (data minus model, shape (n,) or (rows, n)),
             hashable (a frozen dataclass: it is a static argument of the compiled programs).
         args: its arrays (a pytree; traced).
         layout: the names of p and which are sampled as logarithms.
-        centre, width, theta0: prior centres, widths and the start, ``layout.dim`` entries.
+        prior: the prior centres and widths (:class:`Prior`), ``layout.dim`` entries each.
+        theta0: the start of the mode search, ``layout.dim`` entries.
         mode: "reverse" or "forward" differentiation of the log density.
-        num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps.
-        seed: random seed.
+        chains: draws per chain, chains, warm-up steps and the seed (:class:`Chains`;
+            default ``Chains()``).
         mask: None, or booleans of the residual's shape: the samples in the likelihood (the
             padding of runs of different lengths left out).
 
@@ -254,6 +282,9 @@ def sample(residual: Callable, args, layout: Layout, centre, width, theta0, *,
     """
     from scipy.optimize import minimize
 
+    centre, width = prior
+    chains = Chains() if chains is None else chains
+    num_samples, num_chains, num_warmup, seed = chains
     dim = layout.dim
     for name, v in (("centre", centre), ("width", width), ("theta0", theta0)):
         if np.shape(v) != (dim,):

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached_tree
-from ._core import FIT_RESULTS, core
+from ._core import FIT_RESULTS, CoreOptions, core
 from ._params import PARAMS, TraceParams, as_arrays
 
 #: samples of the thinned trace of the batch (its padded length)
@@ -97,10 +97,9 @@ def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool =
     return P
 
 
-@functools.partial(jax.jit, static_argnames=("model", "optimizer", "max_steps", "rtol", "atol",
-                                             "opts"))
-def _batch(t, x, weight, p0s, vary, consts, f_scale, **static):
-    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, f_scale, **static))(p0s)
+@functools.partial(jax.jit, static_argnames=("options",))
+def _batch(t, x, weight, p0s, vary, consts, f_scale, options: CoreOptions):
+    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, f_scale, options))(p0s)
 
 
 def thin(t: np.ndarray, x: np.ndarray, omega: float):
@@ -153,9 +152,10 @@ def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed:
                   rtol=rtol, atol=atol, opts=opts)
     # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
     out = call_cached_tree("fit-starts", sorted(static.items()),
-                           functools.partial(_batch, **static), jnp.asarray(tp),
-                           jnp.asarray(xp), jnp.asarray(wt), p0s, as_arrays(vary, bool),
-                           as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+                           functools.partial(_batch, options=CoreOptions(**static)),
+                           jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt), p0s,
+                           as_arrays(vary, bool), as_arrays(consts),
+                           jnp.asarray(f_scale, dtype=float))
     costs = 0.5 * np.asarray(out.chisqr, dtype=float)
     ok = np.asarray(out.code._value) == FIT_RESULTS.successful._value
     params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
