@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._checks import interval_sd
-from ._core import curves
+from ._curves import curves
 from ._params import PARAMS, flat
 
 #: largest shift of a parameter, in interval sd, that the ansatz may leave (module docstring)

@@ -34,6 +34,7 @@ from ._curves import ReferenceOptions as ReferenceOptions
 from ._curves import model_curve as model_curve
 from ._curves import reference_solution as reference_solution
 from ._curves import swing_budget as swing_budget
+from ._linalg import tall_lstsq, tall_svd
 from ._params import (
     Damping,
     Setup,
@@ -238,7 +239,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
         p = dref * jnp.exp(theta)
         Jx = jnp.where(is_log, J / p, J)
         Jx = jnp.where(vary, Jx, 0.0)
-        step = jnp.linalg.lstsq(Jx, -r)[0]
+        step = tall_lstsq(Jx, -r)  # (XLA's CPU lstsq of a tall J: 44 ms; _linalg)
         snap = is_log & vary & (p + step <= 0.0) & (theta > lo + 1.0)
         theta = jnp.where(snap, lo + 1.0, theta)
         # Marquardt-like rescaling of the log coordinates
@@ -316,7 +317,7 @@ def _covariance(J, params_of, theta, vary, s2):
     # columns are unit columns (C = 1 there, dropped by `pair` below).
     Jn = jnp.where(active[None, :], Jp / d[None, :], 0.0)
     A = jnp.concatenate([Jn, jnp.diag(jnp.where(active, 0.0, 1.0)).astype(Jn.dtype)])
-    _, s, vt = jnp.linalg.svd(A, full_matrices=False)
+    s, vt = tall_svd(A)  # (XLA's CPU SVD of a tall A: 44 ms; _linalg)
     w = vt / jnp.where(s > 0.0, s, jnp.nan)[:, None]  # V^T / s: C = w^T w
     C = (w.T @ w) / (d[:, None] * d[None, :])
     cov = jnp.where(pair, s2 * C, 0.0)

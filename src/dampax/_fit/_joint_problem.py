@@ -24,6 +24,7 @@ from ._core import (
     _materialised,
     _result_code,
 )
+from ._linalg import tall_lstsq
 from ._params import (
     DAMPING,
     Constants,
@@ -301,7 +302,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
         # its lower bound (the single fit's rounds, ``_core._lm_rounds``)
         p = dref * jnp.exp(theta)
         Jx = jnp.where(is_log, J / p, J)
-        step = jnp.linalg.lstsq(Jx, -r)[0]
+        step = tall_lstsq(Jx, -r)  # (_linalg: XLA's CPU lstsq of a tall J is slow)
         snap = is_log & (p + step <= 0.0) & (theta > lo + 1.0)
         theta = jnp.where(snap, lo + 1.0, theta)
         cn = jnp.sqrt(jnp.sum(J * J, axis=0))
