@@ -32,10 +32,9 @@ from ._checks import (
     newton_step,
     null_directions,
     phase_drift,
-    residual_structure,
 )
 from ._dist import chi2_isf
-from ._intervals import hac_covariance
+from ._measures import Measures, measures, structure_text, worst_swing
 from ._profile import (
     LR_CHI2,
     PROFILE_FAIL,
@@ -248,34 +247,6 @@ def absurd(a: Inputs, v: Verdict) -> Finding:
     return Finding(diag=ratios)
 
 
-class Measures(NamedTuple):
-    """What the later checks share: the residuals, the noise, the intervals' covariance (what
-    conf_interval reports) and the residuals' test against AR(1) noise."""
-
-    r: np.ndarray
-    rms: float
-    period: float
-    cov: np.ndarray | None
-    sd: dict
-    st: dict
-
-
-def measures(a: Inputs) -> Measures:
-    """:class:`Measures` of a fit that passed the checks up to :func:`absurd`."""
-    r = a.x - a.curve
-    period = 2.0 * math.pi / a.params["w0"]
-    cov, sd = None, {}
-    if a.jac is not None and a.rows is not None:
-        try:
-            cov, _ = hac_covariance(a.jac, a.rows, period_samples=period / float(
-                np.median(np.diff(a.t))))
-            sd = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(_names(a))}
-        except (ValueError, np.linalg.LinAlgError):
-            cov = None
-    return Measures(r, float(np.sqrt(np.mean(r * r))), period, cov, sd,
-                    residual_structure(a.t, r, a.params["w0"]))
-
-
 def residual_size(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """The residuals' rms against the noise and the amplitude (numbers only)."""
     noise, A = a.an.noise, a.derived["A"]
@@ -386,40 +357,6 @@ def motion_ends(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
-#: a half swing's residuals count as beyond the noise above this many noise sd (rms); below,
-#: a small swing near the rest point, whose residuals are the noise, would read as a large
-#: fraction of its amplitude
-SWING_NOISE = 3.0
-
-
-def worst_swing(a: Inputs, m: Measures) -> tuple[float, float, float, float]:
-    """The half swing (between the data's turning points) whose residuals, beyond
-    :data:`SWING_NOISE` times the noise, are largest against its own amplitude: (start, end,
-    its residual rms, its amplitude); the whole window where no swing's are."""
-    edges = np.concatenate([[a.t[0]], np.asarray(a.an.ext_t, dtype=float), [a.t[-1]]])
-    offset = a.params.get("offset", 0.0)
-    best = (float(a.t[0]), float(a.t[-1]), m.rms, float(np.max(np.abs(a.x - offset))))
-    score = -1.0
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        sel = (a.t >= lo) & (a.t <= hi)
-        if np.count_nonzero(sel) < 4:
-            continue
-        rms = float(np.sqrt(np.mean(m.r[sel] ** 2)))
-        amp = float(np.max(np.abs(a.x[sel] - offset)))
-        if amp > 0 and rms > SWING_NOISE * a.an.noise and rms / amp > score:
-            score, best = rms / amp, (float(lo), float(hi), rms, amp)
-    return best
-
-
-def _structure_text(a: Inputs, m: Measures) -> str:
-    """Where the structure sits and how large it is, for the reasons."""
-    lo, hi, rms, amp = worst_swing(a, m)
-    noise = a.an.noise
-    times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
-    return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "
-            f"{rms:.3g} ({times}{100 * rms / amp:.1f} % of its amplitude)")
-
-
 def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """Eq. 3 integrated exactly: structure the noise cannot produce is a local optimum or
     physics that eq. 3 lacks. The fit's own search of the exact model's starts (``a.search``,
@@ -429,7 +366,7 @@ def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     (one start alone reached the optimum), the fit fails as a possible local optimum."""
     if not (m.st["p"] < STRUCTURE_P and a.model == "reference"):
         return Finding()
-    where = _structure_text(a, m)
+    where = structure_text(a, m)
     search = a.search
     if search is not None and search.reached >= 2:
         return Finding(bad=(f"the residuals hold structure that eq. 3 with these terms lacks "

@@ -6,12 +6,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._io import save_figure
+from .._plot import plot_joint_fit
 from . import _intervals
 from ._joint_problem import (
     JointArrays,
@@ -251,28 +250,13 @@ class JointResult:
         }
 
     def plot(self, path, *, title: str | None = None):
-        """Save a figure: each run's data and joint fit above, its residuals below."""
-        from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
+        """Save a figure: each run's data and joint fit above its residuals, in s and the fit's
+        units (``dampax._plot.plot_joint_fit``).
 
-        n = len(self.runs)
-        fig = Figure(figsize=(10, 2.6 * n + 1.0), layout="constrained")
-        FigureCanvasAgg(fig)
-        axes = fig.subplots(2 * n, 1, height_ratios=[3, 1] * n)
-        for j, r in enumerate(self.runs):
-            ax, axr = axes[2 * j], axes[2 * j + 1]
-            ax.plot(r.t, r.x, color="tab:blue", lw=0.6, label="data")
-            ax.plot(r.t, r.model_x, color="tab:red", lw=0.9, label=f"joint fit ({self.model})")
-            ax.set_ylabel(f"run {j}")
-            ax.set_title(f"{r.source or f'run {j}'}: rms {r.rms:.3g}", fontsize=8)
-            ax.legend(fontsize=7, loc="upper right")
-            axr.plot(r.t, r.residuals, color="tab:blue", lw=0.5)
-            axr.axhline(0.0, color="k", lw=0.6)
-        axes[-1].set_xlabel("t [s]")
-        terms = ", ".join(f"{k} = {self.values[k]:.4g}" for k in self.shared)
-        fig.suptitle(title or f"joint fit, shared {terms}", fontsize=9)
-        save_figure(fig, path, dpi=110)
-        return Path(path)
+        Returns:
+            The path written.
+        """
+        return plot_joint_fit(self, path, title=title)
 
     def __repr__(self) -> str:
         vals = ", ".join(f"{k}={self.values[k]:.4g}" for k in self.shared)

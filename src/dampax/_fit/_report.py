@@ -1,18 +1,15 @@
 """The text report and the figure of a single fit (:class:`~dampax._fit._result.FitResult`):
 :func:`fit_report`, lmfit's fit_report in sections (the verdict, the model, the statistics,
 the variables, the derived quantities, the intervals, the correlations, the notes), and
-:func:`fit_figure`, the data and the fit above, the residuals below.
+(the figure is ``dampax._plot.plot_fit``'s).
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 
-from .._io import save_figure
-from .._plot import _place
 from . import _intervals
 from ._core import METHOD_NAMES
 from ._params import unit_of
@@ -169,57 +166,3 @@ def fit_report(res, min_correl: float) -> str:
     lines = (_verdict(res) + _model(res) + _statistics(res) + _variables(res, width)
              + _interval_lines(res, width) + _correlations(res, min_correl) + _notes(res))
     return "\n".join(lines)
-
-
-def fit_figure(res, path, title: str | None):
-    """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-    residuals below. Uses a bare matplotlib Figure with the Agg canvas (no pyplot state),
-    placed with fixed margins (``dampax._plot._place``).
-
-    Arguments:
-        res: the :class:`~dampax._fit._result.FitResult`.
-        path: the file to write.
-        title: the title (None: the data's source, the fitted terms and the rms).
-
-    Returns:
-        The path written.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(10, 6.5))  # fixed margins, no constrained layout (issue 26)
-    FigureCanvasAgg(fig)
-    ax, axr = fig.subplots(2, 1, sharex=True, height_ratios=(3, 1))
-    _place(fig, nrows=2, left=0.95, right=0.2, bottom=0.6, top=0.35, hspace=0.2)
-    off = res.params.get("offset", 0.0)
-    if res.full_t is not None and len(res.full_t) > len(res.t):
-        before = res.full_t < res.t[0]
-        if np.any(before):
-            ax.plot(res.full_t[before], res.full_x[before], color="0.7", lw=0.6,
-                    label="data before the fit start")
-    marker = dict(ls="none", marker=".", ms=4) if res.kind == "envelope" or \
-        len(res.t) < 400 else dict(lw=0.6)
-    ax.plot(res.t, res.x, color="tab:blue", label="data", **marker)
-    ax.plot(res.t, res.model_x, color="tab:red", lw=0.9, label=f"fit ({res.model})")
-    if res.envelope is not None and res.kind == "trace":
-        ax.plot(res.t, off + res.envelope, color="k", lw=0.8, ls="--",
-                label="envelope A f(t)")
-        ax.plot(res.t, off - res.envelope, color="k", lw=0.8, ls="--")
-    xc = res.derived.get("xc", 0.0)
-    if res.kind == "trace" and "mu" in res.free and xc > 0:
-        ax.axhspan(off - xc, off + xc, color="tab:orange", alpha=0.25,
-                   label="sticking band offset +- xc")
-    ax.set_ylabel("amplitude" if res.kind == "envelope" else "position")
-    terms = ", ".join(f"{k} = {res.params[k]:.4g}" for k in res.free)
-    what = res.source or ("maxima" if res.kind == "envelope" else "trace")
-    ax.set_title(title or f"{what}: {terms}  (rms {res.rms:.3g})",
-                 fontsize=9)
-    ax.legend(fontsize=8, loc="upper right")
-    axr.plot(res.t, res.residuals, color="tab:blue", lw=0.5,
-             **({"marker": ".", "ls": "none"} if res.kind == "envelope" else {}))
-    axr.axhline(0.0, color="k", lw=0.6)
-    axr.set_ylabel("data - fit")
-    axr.set_xlabel("t [s]")
-
-    save_figure(fig, path, dpi=110)
-    return Path(path)

@@ -17,13 +17,14 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
+from .._plot import plot_fit
 from . import _intervals
 from ._assess import Inputs, assess
 from ._context import FitContext, envelope_derived, trace_derived
 from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
 from ._dist import norm_ppf
 from ._params import DAMPING, check_choice, damping_d, varied_names
-from ._report import fit_figure, fit_report
+from ._report import fit_report
 
 
 def _jsonable(v):
@@ -221,9 +222,9 @@ class FitResult:
         }
 
     def plot(self, path, *, title: str | None = None):
-        """Save a figure: data, fit and envelope A f(t) (+- xc band when mu is fitted) above,
-        residuals below (``_report.fit_figure``: a bare matplotlib Figure with the Agg canvas,
-        no pyplot state, placed with fixed margins).
+        """Save a figure: data, fit, envelope and sticking band above, residuals below, the
+        axes in s and the fit's units (``dampax._plot.plot_fit``; the static band where mu_s
+        is set).
 
         Arguments:
             path: the file to write.
@@ -232,7 +233,7 @@ class FitResult:
         Returns:
             The path written.
         """
-        return fit_figure(self, path, title)
+        return plot_fit(self, path, title=title)
 
 
 @dataclass
