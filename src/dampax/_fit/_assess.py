@@ -171,11 +171,16 @@ def convergence(a: Inputs, v: Verdict) -> Finding:
 
 
 def finite(a: Inputs, v: Verdict) -> Finding:
-    """Finite fitted parameters; else nothing more can be judged."""
-    if all(math.isfinite(a.params.get(n, math.nan)) for n in a.varied):
-        return Finding()
-    fails = ("the fitted parameters are not finite",) if a.converged or v.converged else ()
-    return Finding(fails=fails, bad=("the fit produced no finite model",), stop=True)
+    """Finite fitted parameters and a finite model on the window; else nothing more can be
+    judged."""
+    if not all(math.isfinite(a.params.get(n, math.nan)) for n in a.varied):
+        fails = ("the fitted parameters are not finite",) if a.converged or v.converged else ()
+        return Finding(fails=fails, bad=("the fit produced no finite model",), stop=True)
+    if a.curve is not None and not np.all(np.isfinite(np.asarray(a.curve, dtype=float))):
+        return Finding(fails=("the model is not finite on the window at the fitted values (the "
+                              "integration failed there)",),
+                       bad=("the fit produced no finite model",), stop=True)
+    return Finding()
 
 
 def degeneracy(a: Inputs, v: Verdict) -> Finding:
