@@ -461,20 +461,28 @@ def test_covariance_of_nearly_collinear_columns_does_not_depend_on_the_last_bits
         np.testing.assert_allclose(stderr, truth, rtol=1e-6)
 
 
-def test_ranking_leaves_failed_fits_out(synthetic):
+def test_ranking_by_statistics_leaves_out_fits_without_an_optimum(synthetic):
+    """issue 36: a fit whose verdict fails (a check of its residuals or intervals) is still its
+    model's optimum and is ranked by its criterion; a fit that reached no optimum is left out."""
     import dataclasses
 
     from dampax._fit._result import rank
 
     _, _, res = synthetic
-    broken = dataclasses.replace(res, success=False, reason="the optimizer did not converge",
-                                 bic=res.bic - 100.0, free=("D",))
+    broken = dataclasses.replace(res, success=False, converged=False,
+                                 reason="the optimizer did not converge", bic=res.bic - 100.0,
+                                 free=("D",))
     ranking = rank({("mu", "D"): res, ("D",): broken}, "bic")
     assert ranking.ranking == [("mu", "D")] and list(ranking.failed) == [("D",)]
     assert ranking.best is res
-    assert "left out (fit failed): D: the optimizer did not converge" in ranking.report()
+    assert "left out (no optimum): D: the optimizer did not converge" in ranking.report()
+    judged = dataclasses.replace(res, success=False, reason="the residuals are not noise",
+                                 bic=res.bic - 100.0, free=("D",))
+    both = rank({("mu", "D"): res, ("D",): judged}, "bic")
+    assert both.ranking == [("D",), ("mu", "D")] and not both.failed
+    assert "ranked, but its verdict failed: D: the residuals are not noise" in both.report()
     none = rank({("D",): broken}, "bic")
-    assert none.best is None and "no candidate fit succeeded" in none.report()
+    assert none.best is None and "no candidate fit reached an optimum" in none.report()
 
 
 def test_conf_interval_covers_and_widens_for_correlated_noise(synthetic):

@@ -21,3 +21,22 @@ def test_a_lower_cost_prints_a_lower_number(new, old):
 def test_a_time_span_prints_two_different_ends(lo, hi):
     a, b = (float(v) for v in re.match(r"(\S+)-(\S+) s", time_span(lo, hi)).groups())
     assert a < b and a == pytest.approx(lo, rel=1e-4) and b == pytest.approx(hi, rel=1e-4)
+
+
+def test_a_held_k3_is_reported_as_fixed():
+    """issue 36: dp.fit(..., k3=...) names the held k3 in params, fixed, the report and JSON."""
+    import json
+
+    import numpy as np
+
+    import dampax as dp
+
+    ts = np.linspace(0.0, 12.0, 1500)
+    osc = dp.Oscillator(m=1.0, k=4.0, D=0.5, k3=2.0)
+    sol = dp.solve(osc, 0.3, 0.0, method="reference", t_end=12.0, ts=ts)
+    x = np.asarray(sol.x(ts)) + 0.002 * np.random.default_rng(0).standard_normal(ts.size)
+    res = dp.fit(ts, x, oscillator=dp.Oscillator(m=1.0, k=4.0), free=("D",), k3=2.0,
+                 model="ansatz")
+    assert res.params["k3"] == 2.0 and res.fixed["k3"] == 2.0
+    assert json.loads(json.dumps(res.to_dict(), default=str))["fixed"]["k3"] == 2.0
+    assert any(line.split()[:3] == ["k3:", "2", "(fixed)"] for line in res.report().splitlines())

@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -137,7 +138,12 @@ def fit(trace_or_t, x, settings: Settings) -> FitResult:
         return fit_mu_s(problem)
     if searched == "k3":
         return fit_k3(problem)
-    return run(problem, plan)
+    res = run(problem, plan)
+    if problem.consts.k3 is not None:  # a held k3 is reported as the fixed constant it is
+        k3 = float(problem.consts.k3)
+        res = dataclasses.replace(res, params={**res.params, "k3": k3},
+                                  fixed={**res.fixed, "k3": k3})
+    return res
 
 
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,

@@ -350,7 +350,7 @@ def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> 
                      stride=stride)
 
 
-def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
+def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "auto",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
               seed: int = 0, units: str | None = None, start_fit=None,
@@ -379,8 +379,11 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
             at the fitted mu_s, conditional on that halt, and records mu_s and the interval
             of values that give the same halt as the attributes ``fixed_mu_s`` and
             ``mu_s_interval``.
-        model: "ansatz" (closed form, eqs. 11, 20-23) or "reference" (eq. 3 integrated with
-            exact stick-slip; slower, forward-mode gradients).
+        model: "auto" (default, as ``dp.fit``'s: the model that answers the start fit is
+            sampled, the exact one unless the ansatz provably agrees with it; a joint
+            posterior samples the exact model), "ansatz" (closed form, eqs. 11, 20-23) or
+            "reference" (eq. 3 integrated with exact stick-slip; slower, forward-mode
+            gradients).
         num_samples, num_chains, num_warmup: draws per chain, chains, warm-up steps (blackjax
             window adaptation, per chain).
         seed: random seed.
@@ -395,7 +398,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     """
     from tqdm import tqdm
 
-    check_choice("model", model, MODELS)
+    check_choice("model", model, (*MODELS, "auto"))
     for name, value, low in (("num_samples", num_samples, 10), ("num_chains", num_chains, 1),
                              ("num_warmup", num_warmup, 10)):
         if isinstance(value, bool) or int(value) != value or value < low:
@@ -414,7 +417,8 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     if isinstance(trace_or_t, (list, tuple)) and x is None:
         if vary_k3:
             raise ValueError("free: a joint posterior samples k3 only as shared=(..., 'k3')")
-        req = Request(model, num_samples, num_chains, num_warmup, seed, bar, began)
+        req = Request("reference" if model == "auto" else model, num_samples, num_chains,
+                      num_warmup, seed, bar, began)
         return _joint_posterior(trace_or_t, req, start_fit=start_fit, shared=shared, free=free,
                                 fit_kw=fit_kw)
     if shared is not None:
@@ -424,6 +428,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
         trace_or_t, x, free=names_in, model=model, mu_s=mu_s,
         **fit_kw)
     bar.update()
+    model = res.model if model == "auto" else model  # the model that answered
     if tuple(res.free) != names_in or res.model != model:
         raise ValueError(f"start_fit must be a {model!r} fit with free={names_in!r}, got a "
                          f"{res.model!r} fit with free={tuple(res.free)!r}")

@@ -296,10 +296,13 @@ class ModelComparison:
                          f"{row['bic']:>12.2f} {row['delta']:>10.2f} {row['rms']:>10.4g}  "
                          f"{'yes' if row['success'] else 'no':>3}"
                          + ("" if row.get("adequate", True) else "  (model inadequate)"))
+        for cand, r in self.results.items():
+            if not r.success:
+                lines.append(f"  ranked, but its verdict failed: {','.join(cand)}: {r.reason}")
         for cand, r in self.failed.items():
-            lines.append(f"  left out (fit failed): {','.join(cand)}: {r.reason}")
+            lines.append(f"  left out (no optimum): {','.join(cand)}: {r.reason}")
         if self.best is None:
-            lines.append("  no candidate fit succeeded: the data support no model")
+            lines.append("  no candidate fit reached an optimum: the data support no model")
             return "\n".join(lines)
         best = self.best.free
         lines.append(f"  the data support: {' + '.join(best)} "
@@ -397,12 +400,20 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
 
 
 def rank(results: dict, criterion: str) -> ModelComparison:
-    """A :class:`ModelComparison` of fits (candidate -> FitResult): the successful ones by
-    increasing ``criterion`` ("aic" or "bic"); failed fits are left out of the ranking and
-    listed in ``failed`` (with their reasons in the report)."""
+    """A :class:`ModelComparison` of fits (candidate -> FitResult) ranked by their statistics:
+    every fit that reached an optimum (converged, finite cost and criterion) by increasing
+    ``criterion`` ("aic" or "bic"), whatever its verdict (a fit that fails a check of its
+    intervals or of its residuals is still the optimum of its model, and its cost is what the
+    ranking compares; the table says which failed, the report why); fits without an optimum
+    are left out and listed in ``failed``."""
     check_choice("criterion", criterion, ("aic", "bic"))
-    ok = {k: r for k, r in results.items() if r.success}
-    failed = {k: r for k, r in results.items() if not r.success}
+
+    def ranked(r) -> bool:
+        return bool(r.converged) and math.isfinite(r.chisqr) and \
+            math.isfinite(getattr(r, criterion))
+
+    ok = {k: r for k, r in results.items() if ranked(r)}
+    failed = {k: r for k, r in results.items() if not ranked(r)}
     ordered = dict(sorted(ok.items(), key=lambda item: getattr(item[1], criterion)))
     best = getattr(next(iter(ordered.values())), criterion) if ordered else math.nan
     table = [dict(free=tuple(k), aic=r.aic, bic=r.bic,
