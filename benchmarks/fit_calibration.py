@@ -1,7 +1,7 @@
 """Calibration of the fit checks (issue 25, item 1): are dp.fit's verdicts true?
 
     python benchmarks/fit_calibration.py [--n 200] [--seed 0] [--quick] [--models reference,ansatz]
-    python benchmarks/fit_calibration.py --models default   # dp.fit's default call (issue 36)
+    python benchmarks/fit_calibration.py --models auto   # the exact answer, model="auto" (issue 36)
 
 Traces are drawn from an INDEPENDENT integrator (scipy ``solve_ivp``, DOP853, rtol 1e-11,
 terminal events at v = 0 and exact stick-slip: the block sticks for good at a velocity zero where
@@ -193,7 +193,7 @@ def fit_one(spec, t, x, model, *, free=None, fixed=None, max_swings=MAX_SWINGS):
     import dampax as dp
 
     free = tuple(spec["free"] if free is None else free)
-    kw = {} if model == "default" else dict(model=model)  # "default": dp.fit's own choice
+    kw = dict(model=model)
     solver = dp.LeastSquares(max_swings=max_swings)
     fixed = dict(fixed or {})
     if "offset" in fixed:  # held at its value: offset=False with p0
@@ -345,7 +345,7 @@ def table(records, model, *, label=None) -> list[str]:
              f"{sum((not r['right']) and (not r['success']) for r in fitted)} | - |",
              f"| confident wrong answers (success, > 3 half-widths of the 99 % interval) | "
              f"{sum(r['confident_wrong'] for r in fitted)} | 0 |"]
-    if model == "default":
+    if model == "auto":
         lines.append(f"| answered by the ansatz (its bias provably negligible) | "
                      f"{_share(sum(r.get('answered') == 'ansatz' for r in fitted), len(fitted))}"
                      " | - |")

@@ -350,7 +350,7 @@ def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> 
                      stride=stride)
 
 
-def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "auto",
+def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
               seed: int = 0, units: str | None = None, start_fit=None,
@@ -379,7 +379,7 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
             at the fitted mu_s, conditional on that halt, and records mu_s and the interval
             of values that give the same halt as the attributes ``fixed_mu_s`` and
             ``mu_s_interval``.
-        model: "auto" (default, as ``dp.fit``'s: the model that answers the start fit is
+        model: "auto" (as ``dp.fit``'s: the model that answers the start fit is
             sampled, the exact one unless the ansatz provably agrees with it; a joint
             posterior samples the exact model), "ansatz" (closed form, eqs. 11, 20-23) or
             "reference" (eq. 3 integrated with exact stick-slip; slower, forward-mode
