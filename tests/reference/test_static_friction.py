@@ -215,7 +215,7 @@ def test_cli_fit_with_free_mu_s(fit_traces, tmp_path, capsys):
     assert re.search(r"mu_s:\s+[0-9.]+ \+/- ", out), out
     assert "every value gives the fitted halt" in out
     assert main([*argv[:-5], "--model", "ansatz", *argv[-5:]]) == 2
-    assert "need --model reference" in capsys.readouterr().err
+    assert "need the exact model (--model auto or reference)" in capsys.readouterr().err
 
 
 def test_cli_solve_accepts_mu_s(capsys):

@@ -386,20 +386,16 @@ def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
 
 def size(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """An approximate model's structured residuals above :data:`RMS_AMPLITUDE` of the
-    amplitude, overall or in one half swing: inadequate (the exact model's structure is
-    :func:`exact_structure`'s)."""
+    amplitude: inadequate, with the half swing where they are largest (the exact model's
+    structure is :func:`exact_structure`'s)."""
     A, noise = a.derived["A"], a.an.noise
-    if not m.st["p"] < STRUCTURE_P or a.model == "reference":
+    if not (m.st["p"] < STRUCTURE_P and m.rms > RMS_AMPLITUDE * A) or a.model == "reference":
         return Finding()
-    lo, hi, rms, amp = worst_swing(a, m)
-    if m.rms > RMS_AMPLITUDE * A:
-        return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} "
-                            f"times the noise level of the data ({noise:.3g}) and "
-                            f"{100 * m.rms / A:.1f} % of the amplitude",))
-    if rms > RMS_AMPLITUDE * amp:
-        return Finding(bad=(f"the residuals are {100 * rms / amp:.1f} % of the amplitude in the "
-                            f"swing at t = {time_span(lo, hi)} (rms {rms:.3g})",))
-    return Finding()
+    lo, hi, rms, _ = worst_swing(a, m)
+    return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} times "
+                        f"the noise level of the data ({noise:.3g}) and "
+                        f"{100 * m.rms / A:.1f} % of the amplitude (largest in the swing at "
+                        f"t = {time_span(lo, hi)}: rms {rms:.3g})",))
 
 
 def drift(a: Inputs, m: Measures, v: Verdict) -> Finding:

@@ -50,9 +50,9 @@ SWING_NOISE = 3.0
 
 
 def worst_swing(a, m: Measures) -> tuple[float, float, float, float]:
-    """The half swing (between the data's turning points) whose residuals, beyond
-    :data:`SWING_NOISE` times the noise, are largest against its own amplitude: (start, end,
-    its residual rms, its amplitude); the whole window where no swing's are."""
+    """The half swing (between the data's turning points) whose residuals are largest, among
+    those beyond :data:`SWING_NOISE` times the noise: (start, end, its residual rms, its own
+    amplitude); the whole window where no swing's are."""
     edges = np.concatenate([[a.t[0]], np.asarray(a.an.ext_t, dtype=float), [a.t[-1]]])
     offset = a.params.get("offset", 0.0)
     best = (float(a.t[0]), float(a.t[-1]), m.rms, float(np.max(np.abs(a.x - offset))))
@@ -62,16 +62,16 @@ def worst_swing(a, m: Measures) -> tuple[float, float, float, float]:
         if np.count_nonzero(sel) < 4:
             continue
         rms = float(np.sqrt(np.mean(m.r[sel] ** 2)))
-        amp = float(np.max(np.abs(a.x[sel] - offset)))
-        if amp > 0 and rms > SWING_NOISE * a.an.noise and rms / amp > score:
-            score, best = rms / amp, (float(lo), float(hi), rms, amp)
+        if rms > SWING_NOISE * a.an.noise and rms > score:
+            score = rms
+            best = (float(lo), float(hi), rms, float(np.max(np.abs(a.x[sel] - offset))))
     return best
 
 
 def structure_text(a, m: Measures) -> str:
     """Where the structure sits and how large it is, for the reasons."""
-    lo, hi, rms, amp = worst_swing(a, m)
-    noise = a.an.noise
+    lo, hi, rms, _ = worst_swing(a, m)
+    noise, A = a.an.noise, a.derived["A"]
     times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
     return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "
-            f"{rms:.3g} ({times}{100 * rms / amp:.1f} % of its amplitude)")
+            f"{rms:.3g} ({times}{100 * rms / A:.1f} % of the amplitude)")
