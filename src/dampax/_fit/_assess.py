@@ -391,7 +391,7 @@ def size(a: Inputs, m: Measures, v: Verdict) -> Finding:
     A, noise = a.derived["A"], a.an.noise
     if not (m.st["p"] < STRUCTURE_P and m.rms > RMS_AMPLITUDE * A) or a.model == "reference":
         return Finding()
-    lo, hi, rms, _ = worst_swing(a, m)
+    lo, hi, rms = worst_swing(a, m)
     return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} times "
                         f"the noise level of the data ({noise:.3g}) and "
                         f"{100 * m.rms / A:.1f} % of the amplitude (largest in the swing at "

@@ -43,34 +43,31 @@ def measures(a) -> Measures:
                     residual_structure(a.t, r, a.params["w0"]))
 
 
-#: a half swing's residuals count as beyond the noise above this many noise sd (rms); below,
-#: a small swing near the rest point, whose residuals are the noise, would read as a large
-#: fraction of its amplitude
+#: a half swing's residuals count as beyond the noise above this many noise sd (rms): only
+#: where the report names the swing with the largest residuals (a description, no verdict
+#: depends on it)
 SWING_NOISE = 3.0
 
 
-def worst_swing(a, m: Measures) -> tuple[float, float, float, float]:
+def worst_swing(a, m: Measures) -> tuple[float, float, float]:
     """The half swing (between the data's turning points) whose residuals are largest, among
-    those beyond :data:`SWING_NOISE` times the noise: (start, end, its residual rms, its own
-    amplitude); the whole window where no swing's are."""
+    those beyond :data:`SWING_NOISE` times the noise: (start, end, its residual rms); the
+    whole window where no swing's are."""
     edges = np.concatenate([[a.t[0]], np.asarray(a.an.ext_t, dtype=float), [a.t[-1]]])
-    offset = a.params.get("offset", 0.0)
-    best = (float(a.t[0]), float(a.t[-1]), m.rms, float(np.max(np.abs(a.x - offset))))
-    score = -1.0
+    best, score = (float(a.t[0]), float(a.t[-1]), m.rms), -1.0
     for lo, hi in zip(edges[:-1], edges[1:], strict=True):
         sel = (a.t >= lo) & (a.t <= hi)
         if np.count_nonzero(sel) < 4:
             continue
         rms = float(np.sqrt(np.mean(m.r[sel] ** 2)))
         if rms > SWING_NOISE * a.an.noise and rms > score:
-            score = rms
-            best = (float(lo), float(hi), rms, float(np.max(np.abs(a.x[sel] - offset))))
+            best, score = (float(lo), float(hi), rms), rms
     return best
 
 
 def structure_text(a, m: Measures) -> str:
     """Where the structure sits and how large it is, for the reasons."""
-    lo, hi, rms, _ = worst_swing(a, m)
+    lo, hi, rms = worst_swing(a, m)
     noise, A = a.an.noise, a.derived["A"]
     times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
     return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "

@@ -189,7 +189,8 @@ def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, st
                                              like=state.last).out.chisqr)
 
 
-def approximation_answers(problem: Problem, plan: Plan, state: Fit) -> FitResult | None:
+def approximation_answers(problem: Problem, plan: Plan,
+                          state: Fit) -> tuple[FitResult | None, Fit]:
     """Stage 2b: the approximate fit, assessed, where the exact model's one-step correction
     of its optimum is negligible (``_answer``) and its checks pass; else None (the exact
     model answers, and the note says why)."""
