@@ -119,18 +119,33 @@ def check_cf_file(path, *, flags=()) -> dict:
     return {name: attrs for name, (_, _, attrs, _) in variables.items()}
 
 
-def count_reads(monkeypatch, x) -> list:
+def count_reads(monkeypatch, x) -> tuple:
     """Record every reading of the positions ``x`` by a fit (``_problem.read_arrays``, where
-    ``prepare`` starts; the analyses of a preparation follow it): issue 33's "the data are
-    prepared once per dp.fit", however many fits a search makes at fixed k3 or mu_s."""
-    from dampax._fit import _problem
+    ``prepare`` starts) and every call of ``analyse`` from any module of the fit package:
+    issue 33's "the data are prepared and analysed once per dp.fit", however many fits a
+    search makes at fixed k3 or mu_s.
 
-    real, seen = _problem.read_arrays, []
+    Returns:
+        (reads, analyses): lists that grow by one per reading of ``x`` and per analysis.
+    """
+    import sys
+
+    from dampax._fit import _analysis, _problem
+
+    real, seen, analysed = _problem.read_arrays, [], []
 
     def counted(trace_or_t, xs):
         if xs is not None and np.shape(xs) == np.shape(x) and np.array_equal(xs, x):
             seen.append(1)
         return real(trace_or_t, xs)
 
+    def counted_analyse(*args, **kwargs):
+        analysed.append(1)
+        return _analysis.analyse(*args, **kwargs)
+
     monkeypatch.setattr(_problem, "read_arrays", counted)
-    return seen
+    for name, module in list(sys.modules.items()):
+        if name.startswith("dampax._fit.") and getattr(module, "analyse", None) is \
+                _analysis.analyse and module is not _analysis:
+            monkeypatch.setattr(module, "analyse", counted_analyse)
+    return seen, analysed

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import count_reads
 
 import dampax as dp
 from dampax._cli.fit import add_arguments, run
@@ -186,14 +187,16 @@ def test_optax_optimizers_reach_the_lm_optimum(synthetic, optimizer, tol):
     assert res.chisqr == pytest.approx(lm.chisqr, rel=10 * tol)
 
 
-def test_auto_start_skips_the_release():
+def test_auto_start_skips_the_release(monkeypatch):
     # a hand release: the block is held off centre, pushed out, then swings freely
     t, x = ansatz_trace(6000)
     hold = np.full(300, x[0] - 0.01)
     ramp = np.linspace(x[0] - 0.01, x[0], 100)
     tt = np.arange(400 + t.size) / RATE
     xx = np.concatenate([hold, ramp, x])
+    reads, analyses = count_reads(monkeypatch, xx)
     res = fit(tt, xx, oscillator=KNOWN, free=("mu", "D"), fit_omega0=True)
+    assert len(reads) == len(analyses) == 1  # one analysis places the window and reads it
     w0 = math.sqrt(K / M)
     # the first extreme after the largest excursion: half a period after the release
     assert res.t_start == pytest.approx(4.0 + math.pi / w0, abs=0.02)

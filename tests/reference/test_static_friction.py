@@ -175,11 +175,11 @@ def test_fit_with_free_mu_s(fit_traces, mu_s, monkeypatch):
     to the noise from the sliding-friction fit's. Without it the fit stays the sliding one
     (no invented halt), mu_s from mu up. Seconds once the sliding fit is compiled."""
     t, x, rest = fit_traces[mu_s]
-    reads = count_reads(monkeypatch, x)
+    reads, analyses = count_reads(monkeypatch, x)
     res = dp.fit(t, x, oscillator=dp.Oscillator(m=M, k=K), free=("mu", "D", "mu_s"),
                  model="reference")
     assert res.success, res.reason
-    assert len(reads) == 1  # the data prepared once for every fit of the search
+    assert len(reads) == len(analyses) == 1  # the data prepared and analysed once for every fit of the search
     assert res.free[-1] == "mu_s" and "mu_s" in res.report()
     ci = res.conf_interval(0.99)
     for name, value in (("mu", FIT_MU), ("D", FIT_D)):

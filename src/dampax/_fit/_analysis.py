@@ -11,7 +11,7 @@ initial guesses built on it are ``_guess``'s.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,6 +42,10 @@ class Analysis:
         omega_spread: relative uncertainty of ``omega`` as a start (a few turning points
             fix it to a few per cent, many to a few per mille).
         level: the reversal a turning point needs (noise and range based).
+        window: (i0, i1), the slice of the given arrays that was analysed (the fit window
+            when :func:`analyse` placed one, else the whole trace).
+        whole: the scan of the whole trace that placed the window (itself when no window
+            was placed or the window is the whole trace, scanned alike).
     """
 
     offset: float
@@ -55,6 +59,8 @@ class Analysis:
     end_t: float = math.nan
     omega_spread: float = 0.3
     level: float = 0.0
+    window: tuple = (0, -1)
+    whole: Analysis | None = None
 
 
 def _noise_sigma(x: np.ndarray) -> float:
@@ -321,7 +327,7 @@ def _frequency(t, y, conf, off: float, end_t: float, half: float, dt: float,
     return omega, 0.3
 
 
-def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Analysis:
+def _scan(t: np.ndarray, x: np.ndarray, omega0: float | None) -> Analysis:
     """Turning points, offset, frequency, noise and where the data stop moving.
 
     Arguments:
@@ -351,3 +357,81 @@ def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None) -> Ana
     return Analysis(offset=off, omega=omega, noise=noise, ext_i=idx, ext_t=t[idx],
                     ext_x=tx - off, n_turns=int(idx.size), halted=halted, end_t=end_t,
                     omega_spread=spread, level=level)
+
+
+def start_index(t, x, an: Analysis, start) -> int:
+    """Index of the first sample of the fit window.
+
+    Arguments:
+        t, x: the whole trace.
+        an: its :class:`Analysis`.
+        start: "auto" (the first turning point after the largest excursion, which skips a
+            hand release; for a trace with fewer than 8 turning points, the largest excursion
+            itself when the trace begins within the swing that reaches it and the data move in
+            the quarter period before it), "data" / None (the first sample) or a time.
+    """
+    if start is None or start == "data":
+        return 0
+    if isinstance(start, (int, float)) and not isinstance(start, bool):
+        i = int(np.searchsorted(t, float(start)))
+        if i >= len(t) - 10:
+            raise ValueError(f"start = {start} leaves fewer than 10 samples")
+        return i
+    if start != "auto":
+        raise ValueError(f"start must be 'auto', 'data', None or a time, got {start!r}")
+    y = despike(x)
+    i_big = int(np.argmax(np.abs(y - an.offset)))
+    quarter = 0.5 * math.pi / an.omega
+    before = (t >= t[i_big] - quarter) & (t <= t[i_big])
+    near = an.ext_i[np.abs(an.ext_t - t[i_big]) <= 0.25 * quarter]
+    spare = 0.25 * 0.5 * float(np.ptp(y[i_big:]))
+    if an.n_turns < 8 and near.size and t[i_big] - t[0] <= 2.0 * quarter and (
+            t[i_big] - t[0] < quarter or float(np.ptp(y[before])) > 2.0 * an.level) and \
+            0.5 * float(np.ptp(y[near[0]:])) >= spare:
+        # a trace that halts within a few swings cannot spare one: when it begins within the
+        # swing that reaches the largest excursion, and that is a turning point (the data
+        # move before it: no hold, no lead-in of a hand release), the fit starts there
+        return int(near[0])
+    later = an.ext_i[an.ext_t > t[i_big] + 0.25 * math.pi / an.omega]
+    if later.size:
+        # skip the release only when that leaves a swing to fit: the data after the first
+        # turning point must still move by a quarter of what they moved from the release on
+        if 0.5 * float(np.ptp(y[later[0]:])) >= spare:
+            return int(later[0])
+        return i_big
+    return 0
+
+
+def analyse(t: np.ndarray, x: np.ndarray, *, omega0: float | None = None,
+            window: tuple | None = None) -> Analysis:
+    """What a trace says before any fit; with ``window``, where the fit window lies, too.
+
+    Arguments:
+        t, x: the trace (sorted, finite).
+        omega0: the angular frequency when it is known (an oscillator without
+            ``fit_omega0``): it sets the half period that separates a halt from a pause.
+        window: None (analyse the whole trace) or (start, end) of ``dp.Window``: the whole
+            trace is scanned (without ``omega0``) to place the window (:func:`start_index`),
+            then the window is scanned with ``omega0`` (one scan when that is the same).
+
+    Returns:
+        An :class:`Analysis` of the window (``window`` holds its indices, ``whole`` the
+        scan of the whole trace).
+
+    Raises:
+        ValueError: the window holds fewer than 10 samples, or ``start`` is not valid.
+    """
+    if window is None:
+        an = _scan(t, x, omega0)
+        return replace(an, window=(0, len(t)), whole=an)
+    start, end = window
+    whole = _scan(t, x, None)
+    i0 = start_index(t, x, whole, start)
+    i1 = len(t) if end is None else int(np.searchsorted(t, float(end), side="right"))
+    if i1 - i0 < 10:
+        raise ValueError(f"Window.start, Window.end: the fit window [{t[min(i0, len(t) - 1)]:g}, "
+                         f"{end}] holds fewer than 10 samples (the trace runs from {t[0]:g} "
+                         f"to {t[-1]:g} s)")
+    same = i0 == 0 and i1 == len(t) and omega0 is None
+    an = whole if same else _scan(t[i0:i1], x[i0:i1], omega0)
+    return replace(an, window=(i0, i1), whole=whole)

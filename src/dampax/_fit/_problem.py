@@ -30,7 +30,7 @@ from ._checks import (
     check_trace,
 )
 from ._core import FIT_MODELS, MAX_STEPS, ReferenceOptions, run_core, swing_budget
-from ._guess import Analysis, analyse, despike, guess_trace
+from ._guess import Analysis, analyse, guess_trace
 from ._params import MAD, PARAMS, Constants, TraceParams, oscillator_values, vary_mask
 
 
@@ -295,50 +295,6 @@ def units_of(trace_or_t, units):
     return "m"
 
 
-def start_index(t, x, an: Analysis, start) -> int:
-    """Index of the first sample of the fit window.
-
-    Arguments:
-        t, x: the whole trace.
-        an: its :class:`Analysis`.
-        start: "auto" (the first turning point after the largest excursion, which skips a
-            hand release; for a trace with fewer than 8 turning points, the largest excursion
-            itself when the trace begins within the swing that reaches it and the data move in
-            the quarter period before it), "data" / None (the first sample) or a time.
-    """
-    if start is None or start == "data":
-        return 0
-    if isinstance(start, (int, float)) and not isinstance(start, bool):
-        i = int(np.searchsorted(t, float(start)))
-        if i >= len(t) - 10:
-            raise ValueError(f"start = {start} leaves fewer than 10 samples")
-        return i
-    if start != "auto":
-        raise ValueError(f"start must be 'auto', 'data', None or a time, got {start!r}")
-    y = despike(x)
-    i_big = int(np.argmax(np.abs(y - an.offset)))
-    quarter = 0.5 * math.pi / an.omega
-    before = (t >= t[i_big] - quarter) & (t <= t[i_big])
-    near = an.ext_i[np.abs(an.ext_t - t[i_big]) <= 0.25 * quarter]
-    spare = 0.25 * 0.5 * float(np.ptp(y[i_big:]))
-    if an.n_turns < 8 and near.size and t[i_big] - t[0] <= 2.0 * quarter and (
-            t[i_big] - t[0] < quarter or float(np.ptp(y[before])) > 2.0 * an.level) and \
-            0.5 * float(np.ptp(y[near[0]:])) >= spare:
-        # a trace that halts within a few swings cannot spare one: when it begins within the
-        # swing that reaches the largest excursion, and that is a turning point (the data
-        # move before it: no hold, no lead-in of a hand release), the fit starts there
-        return int(near[0])
-    later = an.ext_i[an.ext_t > t[i_big] + 0.25 * math.pi / an.omega]
-    if later.size:
-        # skip the release only when that leaves a swing to fit: the data after the first
-        # turning point must still move by a quarter of what they moved from the release on
-        if 0.5 * float(np.ptp(y[later[0]:])) >= spare:
-            return int(later[0])
-        return i_big
-    return 0
-
-
-
 def _omega_warning(an: Analysis, osc: dict, fit_omega0: bool) -> list:
     """A note when the data's turning points disagree with sqrt(k/m) (w0 not fitted)."""
     if not fit_omega0 and an.n_turns >= 5 and \
@@ -352,20 +308,13 @@ def _omega_warning(an: Analysis, osc: dict, fit_omega0: bool) -> list:
 
 def _window(t_all, x_all, s: Settings, osc: dict, fit_omega0: bool):
     """(t, x, analysis of the window, notes): the window of the settings, checked."""
-    an = analyse(t_all, x_all)
-    warn = _omega_warning(an, osc, fit_omega0)
-    i0 = start_index(t_all, x_all, an, s.start)
-    end = s.end
-    i1 = len(t_all) if end is None else int(np.searchsorted(t_all, float(end), side="right"))
-    t, xw = t_all[i0:i1], x_all[i0:i1]
-    if t.size < 10:
-        raise ValueError(f"Window.start, Window.end: the fit window [{t_all[i0]:g}, {end}] "
-                         f"holds fewer than 10 samples (the trace runs from {t_all[0]:g} to "
-                         f"{t_all[-1]:g} s)")
+    an = analyse(t_all, x_all, omega0=None if fit_omega0 else osc["w0"],
+                 window=(s.start, s.end))
+    warn = _omega_warning(an.whole, osc, fit_omega0)
+    t, xw = t_all[slice(*an.window)], x_all[slice(*an.window)]
     check_gaps(t)
-    an_w = analyse(t, xw, omega0=None if fit_omega0 else osc["w0"])
-    check_trace(t, xw, an_w)
-    return t, xw, an_w, warn
+    check_trace(t, xw, an)
+    return t, xw, an, warn
 
 
 def prepare(trace_or_t, x, settings: Settings) -> Problem:
