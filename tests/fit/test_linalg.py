@@ -46,3 +46,29 @@ def test_lstsq_under_vmap_and_grad():
     assert np.allclose(xs, np.linalg.lstsq(A, bs.T, rcond=None)[0].T, rtol=1e-10)
     g = jax.grad(lambda b: tall_lstsq(A, b)[0])(bs[0])  # linear in b: the pseudo-inverse's row
     assert np.allclose(g, np.linalg.pinv(A)[0], rtol=1e-8, atol=1e-12)
+
+
+def test_gram_inverse_of_a_nearly_collinear_jacobian():
+    """(J^T J)^-1 of the intervals (the HAC sandwich, the joint fit) against the exact
+    V diag(1/s^2) V^T of a J built from its SVD with cond(J) = 1e9: forming J^T J (cond 1e18)
+    lost the small direction (its pseudo-inverse dropped it: variances 1e-8 of the truth);
+    a zero column (a fixed constant) gets none, a NaN Jacobian gives NaN (issue 34)."""
+    from dampax._fit._intervals import gram_inverse
+
+    rng = np.random.default_rng(5)
+    n, p = 3000, 4
+    Q = np.linalg.qr(rng.standard_normal((n, p)))[0]
+    V = np.linalg.qr(rng.standard_normal((p, p)))[0]
+    s = np.array([1.0, 0.3, 1e-4, 1e-9])
+    J = Q @ np.diag(s) @ V.T * np.array([1.0, 1e3, 1e-3, 1.0])  # column scales too
+    D = np.diag([1.0, 1e3, 1e-3, 1.0])
+    Vs = np.linalg.solve(D, V)  # J = Q S V^T D, so (J^T J)^-1 = (D^-1 V) S^-2 (D^-1 V)^T
+    exact = Vs @ np.diag(1.0 / s**2) @ Vs.T
+    G = gram_inverse(J)
+    assert np.allclose(np.diag(G), np.diag(exact), rtol=1e-5)
+    assert np.abs(G - exact).max() < 1e-5 * np.abs(exact).max()
+    Jz = np.concatenate([J, np.zeros((n, 1))], axis=1)
+    Gz = gram_inverse(Jz)
+    assert np.all(Gz[-1] == 0.0) and np.allclose(np.diag(Gz[:p, :p]), np.diag(exact), rtol=1e-5)
+    J[3, 1] = np.nan
+    assert np.all(np.isnan(gram_inverse(J)))

@@ -139,13 +139,33 @@ def ar1_coefficient(r: np.ndarray, *, clip: tuple[float, float] = (-0.99, 0.999)
     return min(max(phi, clip[0]), clip[1])
 
 
-def scaled_inverse(H: np.ndarray) -> np.ndarray:
-    """H^-1 by the pseudo-inverse of H scaled to a unit diagonal (NaN where H is not finite:
-    a Jacobian with NaN in it gives no interval, a named failure)."""
-    if not np.all(np.isfinite(H)):
-        return np.full_like(H, np.nan)
-    d = np.sqrt(np.where(np.diag(H) > 0, np.diag(H), 1.0))
-    return np.linalg.pinv(H / np.outer(d, d)) / np.outer(d, d)
+def gram_inverse(J: np.ndarray) -> np.ndarray:
+    """(J^T J)^-1 from the singular values of the column-scaled J, never by forming J^T J
+    (which squares the condition number: a fit whose damping constants sit at 0 has columns
+    that agree to 1e-8, cond(J^T J) ~ 1e16, where the pseudo-inverse of J^T J dropped that
+    direction or flipped its sign by the last bits of the data, issue 34). Singular values
+    below eps max(n, p) s_max (the least-squares cut) and zero columns get no inverse (0, as
+    a pseudo-inverse); NaN where J is not finite (a Jacobian with NaN gives no interval, a
+    named failure).
+
+    Arguments:
+        J: (n, p) Jacobian, rows of the data only.
+
+    Returns:
+        (p, p) symmetric matrix.
+    """
+    J = np.asarray(J, dtype=float)
+    p = J.shape[1]
+    if not np.all(np.isfinite(J)):
+        return np.full((p, p), np.nan)
+    d = np.sqrt(np.einsum("ij,ij->j", J, J))
+    d = np.where(d > 0, d, 1.0)
+    R = np.linalg.qr(J / d, mode="r") if J.shape[0] > p else J / d
+    _, s, vt = np.linalg.svd(R, full_matrices=False)
+    cut = np.finfo(float).eps * max(J.shape) * (s[0] if s.size else 0.0)
+    inv = np.where(s > cut, 1.0 / np.where(s > 0, s, 1.0), 0.0)
+    w = vt * inv[:, None]
+    return (w.T @ w) / np.outer(d, d)
 
 
 def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
@@ -209,7 +229,7 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
         # a fit without a finite Jacobian (it diverged): no interval
         return np.full((J.shape[1], J.shape[1]), np.nan), 0
     S, L = score_matrix(J, r, period_samples=period_samples, lags=lags)
-    Hinv = scaled_inverse(J.T @ J)
+    Hinv = gram_inverse(J)
     cov = Hinv @ S @ Hinv
     return 0.5 * (cov + cov.T), L
 

@@ -17,11 +17,11 @@ from ._core import (
     CoreResult,
 )
 from ._guess import analyse
+from ._intervals import gram_inverse
 from ._joint_problem import (
     JointArrays,
     JointCore,
     Layout,
-    _inverse,
     physical_residuals,
     score_covariance,
 )
@@ -136,13 +136,12 @@ def _statistics(out: JointCore, a: JointArrays, singles) -> JointStatistics:
     rd = np.concatenate([r[j, :ns[j]] for j in range(len(ns))])
     n, k = rd.size, J.shape[2]
     chisqr = float(rd @ rd)
-    H = Jd.T @ Jd
-    Hinv = _inverse(H)
+    Hinv = gram_inverse(Jd)
     s2 = chisqr / max(n - k, 1)
     delta = s2 * Hinv
     hac = Hinv @ _score_sum(out, J, r, ns, singles) @ Hinv
     hac = 0.5 * (hac + hac.T)
-    active = np.diag(H) > 0
+    active = np.einsum("ij,ij->j", Jd, Jd) > 0
     sd = np.where(active, np.sqrt(np.clip(np.diag(delta), 0.0, None)), np.nan)
     return JointStatistics(J=J, r=r, mask=mask, ns=ns, chisqr=chisqr, delta=delta, hac=hac,
                            sd=sd)

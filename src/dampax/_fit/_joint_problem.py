@@ -392,5 +392,3 @@ def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.
     return _intervals.score_matrix(np.ascontiguousarray(J), r,
                                    period_samples=period_samples)[0]
 
-
-_inverse = _intervals.scaled_inverse
