@@ -54,6 +54,13 @@ def test_posterior_covers_the_truth(post):
     for name, row in s.items():
         assert row["r_hat"] < 1.05 and row["ess_bulk"] > 100 and row["ess_tail"] > 50, (name, row)
     assert post.divergences == 0 and 0.6 < post.accept_rate < 0.99
+    # white noise, the model right: the posterior sd is the fit's HAC sd within the scatter
+    # of the two estimates, far from too narrow (issue 36: _posterior.NARROW)
+    hac = post.fit.hac_stderr
+    ratios = {name: s[name]["sd"] / hac[name] for name in ("mu", "D")}
+    print("posterior sd / HAC sd:", ratios, "stride", post.stride)
+    assert all(0.75 < r < 2.0 for r in ratios.values()), ratios
+    assert post.narrow == {} and "narrower" not in post.report()
     assert post.draws.attrs["fixed_w0"] == pytest.approx(math.sqrt(K / M))
     assert post.draws.attrs["fixed_b"] == 0.0 and post.draws.attrs["fixed_m"] == M
     rep = post.report()
@@ -164,3 +171,22 @@ def test_cli_posterior_writes_inference_data(trace, tmp_path, capsys, monkeypatc
     assert summary["D"]["r_hat"] == pytest.approx(float(az.rhat(idata.posterior["D"].values)),
                                                   abs=1e-8)
     assert (out / "corner.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_posterior_narrower_than_the_fit_intervals_is_named(post):
+    """Where the AR(1) noise model is too simple for the residuals (structure at the
+    oscillation frequency, as spring run 1's), the posterior of a constant comes out narrower
+    than the fit's HAC interval: named per parameter (damping constants, w0, k3), in the
+    report, under a threshold (_posterior.NARROW) below the ratio of a right model (above)."""
+    from types import SimpleNamespace
+
+    from dampax._fit._posterior import NARROW, narrow_parameters
+    from dampax._fit._posterior_result import narrow_text
+
+    sd = {name: float(post.draws[name].std(ddof=1)) for name in ("mu", "D", "x0")}
+    wide = SimpleNamespace(hac_stderr={"mu": 20.0 * sd["mu"], "D": sd["D"], "x0": 50 * sd["x0"]})
+    found = narrow_parameters(post.draws, wide)
+    assert set(found) == {"mu"} and found["mu"] == pytest.approx(0.05)  # x0: not a constant
+    assert narrow_parameters(post.draws, SimpleNamespace(
+        hac_stderr={"mu": sd["mu"] / (1.01 * NARROW), "D": math.nan})) == {}
+    assert "mu 20x" in narrow_text(found) and "conf_interval" in narrow_text(found)

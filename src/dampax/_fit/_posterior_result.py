@@ -45,6 +45,10 @@ class Posterior:
         seconds_chains: wall time of the warm-up and sampling program (compilation included
             on its first call for a shape).
         stride: the likelihood uses 1 sample in ``stride`` of the window.
+        narrow: {name: posterior sd / the start fit's HAC sd} where that is below
+            ``_posterior.NARROW``: the AR(1) noise model is too simple for the residuals
+            (their correlation, which the fit's intervals allow for): quote the fit's
+            intervals for those (the report and a warning say so). Empty when none.
     """
 
     draws: object
@@ -62,6 +66,7 @@ class Posterior:
     seconds_chains: float = math.nan
     stride: int = 1
     priors: dict = field(default_factory=lambda: dict(PRIORS))
+    narrow: dict = field(default_factory=dict)
 
     def summary(self, level: float = 0.95) -> dict:
         """Posterior summary per sampled parameter.
@@ -127,6 +132,8 @@ class Posterior:
                 held += (f" (the fit's; every value in [{lo:.6g}, {hi:.6g}) gives the same "
                          "halt): the draws are conditional on that halt")
             lines.append(held)
+        if self.narrow:
+            lines.append(f"    warning: {narrow_text(self.narrow)}")
         bad = [n for n, row in s.items() if not row["r_hat"] < 1.01] if nc > 1 else []
         if bad:
             lines.append(f"    warning: r_hat >= 1.01 for {', '.join(bad)}: the chains "
@@ -153,3 +160,10 @@ class Posterior:
         return plot_corner(self.draws, names, path,
                            units={n: unit_of(n, self.units, self.per_mass) for n in names})
 
+
+def narrow_text(narrow: dict) -> str:
+    """One line on the parameters whose posterior is narrower than the fit's intervals."""
+    items = ", ".join(f"{n} {1.0 / r:.3g}x" for n, r in narrow.items())
+    return (f"the posterior is narrower than the fit's interval ({items}): the AR(1) noise "
+            "model is too simple for these residuals, whose correlation the fit's intervals "
+            "allow for; quote the fit's intervals (conf_interval) for those")
