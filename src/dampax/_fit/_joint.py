@@ -194,11 +194,11 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     unit = _common_unit([tr for tr, _ in runs], units)
     singles, notes = _single_fits(runs, windows, cfg)
     init = _joint_start(singles, cfg)
-    out, arrays, opts, stages = _optimise(init, cfg)
+    out, arrays, opts, stages, search = _optimise(init, cfg)
     return _result(out, arrays, JointContext(
         lay=init.lay, singles=singles, sigma=init.data.sigma, free=free, model=model,
         unit=unit, per_mass=oscillator is None, fit_omega0=bool(fit_omega0), opts=opts,
-        stages=stages, notes=notes, osc=cfg.osc))
+        stages=stages, notes=notes, osc=cfg.osc, search=search))
 
 
 def _windows(start, end, n_runs: int) -> tuple[list, list]:

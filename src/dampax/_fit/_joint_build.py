@@ -52,6 +52,8 @@ class JointContext(NamedTuple):
         stages: what the fit did, in order (appended to the message).
         notes: the single fits' warnings.
         osc: the oscillator's values (m, g, w0).
+        search: the exact model's search (``_joint_stages._exact_search``; None for the
+            approximate model): each run's check of structured residuals reads it.
     """
 
     lay: Layout
@@ -66,6 +68,7 @@ class JointContext(NamedTuple):
     stages: list
     notes: list
     osc: dict
+    search: Any = None
 
 
 class JointStatistics(NamedTuple):
@@ -219,7 +222,8 @@ def _run_results(out: JointCore, st: JointStatistics, ctx: JointContext) -> list
         fc = FitContext(model=ctx.model, free=ctx.free, vary=vary, consts=c, t=single.t,
                         x=single.x, loss="linear", optimizer="lm", source=single.source,
                         full_t=single.full_t, full_x=single.full_x, per_mass=ctx.per_mass,
-                        units=ctx.unit, analysis=an, stages="joint fit")
+                        units=ctx.unit, analysis=an, stages="joint fit",
+                        search=ctx.search)
         runs.append(build_result(core, fc))
     return runs
 
