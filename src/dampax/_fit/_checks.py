@@ -293,6 +293,8 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     n = r.size
     out = dict(phi=0.0, blocks=0, p_global=1.0, p_local=1.0, p=1.0, worst=(math.nan, math.nan),
                q_share=0.0)
+    if not np.all(np.isfinite(r)):  # a curve that is not finite everywhere: no test (p NaN;
+        return {**out, "p_global": math.nan, "p_local": math.nan, "p": math.nan}  # it fails)
     if n < 16 or not (math.isfinite(w0) and w0 > 0):
         return out
     dt = float(np.median(np.diff(t)))
