@@ -362,23 +362,43 @@ def motion_ends(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
+#: the exact model's search settles on its best optimum when at least this share of its starts
+#: (and two) end within SETTLE_RTOL of the best cost: its starts run a budget of steps on a
+#: thinned trace, so on structured residuals they stop short of the optimum by a little. On
+#: the shared traces the spring runs settle 32 of 32, the torsion releases of 60, 70, 80, 90
+#: and 100 deg 16, 24, 15, 17 and 17 of 32 within 1 % (60 deg's next best 0.014 % above:
+#: "reached" within 1e-4 counted 1); a start in another basin costs more by a structure's share
+SETTLE_SHARE = 0.25
+SETTLE_RTOL = 0.01
+
+
+def settled_starts(costs) -> int:
+    """How many of a search's starts end within :data:`SETTLE_RTOL` of its best cost."""
+    c = np.asarray(costs, dtype=float)
+    c = c[np.isfinite(c)]
+    return int(np.sum(c <= c.min() * (1.0 + SETTLE_RTOL))) if c.size else 0
+
+
 def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """Eq. 3 integrated exactly: structure the noise cannot produce is a local optimum or
     physics that eq. 3 lacks. The fit's own search of the exact model's starts (``a.search``,
     run where the first exact fit looked stuck) tells them apart: where its starts found no
-    lower cost and at least two reached this optimum, the optimum stands (a success) and the
-    model is inadequate, the structure named; where no search ran, or it did not settle
-    (one start alone reached the optimum), the fit fails as a possible local optimum."""
+    lower cost and settled on this optimum (:func:`settled_starts`), the optimum stands (a
+    success) and the model is inadequate, the structure named; where no search ran, or it did
+    not settle (its starts spread over other costs), the fit fails as a possible local
+    optimum."""
     if not (m.st["p"] < STRUCTURE_P and a.model == "reference"):
         return Finding()
     where = structure_text(a, m)
     search = a.search
-    if search is not None and search.reached >= 2:
+    settled = 0 if search is None else settled_starts(search.costs)
+    if search is not None and settled >= max(2, SETTLE_SHARE * search.n):
         return Finding(bad=(f"the residuals hold structure that eq. 3 with these terms lacks "
                             f"({where}): {search.n} starts of the exact model found no lower "
-                            f"cost, {search.reached} reached this optimum",))
+                            f"cost, {settled} settled within {100 * SETTLE_RTOL:g} % of it",))
     why = ("no search of the exact model ran (starts=1)" if search is None else
-           f"of {search.n} starts of the exact model {search.reached} reached the best optimum")
+           f"of {search.n} starts of the exact model {settled} settled within "
+           f"{100 * SETTLE_RTOL:g} % of the best cost")
     return Finding(fails=(f"the residuals are not noise ({where}): a local optimum, or the data "
                           f"hold what eq. 3 lacks; {why}",),
                    bad=(f"the residuals hold structure beyond the noise ({where})",))
