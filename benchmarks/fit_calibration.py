@@ -2,6 +2,7 @@
 
     python benchmarks/fit_calibration.py [--n 200] [--seed 0] [--quick] [--models reference,ansatz]
     python benchmarks/fit_calibration.py --models auto   # the exact answer, model="auto" (issue 36)
+    python benchmarks/fit_calibration.py --models default   # dp.fit as called without model=
 
 Traces are drawn from an INDEPENDENT integrator (scipy ``solve_ivp``, DOP853, rtol 1e-11,
 terminal events at v = 0 and exact stick-slip: the block sticks for good at a velocity zero where
@@ -23,7 +24,7 @@ Each trace is fitted with ``dp.fit`` as a user would: half of them with the osci
 mass, a hardening k3 fitted as ``free=(..., "k3")``); ``free`` names the damping terms present
 (plus, for a fifth of the traces, one that is absent: its truth is 0); the default start
 ("auto"). Models: "reference" (the exact model: every failure must be the optimizer's or the
-data's) on every draw, and the default "ansatz" (a closed-form approximation) where it makes
+data's) on every draw, and "ansatz" (a closed-form approximation) where it makes
 sense: on the draws of the same family whose own error estimate (``solve(...).error_estimate``)
 is below the noise (elsewhere its parameters carry the approximation's bias, which no interval
 of the fit can know).
@@ -193,7 +194,7 @@ def fit_one(spec, t, x, model, *, free=None, fixed=None, max_swings=MAX_SWINGS):
     import dampax as dp
 
     free = tuple(spec["free"] if free is None else free)
-    kw = dict(model=model)
+    kw = {} if model == "default" else dict(model=model)  # "default": dp.fit's own default
     solver = dp.LeastSquares(max_swings=max_swings)
     fixed = dict(fixed or {})
     if "offset" in fixed:  # held at its value: offset=False with p0
@@ -345,7 +346,7 @@ def table(records, model, *, label=None) -> list[str]:
              f"{sum((not r['right']) and (not r['success']) for r in fitted)} | - |",
              f"| confident wrong answers (success, > 3 half-widths of the 99 % interval) | "
              f"{sum(r['confident_wrong'] for r in fitted)} | 0 |"]
-    if model == "auto":
+    if model in ("auto", "default"):
         lines.append(f"| answered by the ansatz (its bias provably negligible) | "
                      f"{_share(sum(r.get('answered') == 'ansatz' for r in fitted), len(fitted))}"
                      " | - |")

@@ -286,7 +286,7 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                        help="several files: the parameters common to all runs, comma list of "
                             "mu, b, D, w0 and k3 (default: the --free constants); each run "
                             "keeps its own start, offset and window")
-    model.add_argument("--model", default="ansatz", choices=("auto", *FIT_MODELS),
+    model.add_argument("--model", default="auto", choices=("auto", *FIT_MODELS),
                        help="auto: the exact model's answer, given by the ansatz where one "
                             "Gauss-Newton step of the exact model moves no parameter by more "
                             "than 0.1 interval sd (the report says which model answered); "

@@ -84,7 +84,8 @@ def test_fit_says_compiling_only_when_it_compiled(tmp_path):
     path = tmp_path / "decay.txt"
     path.write_text("time position\n" + "".join(f"{a:.3f} {b:.6f}\n" for a, b in zip(t, x,
                                                                                   strict=True)))
-    args = ["fit", str(path), "--free", "b", "--no-compare", "--starts", "1", "--out",
+    args = ["fit", "--model", "ansatz",
+            str(path), "--free", "b", "--no-compare", "--starts", "1", "--out",
             str(tmp_path / "out")]
     cold, warm = _run_twice(args, tmp_path / "cache")
     assert re.search(r"\n  [\d.]+ s \([\d.]+ s compiling\); written: ", cold), cold
@@ -103,7 +104,7 @@ def test_fit_error_about_the_data_names_the_columns(tmp_path, capsys):
     path.write_text("Timestamp, Time_Elapsed(s), Angle(deg)\n" + "-" * 30 + "\n" + "".join(
         f"16:15:58.{k % 1000:03d}, {s:.3f}, {a:.2f}\n" for k, s, a in zip(i, stamps, angle,
                                                                            strict=True)))
-    assert main(["fit", str(path), "--free", "mu,b", "--no-compare", "--out",
+    assert main(["fit", "--model", "ansatz", str(path), "--free", "mu,b", "--no-compare", "--out",
                  str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("dampax: error: t: ") and err.count("\n") == 1

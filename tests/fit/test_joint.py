@@ -95,19 +95,19 @@ def test_joint_fit_input_errors(runs, joint):
         dp.posterior(runs, oscillator=OSC, free=("b", "D"), model="reference", shared=("D",),
                      start_fit=joint)
     with pytest.raises(ValueError, match="shared: names constants common to several runs"):
-        dp.posterior(*runs[0], oscillator=OSC, shared=("D",))
+        dp.posterior(*runs[0], oscillator=OSC, shared=("D",), model="ansatz")
     with pytest.raises(ValueError, match="shared"):
-        dp.fit(*runs[0], oscillator=OSC, shared=("mu", "D"))
+        dp.fit(*runs[0], oscillator=OSC, shared=("mu", "D"), model="ansatz")
     with pytest.raises(ValueError, match="traces"):
-        dp.fit([runs[0]], oscillator=OSC)
+        dp.fit([runs[0]], oscillator=OSC, model="ansatz")
     with pytest.raises(ValueError, match="shared must name"):
-        dp.fit(runs, oscillator=OSC, shared=("mu", "q"))
+        dp.fit(runs, oscillator=OSC, shared=("mu", "q"), model="ansatz")
     with pytest.raises(ValueError, match="shared: 'w0'"):
-        dp.fit(runs, oscillator=OSC, shared=("mu", "w0"))
+        dp.fit(runs, oscillator=OSC, shared=("mu", "w0"), model="ansatz")
     with pytest.raises(ValueError, match="loss"):
-        dp.fit(runs, oscillator=OSC, solver=dp.LeastSquares(loss="soft_l1"))
+        dp.fit(runs, oscillator=OSC, solver=dp.LeastSquares(loss="soft_l1"), model="ansatz")
     with pytest.raises(ValueError, match=r"traces\[1\]"):
-        dp.fit([runs[0], (runs[1][0], np.zeros_like(runs[1][0]))], **COMMON)
+        dp.fit([runs[0], (runs[1][0], np.zeros_like(runs[1][0]))], **COMMON, model="ansatz")
 
 
 @pytest.fixture(scope="module")
@@ -134,7 +134,8 @@ def cli_posterior(runs, tmp_path_factory):
     buf = io.StringIO()
     try:
         with contextlib.redirect_stdout(buf):
-            code = _cli.main(["fit", *paths, "--shared", "b,D", "--free", "b,D", "--m", "1",
+            code = _cli.main(["fit", "--model", "ansatz",
+                              *paths, "--shared", "b,D", "--free", "b,D", "--m", "1",
                               "--k", "30", "--fit-omega0", "--start", "data", "--starts", "8",
                               "--posterior",
                               "--draws", "100", "--chains", "2", "--warmup", "100",
@@ -253,7 +254,7 @@ def test_spring_runs_1_and_2_joint_agrees_with_the_single_fits():
     traces = [load_trace(DATA / "spring_mass_airdrag" / f"run{i}.csv") for i in (1, 2)]
     # the first 40 s of each run (at most 4096 samples: the padded length of the other tests)
     res = dp.fit(traces, oscillator=osc, free=("b", "D"), shared=("b", "D"), fit_omega0=True,
-                 window=dp.Window(end=41.0), solver=dp.LeastSquares(starts=8))
+                 window=dp.Window(end=41.0), solver=dp.LeastSquares(starts=8), model="ansatz")
     assert res.success, res.reason
     ci = res.conf_interval(0.95)
     for single, run in zip(res.singles, res.runs, strict=True):

@@ -41,7 +41,8 @@ def trace():
 @pytest.fixture(scope="module")
 def post(trace):
     t, x = trace
-    return dp.posterior(t, x, oscillator=OSC, free=("mu", "D"), start="data", seed=1, **DRAWS)
+    return dp.posterior(t, x, oscillator=OSC, free=("mu", "D"), start="data", seed=1,
+                        model="ansatz", **DRAWS)
 
 
 def test_posterior_covers_the_truth(post):
@@ -141,7 +142,7 @@ def test_reference_posterior(trace, post):
 def test_posterior_arguments(trace, post):
     t, x = trace
     with pytest.raises(ValueError, match="num_samples"):
-        dp.posterior(t, x, num_samples=1)
+        dp.posterior(t, x, num_samples=1, model="ansatz")
     with pytest.raises(ValueError, match="model"):
         dp.posterior(t, x, model="envelope")
     with pytest.raises(ValueError, match="start_fit must be a 'reference' fit"):
@@ -159,7 +160,8 @@ def test_cli_posterior_writes_inference_data(trace, tmp_path, capsys, monkeypatc
     csv.write_text("time;position\n" + "".join(f"{a:.4f};{b:.8f}\n"
                                                for a, b in zip(t, x, strict=True)))
     out = tmp_path / "out"
-    assert _cli.main(["fit", str(csv), "--m", "1", "--k", "30", "--free", "mu,D",
+    assert _cli.main(["fit", "--model", "ansatz",
+                      str(csv), "--m", "1", "--k", "30", "--free", "mu,D",
                       "--start", "data", "--no-compare", "--posterior", "--draws", "200",
                       "--chains", "2", "--warmup", "150", "--seed", "3",
                       "--out", str(out)]) == 0

@@ -282,7 +282,7 @@ def test_fit_free_names_k3():
     with pytest.raises(ValueError, match="free"):
         check_free(("b", "k3"))  # the envelope fits have no k3
     with pytest.raises(ValueError, match="k3"):
-        dp.fit(np.linspace(0, 1, 50), np.zeros(50), free=("b", "k3"), k3=1.0)
+        dp.fit(np.linspace(0, 1, 50), np.zeros(50), free=("b", "k3"), k3=1.0, model="ansatz")
 
 
 @pytest.mark.slow
@@ -297,7 +297,7 @@ def test_fit_recovers_k3_of_a_synthetic_trace(monkeypatch):
     x = np.asarray(dp.solve(osc, A, 0.0, method="reference", t_end=12.5).x(t))
     x = x + np.random.default_rng(14).normal(0.0, 0.002 * A, t.size)
     reads, analyses = count_reads(monkeypatch, x)
-    res = dp.fit(t, x, free=("b", "D", "k3"), solver=dp.LeastSquares(starts=1))
+    res = dp.fit(t, x, free=("b", "D", "k3"), solver=dp.LeastSquares(starts=1), model="ansatz")
     assert len(reads) == len(analyses) == 1 and res.profiled["k3"]["evaluations"] > 5
     lo, hi = res.conf_interval(0.95)["k3"]
     assert lo < k3 < hi and (hi - lo) < 0.2 * k3
@@ -306,7 +306,7 @@ def test_fit_recovers_k3_of_a_synthetic_trace(monkeypatch):
     assert res.rms < 1.1 * 0.002 * A < res.derived["rms_linear_spring"]
     # the posterior samples k3 too (from the profiled fit): its 95 % interval holds the truth
     post = dp.posterior(t, x, free=("b", "D", "k3"), start_fit=res, num_samples=100,
-                        num_chains=2, num_warmup=100, seed=3)
+                        num_chains=2, num_warmup=100, seed=3, model="ansatz")
     s = post.summary(0.95)["k3"]
     assert post.draws["k3"].shape == (2, 100) and post.free == ("b", "D", "k3")
     assert s["lo"] < k3 < s["hi"] and (s["hi"] - s["lo"]) < 0.2 * k3, s

@@ -179,7 +179,7 @@ def test_fit_with_free_mu_s(fit_traces, mu_s, monkeypatch):
     res = dp.fit(t, x, oscillator=dp.Oscillator(m=M, k=K), free=("mu", "D", "mu_s"),
                  model="reference")
     assert res.success, res.reason
-    assert len(reads) == len(analyses) == 1  # the data prepared and analysed once for every fit of the search
+    assert len(reads) == len(analyses) == 1  # prepared and analysed once for the whole search
     assert res.free[-1] == "mu_s" and "mu_s" in res.report()
     ci = res.conf_interval(0.99)
     for name, value in (("mu", FIT_MU), ("D", FIT_D)):

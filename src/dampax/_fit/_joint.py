@@ -137,7 +137,7 @@ def check_shared(shared, free, *, fit_omega0: bool, k3) -> tuple[tuple, tuple]:
     return tuple(n for n in SHARED if n in shared), free
 
 
-def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: str = "ansatz",
+def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: str = "auto",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               loss: str = "linear", optimizer: str = "lm", max_steps: int | None = None,
               rtol: float = 1e-8, atol: float = 1e-10, max_swings: int | None = None,
@@ -153,8 +153,11 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
             constant is fitted even when not in ``free``; "w0" needs a fitted w0; "k3" fits
             one cubic stiffness for all runs (a parameter of the joint problem, not profiled).
         free: the damping constants fitted; those not shared are fitted per run.
-        oscillator, model, fit_omega0, offset, units, starts, seed, k3: as in
+        oscillator, fit_omega0, offset, units, starts, seed, k3: as in
             :func:`~dampax._fit._api.fit` (the same for every run).
+        model: "auto" (the default) and "reference": the exact model (started from the
+            ansatz's joint fit, then searched from every candidate start); "ansatz": the
+            closed form alone (an approximation; see ``dp.fit``).
         start, end: each run's window, as in ``fit``: one value or one per run.
         loss, optimizer: "linear" and "lm" (the joint fit is least squares).
         max_steps, rtol, atol: the joint optimizer's budget and tolerances.
@@ -170,7 +173,8 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
 
     if not isinstance(traces, (list, tuple)) or len(traces) < 2:
         raise ValueError("traces: a joint fit needs a list of two or more runs")
-    check_choice("model", model, MODELS)
+    check_choice("model", model, (*MODELS, "auto"))
+    model = "reference" if model == "auto" else model  # a joint fit answers exactly
     if loss != "linear":
         raise ValueError(f"loss: a joint fit is least squares ('linear'), got {loss!r}")
     if optimizer != "lm":

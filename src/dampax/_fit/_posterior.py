@@ -385,7 +385,7 @@ def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> 
                      stride=stride, narrow=narrow)
 
 
-def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "ansatz",
+def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "auto",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
               seed: int = 0, units: str | None = None, start_fit=None,

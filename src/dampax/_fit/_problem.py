@@ -39,7 +39,7 @@ class Settings(NamedTuple):
 
     oscillator: object = None
     free: tuple = ("mu", "D")
-    model: str = "ansatz"
+    model: str = "auto"
     fit_omega0: bool | None = None
     offset: bool = True
     start: object = "auto"
