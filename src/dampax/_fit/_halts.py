@@ -20,6 +20,7 @@ from .._oscillator import Oscillator
 from .._solve import solve
 from ._problem import predicted_start
 from ._profile import LR_CHI2, LR_Z
+from ._starts import REACHED_RTOL
 from ._text import lower_cost
 
 #: step budget of the search's fits with mu held past a threshold: the cost jumps where the
@@ -156,8 +157,12 @@ def search_other_halts(problem, best, last):
                 better = last.out
         if better is None:
             break
-        notes += (f"a motion that halts at another turning point fits better (cost "
-                  f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
+        # a cost lower by less than the starts' "reached" share is the same optimum polished
+        # again: it replaces the optimum without a note (one claimed another halt "fits
+        # better" by 2.7e-12 %)
+        if float(better.chisqr) < float(best.chisqr) * (1.0 - REACHED_RTOL):
+            notes += (f"a motion that halts at another turning point fits better (cost "
+                      f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
         others[float(best.params.mu)] = float(best.chisqr)  # the basin left: nearly as good?
         best = better
     return best, last, others, notes
