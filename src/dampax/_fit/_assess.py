@@ -43,6 +43,7 @@ from ._profile import (
     bound_tests,
     profile_ratios,
 )
+from ._starts import SETTLE_RTOL, SETTLE_SHARE, settled_starts
 from ._text import time_span
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
@@ -80,6 +81,10 @@ class Inputs(NamedTuple):
             ``chisqr``: the fit's.
         d_scale: d per unit of mu, b, D at the fitted w0 (eq. 21): the starts of the tests at
             the bound.
+        search: the batch of starts whose costs tell a local optimum from a model that lacks
+            something (``_starts.Starts``; None: none ran).
+        exact: the residuals are eq. 3's (an approximate model that answers for the exact
+            one, ``_answer``): structure in them is judged as the exact model's.
     """
 
     t: np.ndarray
@@ -101,6 +106,7 @@ class Inputs(NamedTuple):
     chisqr: float = math.nan
     d_scale: dict | None = None
     search: object = None
+    exact: bool = False
 
 
 class Finding(NamedTuple):
@@ -362,23 +368,6 @@ def motion_ends(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
-#: the exact model's search settles on its best optimum when at least this share of its starts
-#: (and two) end within SETTLE_RTOL of the best cost: its starts run a budget of steps on a
-#: thinned trace, so on structured residuals they stop short of the optimum by a little. On
-#: the shared traces the spring runs settle 32 of 32, the torsion releases of 60, 70, 80, 90
-#: and 100 deg 16, 24, 15, 17 and 17 of 32 within 1 % (60 deg's next best 0.014 % above:
-#: "reached" within 1e-4 counted 1); a start in another basin costs more by a structure's share
-SETTLE_SHARE = 0.25
-SETTLE_RTOL = 0.01
-
-
-def settled_starts(costs) -> int:
-    """How many of a search's starts end within :data:`SETTLE_RTOL` of its best cost."""
-    c = np.asarray(costs, dtype=float)
-    c = c[np.isfinite(c)]
-    return int(np.sum(c <= c.min() * (1.0 + SETTLE_RTOL))) if c.size else 0
-
-
 def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """Eq. 3 integrated exactly: structure the noise cannot produce is a local optimum or
     physics that eq. 3 lacks. The fit's own search of the exact model's starts (``a.search``,
@@ -387,15 +376,15 @@ def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     success) and the model is inadequate, the structure named; where no search ran, or it did
     not settle (its starts spread over other costs), the fit fails as a possible local
     optimum."""
-    if not (m.st["p"] < STRUCTURE_P and a.model == "reference"):
+    if not (m.st["p"] < STRUCTURE_P and (a.model == "reference" or a.exact)):
         return Finding()
     where = structure_text(a, m)
     search = a.search
     settled = 0 if search is None else settled_starts(search.costs)
     if search is not None and settled >= max(2, SETTLE_SHARE * search.n):
         return Finding(bad=(f"the residuals hold structure that eq. 3 with these terms lacks "
-                            f"({where}): {search.n} starts of the exact model found no lower "
-                            f"cost, {settled} settled within {100 * SETTLE_RTOL:g} % of it",))
+                            f"({where}): {search.n} starts found no lower cost, {settled} "
+                            f"settled within {100 * SETTLE_RTOL:g} % of it",))
     why = ("no search of the exact model ran (starts=1)" if search is None else
            f"of {search.n} starts of the exact model {settled} settled within "
            f"{100 * SETTLE_RTOL:g} % of the best cost")
@@ -409,7 +398,8 @@ def size(a: Inputs, m: Measures, v: Verdict) -> Finding:
     amplitude: inadequate, with the half swing where they are largest (the exact model's
     structure is :func:`exact_structure`'s)."""
     A, noise = a.derived["A"], a.an.noise
-    if not (m.st["p"] < STRUCTURE_P and m.rms > RMS_AMPLITUDE * A) or a.model == "reference":
+    if not (m.st["p"] < STRUCTURE_P and m.rms > RMS_AMPLITUDE * A) or a.model == "reference" \
+            or a.exact:
         return Finding()
     lo, hi, rms = worst_swing(a, m)
     return Finding(bad=(f"the residuals (rms {m.rms:.3g}) are {v.diag['rms/noise']:.0f} times "

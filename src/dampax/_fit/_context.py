@@ -34,6 +34,7 @@ class FitContext:
         full_t, full_x: the whole trace (drawn before the fit start), or None.
         warnings: notes about the data.
         stages: how the fit was staged (appended to the message).
+        search, exact: as ``_assess.Inputs``'s.
     """
 
     model: str
@@ -57,6 +58,7 @@ class FitContext:
     starts: object = None
     profile: object = None
     search: object = None  # the exact model's own batch of starts, where it ran
+    exact: bool = False
 
 
 def _envelope_curve(t, a, bp, c):

@@ -205,7 +205,9 @@ def approximation_answers(problem: Problem, plan: Plan,
         return None, state
     approx = dataclasses.replace(problem, settings=problem.settings._replace(
         model=state.last.model))
-    res = assess(approx, plan, state)
+    # its residuals are eq. 3's (within a noise variance): their structure is judged as the
+    # exact model's, against the approximate fit's own search of starts
+    res = assess(approx, plan, state._replace(search=state.starts), exact=True)
     if not res.success:
         return None, state._replace(notes=state.notes[:-1] + (
             bias.text().replace("the ansatz answers", "the ansatz's bias is negligible") +
@@ -215,8 +217,9 @@ def approximation_answers(problem: Problem, plan: Plan,
                                                  "answer_remainder": bias.remainder}), state
 
 
-def assess(problem: Problem, plan: Plan, state: Fit) -> FitResult:
-    """Stage 6: the result and its checks (``_result.build_result``)."""
+def assess(problem: Problem, plan: Plan, state: Fit, *, exact: bool = False) -> FitResult:
+    """Stage 6: the result and its checks (``_result.build_result``; ``exact``: the
+    residuals are eq. 3's, ``_assess.Inputs``)."""
     s, data = problem.settings, problem.data
     profile = None
     if s.loss == "linear" and plan.profile_checks:
@@ -227,7 +230,8 @@ def assess(problem: Problem, plan: Plan, state: Fit) -> FitResult:
         init={name: getattr(problem.guess, name) for name in varied_names(problem.vary)},
         source=data.source, full_t=data.t_all, full_x=data.x_all, warnings=problem.warnings,
         stages="; ".join(state.notes), per_mass=problem.per_mass, units=problem.units,
-        analysis=data.analysis, starts=state.starts, profile=profile, search=state.search))
+        analysis=data.analysis, starts=state.starts, profile=profile, search=state.search,
+        exact=exact))
     if "unidentifiable" in res.diagnostics and plan.refuse_unidentifiable:
         raise ValueError(res.diagnostics["unidentifiable"])
     return res

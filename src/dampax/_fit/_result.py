@@ -377,7 +377,7 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
             t=ctx.t, x=ctx.x, curve=curve, params=params, stderr=stderr,
             varied=varied_names(ctx.vary), derived=derived, an=ctx.analysis,
             converged=converged, message=text, kind=kind, model=ctx.model, jac=jac, rows=rows,
-            capped=capped, profile=ctx.profile, chisqr=chisqr, search=ctx.search,
+            capped=capped, profile=ctx.profile, chisqr=chisqr, search=ctx.search, exact=ctx.exact,
             d_scale=dict(zip(("mu", "b", "D"), damping_d(
                 1.0, 1.0, 1.0, params["w0"], ctx.consts.m, ctx.consts.g), strict=True))
             if "w0" in params else None))
