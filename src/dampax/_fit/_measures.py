@@ -72,3 +72,53 @@ def structure_text(a, m: Measures) -> str:
     times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
     return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "
             f"{rms:.3g} ({times}{100 * rms / A:.1f} % of the amplitude)")
+
+
+#: |t| of the half periods' trend with the squared amplitude above which the data's frequency
+#: moves with the amplitude (a suggestion, made only where the exact model is inadequate)
+AMPLITUDE_T = 5.0
+
+
+def k3_hint(an, t, x) -> str:
+    """A suggestion when the data's frequency follows the amplitude (what a cubic stiffness
+    gives: w(a)^2 = w0^2 + (3/4)(k3/m) a^2, docs/cubic_stiffness.md): the half periods between
+    the data's turning points regressed on their squared amplitude, the trend's t statistic
+    beyond :data:`AMPLITUDE_T`; else "".
+
+    Arguments:
+        an: the window's ``_analysis.Analysis`` (the rest point, when the data halt, left out).
+        t, x: the window's samples: each turning point's time is the vertex of a parabola
+            fitted to the samples within a quarter of a half period of it (the samples alone
+            quantise a half period to dt; three of them leave the noise over the curvature).
+    """
+    t, x = np.asarray(t, dtype=float), np.asarray(x, dtype=float)
+    dt = float(np.median(np.diff(t)))
+    k = max(2, int(0.25 * math.pi / an.omega / dt)) if an.omega > 0 else 2
+    i = np.asarray(an.ext_i, dtype=int)[:-1 if an.halted else None]
+    i = i[(i >= k) & (i < t.size - k)]
+    if i.size < 8:
+        return ""
+    idx = i[:, None] + np.arange(-k, k + 1)[None, :]
+    u = t[idx] - t[i][:, None]
+    V = np.stack([np.ones_like(u), u, u * u], axis=-1)  # (turning point, sample, 3)
+    c = np.linalg.solve(np.einsum("nki,nkj->nij", V, V),
+                        np.einsum("nki,nk->ni", V, x[idx])[..., None])[..., 0]
+    ok = c[:, 2] != 0.0
+    te = t[i] + np.where(ok, np.clip(-c[:, 1] / np.where(ok, 2.0 * c[:, 2], 1.0), -k * dt,
+                                     k * dt), 0.0)
+    y1 = x[i]
+    a = np.abs(y1 - an.offset)
+    h, a2 = np.diff(te), (0.5 * (a[1:] + a[:-1])) ** 2
+    # weighted by a^2: a turning point's time is as uncertain as noise / (a w^2 dt) allows
+    w = np.sqrt(a2 / a2.max())
+    X = np.column_stack([np.ones_like(a2), a2 - np.average(a2, weights=w * w)]) * w[:, None]
+    coef, *_ = np.linalg.lstsq(X, h * w, rcond=None)
+    r = h * w - X @ coef
+    s2 = float(r @ r) / max(h.size - 2, 1)
+    cov = s2 * np.linalg.pinv(X.T @ X)
+    tstat = coef[1] / math.sqrt(cov[1, 1]) if cov[1, 1] > 0 else 0.0
+    if not abs(tstat) > AMPLITUDE_T:
+        return ""
+    way = "falls" if coef[1] > 0 else "rises"
+    return (f"; the data's frequency {way} with the amplitude (half periods against the squared "
+            f"amplitude: t = {tstat:.3g}): a cubic stiffness may take it up (free=(..., \"k3\"))")

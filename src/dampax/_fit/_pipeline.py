@@ -40,6 +40,7 @@ from ._answer import approximation_bias
 from ._checks import looks_stuck
 from ._core import FIT_MODELS, FIT_RESULTS
 from ._halts import above_mu_s, other_halt_check, search_other_halts, with_static_halt
+from ._measures import k3_hint
 from ._params import varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
 from ._result import FitContext, FitResult, build_result
@@ -234,7 +235,21 @@ def assess(problem: Problem, plan: Plan, state: Fit, *, exact: bool = False) -> 
         exact=exact))
     if "unidentifiable" in res.diagnostics and plan.refuse_unidentifiable:
         raise ValueError(res.diagnostics["unidentifiable"])
-    return res
+    return _with_k3_hint(res, problem)
+
+
+def _with_k3_hint(res: FitResult, problem: Problem) -> FitResult:
+    """Structured residuals of a linear spring whose data's frequency follows the amplitude:
+    the inadequacy says that a cubic stiffness may take them up (``_measures.k3_hint``)."""
+    structure = [i for i, s in enumerate(res.inadequacy) if "structure" in s]
+    if not structure or problem.consts.k3 is not None or "k3" in problem.settings.free:
+        return res
+    hint = k3_hint(problem.data.analysis, problem.data.t, problem.data.x)
+    if not hint:
+        return res
+    items = list(res.inadequacy)
+    items[structure[0]] += hint
+    return dataclasses.replace(res, inadequacy=items)
 
 
 def run(problem: Problem, plan: Plan = FULL) -> FitResult:
