@@ -164,6 +164,14 @@ class Problem:
         settings = self.settings if starts is None else self.settings._replace(starts=starts)
         return dataclasses.replace(self, guess=guess, settings=settings)
 
+    def with_positions(self, x) -> Problem:
+        """The problem on other positions over the same window (a model's own curve, for a
+        check of its bias): the window's analysis kept, nothing read or analysed again."""
+        x = np.asarray(x, dtype=float)
+        _, xp, _ = pad(self.data.t, x, len(self.data.tp))
+        data = self.data._replace(t_all=self.data.t, x_all=x, x=x, xp=xp)
+        return dataclasses.replace(self, data=data)
+
     def with_consts(self, **values) -> Problem:
         """The problem with the constants ``k3`` and/or ``mu_s`` held at other values (the
         data, the window and the start unchanged).

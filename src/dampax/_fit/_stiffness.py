@@ -21,7 +21,6 @@ from ._dist import norm_ppf
 from ._intervals import ar1_coefficient
 from ._params import PARAMS
 from ._pipeline import FULL, INNER, run
-from ._problem import prepare
 from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
 
 
@@ -199,11 +198,11 @@ def model_bias(problem, best, profile: tuple, extra=None) -> dict:
         exact = np.asarray(sol.x(tau), dtype=float) + p["offset"]
     except ValueError:
         return {}
-    settings = problem.settings._replace(starts=1, start="data", end=None, free=best.free,
-                                         p0={name: float(p[name]) for name in PARAMS})
+    # the same window and mask on the exact motion, started at the fit (no new analysis)
+    exact_problem = problem.with_positions(exact).starting_at(
+        {name: float(p[name]) for name in PARAMS}, starts=1)
     refits = {}
     try:
-        exact_problem = prepare(t, exact, settings)
         for e in (e_best - h, e_best, e_best + h):
             refits[e] = run(exact_problem.with_consts(k3=e * scale), INNER)
     except ValueError:
