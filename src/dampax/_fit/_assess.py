@@ -34,7 +34,15 @@ from ._checks import (
     phase_drift,
 )
 from ._dist import chi2_isf
-from ._measures import Measures, measures, structure_text, worst_swing
+from ._measures import (
+    SETTLE_RTOL,
+    SETTLE_SHARE,
+    Measures,
+    measures,
+    settled_starts,
+    structure_text,
+    worst_swing,
+)
 from ._profile import (
     LR_CHI2,
     PROFILE_FAIL,
@@ -43,7 +51,6 @@ from ._profile import (
     bound_tests,
     profile_ratios,
 )
-from ._starts import SETTLE_RTOL, SETTLE_SHARE, settled_starts
 from ._text import time_span
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)

@@ -176,20 +176,3 @@ def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed:
     reached = int(np.sum(finite & (costs <= cbest * (1.0 + REACHED_RTOL) + 1e-300)))
     return Starts(n=n, reached=reached, costs=costs, best=best, stride=stride,
                   params=TraceParams(*(float(v) for v in params[best])))
-
-
-#: the exact model's search settles on its best optimum when at least this share of its starts
-#: (and two) end within SETTLE_RTOL of the best cost: its starts run a budget of steps on a
-#: thinned trace, so on structured residuals they stop short of the optimum by a little. On
-#: the shared traces the spring runs settle 32 of 32, the torsion releases of 60, 70, 80, 90
-#: and 100 deg 16, 24, 15, 17 and 17 of 32 within 1 % (60 deg's next best 0.014 % above:
-#: "reached" within 1e-4 counted 1); a start in another basin costs more by a structure's share
-SETTLE_SHARE = 0.25
-SETTLE_RTOL = 0.01
-
-
-def settled_starts(costs) -> int:
-    """How many of a search's starts end within :data:`SETTLE_RTOL` of its best cost."""
-    c = np.asarray(costs, dtype=float)
-    c = c[np.isfinite(c)]
-    return int(np.sum(c <= c.min() * (1.0 + SETTLE_RTOL))) if c.size else 0
