@@ -41,7 +41,11 @@ def _result(*, free=("mu", "D"), params=None, fixed=None, units="m", per_mass=Fa
 def _bands(fig):
     """(label, y bottom, y top) of each filled band of the upper panel."""
     ax = fig.axes[0]
-    return [(p.get_label(), p.get_y(), p.get_y() + p.get_height()) for p in ax.patches]
+    # the band's y extent from its vertices: axhspan draws a Rectangle from matplotlib 3.9 on,
+    # a Polygon before (its vertices already in data units, its patch transform the identity)
+    spans = [p.get_patch_transform().transform(p.get_path().vertices)[:, 1] for p in ax.patches]
+    return [(p.get_label(), float(y.min()), float(y.max()))
+            for p, y in zip(ax.patches, spans, strict=True)]
 
 
 def test_axes_carry_units(tmp_path):
