@@ -361,10 +361,10 @@ class _K3Fit:
 
 def test_k3_model_bias_is_the_refit_of_the_exact_motion(monkeypatch):
     """_stiffness.model_bias (the k3 fit of an approximate model: D came out 43 standard errors
-    off with success): the exact motion of the fit's constants is prepared once as data (from
-    its first sample, one start) and refitted at k3 = e -+ h; a stand-in fit whose cost is a
-    parabola in e with its minimum at e0 and whose D moves by 0.002 + 0.5 (e - e_best) gives
-    the shifts known in closed form."""
+    off with success): the exact motion of the fit's constants replaces the data of the same
+    prepared problem (no new analysis), started at the fit's values with one start, and is
+    refitted at k3 = e -+ h; a stand-in fit whose cost is a parabola in e with its minimum at
+    e0 and whose D moves by 0.002 + 0.5 (e - e_best) gives the shifts known in closed form."""
     from dampax._fit import _stiffness
     from dampax._fit._params import Constants
     from dampax._fit._problem import Settings
@@ -382,9 +382,17 @@ def test_k3_model_bias_is_the_refit_of_the_exact_motion(monkeypatch):
         def with_consts(self, k3):
             return Held(k3)
 
-    def prepare(t_, x_, settings):
-        prepared.append((settings.start, settings.starts, settings.end, x_.shape))
-        return Held()
+    class Problem:
+        settings = Settings(model="ansatz")
+        consts = Constants(m=1.0, g=9.81)
+
+        def with_positions(self, x_):
+            prepared.append(("positions", x_.shape))
+            return self
+
+        def starting_at(self, p0, *, starts=None):
+            prepared.append(("start", starts, p0 == params))
+            return Held()
 
     def run(problem, plan):
         e = problem.k3 / scale
@@ -392,12 +400,9 @@ def test_k3_model_bias_is_the_refit_of_the_exact_motion(monkeypatch):
         return _K3Fit({**params, "D": params["D"] + 0.002 + 0.5 * (e - e_best)}, t,
                       chisqr=3.0 * (e - e0) ** 2 + 1.0)
 
-    monkeypatch.setattr(_stiffness, "prepare", prepare)
     monkeypatch.setattr(_stiffness, "run", run)
-    problem = dataclasses.make_dataclass("P", ["settings", "consts"])(
-        Settings(model="ansatz"), Constants(m=1.0, g=9.81))
-    out = _stiffness.model_bias(problem, best, (e_best, scale, h, 5e-4))
-    assert prepared == [("data", 1, None, t.shape)]
+    out = _stiffness.model_bias(Problem(), best, (e_best, scale, h, 5e-4))
+    assert prepared == [("positions", t.shape), ("start", 1, True)]
     assert seen == pytest.approx([e_best - h, e_best, e_best + h])
     assert out["k3"]["shift"] == pytest.approx((e0 - e_best) * scale, rel=1e-9)
     assert out["k3"]["z"] == pytest.approx(abs(e0 - e_best) / 5e-4, rel=1e-9)

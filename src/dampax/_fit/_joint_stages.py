@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import _swings_bucket
+from ._checks import STRUCTURE_P, residual_structure
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -232,17 +233,34 @@ def _optimise(init: JointStart, cfg: JointSettings) -> tuple:
             out = run_joint_core(arrays, lay=lay, opts=opts, **budget)
             stages.append(f"continued after {done} steps")
         out, arrays, search = _exact_search(out, arrays, init, cfg, opts)
-        stages.append(f"{search.n} starts of the exact model, {search.reached} at the optimum")
+        if search is not None:
+            stages.append(f"{search.n} starts of the exact model, {search.reached} at the "
+                          "optimum")
     return out, arrays, opts, stages, search
+
+
+def _structured(out: JointCore, a: JointArrays) -> bool:
+    """Whether some run's residuals at the joint optimum hold structure that AR(1) noise
+    cannot produce (``_checks.residual_structure``): only then does the exact model's search
+    have two causes to tell apart."""
+    weight, resid = np.asarray(a.weight, dtype=float), np.asarray(out.resid, dtype=float)
+    for j in range(weight.shape[0]):
+        rows = weight[j] > 0
+        p = residual_structure(np.asarray(a.tau, dtype=float)[j, rows], resid[j, rows],
+                               float(np.asarray(out.P)[j, 3]))["p"]
+        if p < STRUCTURE_P:
+            return True
+    return False
 
 
 def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: JointSettings,
                   opts) -> tuple:
     """The exact model's own search (issue 36, item 4): the exact joint fit again from each
     candidate start of the shared constants (the median of the single fits, each run's),
-    in one vmapped batch, beside the fit started from the approximate model's optimum.
-    Structured residuals at an optimum that no start improves on, reached by two or more,
-    are the model's (it lacks something), not a local optimum's.
+    in one vmapped batch, beside the fit started from the approximate model's optimum, where
+    some run's residuals are structured (:func:`_structured`). Structured residuals at an
+    optimum that no start improves on, on which the starts settle, are the model's (it lacks
+    something), not a local optimum's.
 
     Arguments:
         out, arrays: the exact fit from the approximate model's optimum and its arrays.
@@ -251,8 +269,11 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
         opts: the reference options.
 
     Returns:
-        (the best output, its arrays, a ``_starts.Starts`` of the search: n, reached, costs).
+        (the best output, its arrays, a ``_starts.Starts`` of the search: n, reached, costs;
+        None where no run's residuals are structured).
     """
+    if not _structured(out, arrays):  # noise is all the runs leave: nothing to tell apart
+        return out, arrays, None
     spec = FIT_MODELS[cfg.model]
     batch = [_arrays(init.data, spec, init.lay, sv) for sv in init.candidates]
     outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch),
