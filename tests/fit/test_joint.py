@@ -250,17 +250,26 @@ def test_joint_generated_family_sample(benchmark_module):
 
 @needs_data
 def test_spring_runs_1_and_2_joint_agrees_with_the_single_fits():
+    """Runs 1-2 of the spring jointly, by default (the exact model; issue 36 item 4): the
+    joint optimum succeeds, each run adequate False with the structure that eq. 3 lacks named
+    (the exact model's own search of the shared constants' starts settles there), and the
+    shared values lie inside each run's own 95 % intervals."""
     osc = dp.Oscillator(m=0.2016, k=14.91945)
     traces = [load_trace(DATA / "spring_mass_airdrag" / f"run{i}.csv") for i in (1, 2)]
-    # the first 40 s of each run (at most 4096 samples: the padded length of the other tests)
+    # the first 20 s of each run: the padded length and the swing budget of the other tests'
+    # exact joint fits, whose compiled programs it shares
     res = dp.fit(traces, oscillator=osc, free=("b", "D"), shared=("b", "D"), fit_omega0=True,
-                 window=dp.Window(end=41.0), solver=dp.LeastSquares(starts=8), model="ansatz")
-    assert res.success, res.reason
-    ci = res.conf_interval(0.95)
+                 window=dp.Window(end=22.0), solver=dp.LeastSquares(starts=8, max_swings=64))
+    assert res.success and res.model == "reference", res.reason
+    for run in res.runs:
+        assert run.success and not run.adequate, run.reason
+        assert any("structure that eq. 3 with these terms lacks" in s and "settled" in s
+                   for s in run.inadequacy), run.inadequacy
+    # (each run's own value need not lie in the joint interval, which is the narrower: over
+    # 20 s run 2's b lies 1.5 of its own sd above the joint value, outside it)
     for single, run in zip(res.singles, res.runs, strict=True):
         own = single.conf_interval(0.95)
         for name in ("b", "D"):
             assert own[name][0] < res.params[name] < own[name][1], (name, res.params[name])
-            assert ci[name][0] < single.params[name] < ci[name][1]
         assert run.rms < 1.01 * single.rms
         assert 8.40 < run.params["w0"] < 8.50
