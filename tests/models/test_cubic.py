@@ -310,7 +310,12 @@ def test_fit_recovers_k3_of_a_synthetic_trace(monkeypatch):
     s = post.summary(0.95)["k3"]
     assert post.draws["k3"].shape == (2, 100) and post.free == ("b", "D", "k3")
     assert s["lo"] < k3 < s["hi"] and (s["hi"] - s["lo"]) < 0.2 * k3, s
-    assert s["r_hat"] < 1.05, s
+    # R-hat of 2 chains x 100 draws is itself a random number: over 100 realizations of this
+    # posterior (seeds 0-99; a GPU's other rounding of the log-density makes its chains
+    # another realization) median 1.007, 99 % 1.088, max 1.099, and 6 of 100 at or above
+    # the 1.05 this test asked before (benchmarks/posterior_realizations.py); chains in
+    # different modes give far more
+    assert s["r_hat"] < 1.15, s
 
 
 # --- error maps --------------------------------------------------------------------------------

@@ -35,7 +35,6 @@ from typing import NamedTuple
 import numpy as np
 
 from ._checks import interval_sd
-from ._curves import curves
 from ._params import PARAMS, flat
 
 #: largest shift of a parameter, in interval sd, that the ansatz may leave (module docstring)
@@ -74,14 +73,13 @@ class Bias(NamedTuple):
                 f"{REMAINDER_VARIANCES:g})")
 
 
-def approximation_bias(problem, out, opts) -> Bias:
+def approximation_bias(problem, out) -> Bias:
     """The exact model's one-step correction of the ansatz optimum ``out`` (the module
     docstring).
 
     Arguments:
         problem: the fit's ``_problem.Problem`` (its window, padding and constants).
         out: the ansatz fit's core output (params, jac, resid of the padded rows).
-        opts: the exact model's integrator options (``Problem.reference_options``).
 
     Returns:
         A :class:`Bias`; not negligible where anything is not finite.
@@ -89,9 +87,10 @@ def approximation_bias(problem, out, opts) -> Bias:
     n = problem.n
     names = [k for k, v in zip(PARAMS, flat(problem.vary), strict=True) if bool(v)]
     params = {k: float(getattr(out.params, k)) for k in PARAMS}
-    P = np.asarray(flat(out.params), dtype=float)[None, :]
-    exact = np.asarray(curves(problem.data.tp, P, problem.consts, model="reference",
-                              opts=opts))[0, :n]
+    # the exact model's curve at the ansatz optimum: its fit with a budget of one step
+    # returns the start (the step is proposed, not taken), by the exact fit's own program
+    at = problem.solve(out.params, problem.settings.model, math.inf, budget=1).out
+    exact = np.asarray(at.curve)[:n]
     approx = np.asarray(out.curve)[:n]
     cols = [PARAMS.index(k) for k in names]
     J = np.asarray(out.jac)[:n][:, cols]

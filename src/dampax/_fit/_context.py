@@ -15,6 +15,7 @@ from .._cache import call_cached
 from .._models._decay import decay, halt_time
 from ._core import FIT_MODELS
 from ._params import Constants, damping_d
+from ._problem import bucket, pad
 
 
 @dataclass(frozen=True)
@@ -65,10 +66,14 @@ def _envelope_curve(t, a, bp, c):
     """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
     (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
     from the cache in every new process (issue 26); compiled as one, f may differ from the
-    eager value in the last bit. The arguments: concrete numbers."""
+    eager value in the last bit. The arguments: concrete numbers; t padded to its bucket
+    (``_problem.bucket``), so that windows of other lengths share the program (issue 36: a
+    trace of a new length compiled it again, 0.2-0.3 s)."""
 
-    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (t, a, bp, c))
-    return call_cached("fit-envelope", (), decay, *args)
+    t = np.asarray(t, dtype=float)
+    tp, _, _ = pad(t, t, bucket(t.size, 256))
+    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (tp, a, bp, c))
+    return call_cached("fit-envelope", (), decay, *args)[:t.size]
 
 
 def trace_derived(params: dict, coords, ctx: FitContext):

@@ -184,7 +184,49 @@ def _result_code(result) -> FIT_RESULTS:
                         result_where(capped, FIT_RESULTS.max_steps_reached, FIT_RESULTS.failed))
 
 
-def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps, rtol, atol):
+class _Budgeted(optx.AbstractLeastSquaresSolver):
+    """A least-squares solver that also stops after ``budget`` steps, a traced number: one
+    compiled fit serves every budget up to the loop's static ``max_steps`` (issue 36: the
+    exact model's fits with 256 steps, the halt search's with 64 and the one-step check were
+    three programs of 3.3-3.6 s of compiling each). The state is (the solver's, steps)."""
+
+    inner: optx.AbstractLeastSquaresSolver
+    budget: Any
+    rtol: float
+    atol: float
+    norm: Any = eqx.field(static=True)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0)
+
+    def step(self, fn, y, args, options, state, tags):
+        y, inner, aux = self.inner.step(fn, y, args, options, state[0], tags)
+        return y, (inner, state[1] + 1), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
+        spent = state[1] >= self.budget
+        return done | spent, optx.RESULTS.where(
+            done | ~spent, result, optx.RESULTS.nonlinear_max_steps_reached)
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
+
+
+def _lm_once(fn, solver, theta0, args: ResidualArgs, model: FitModel, max_steps, budget):
+    """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point)."""
+    if budget is not None:
+        solver = _Budgeted(solver, budget, solver.rtol, solver.atol, solver.norm)
+    sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=int(max_steps),
+                             throw=False)
+    state = sol.state if budget is None else sol.state[0]
+    info = state.f_info  # residuals and Jacobian at the returned (accepted) point
+    return (_clamp_flat(sol.value, args, model), _result_code(sol.result),
+            sol.stats["num_steps"], (info.residual, info.jac.as_matrix()))
+
+
+def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions,
+               budget=None):
     """optimistix Levenberg-Marquardt in ``model.lm_rounds`` restarts, for constants that go
     to 0.
 
@@ -196,7 +238,9 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
     coordinates are rescaled so that their columns match the largest nuisance column
     (Marquardt's scaling, per round). A round after a converged one with nothing changed is
     skipped. Returns (theta, code, steps, final) with final = (r, J) for one round.
+    ``budget``: the steps of one round (traced, at most max_steps; None: max_steps).
     """
+    _, _, max_steps, rtol, atol, opts = options
     # the step budget is honoured: never more rounds than steps, never more steps in all
     rounds = max(min(model.lm_rounds, int(max_steps)), 1)
     # normal equations: 5-10x faster per step than the default QR on tall Jacobians; the
@@ -204,11 +248,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, opts, max_steps,
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
                                      linear_solver=lx.Normal(lx.Cholesky()))
     if rounds == 1:
-        sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=int(max_steps),
-                                 throw=False)
-        info = sol.state.f_info  # residuals and Jacobian at the returned (accepted) point
-        return (_clamp_flat(sol.value, args, model), _result_code(sol.result),
-                sol.stats["num_steps"], (info.residual, info.jac.as_matrix()))
+        return _lm_once(fn, solver, theta0, args, model, max_steps, budget)
     per_round = max(int(max_steps) // rounds, 1)
     vary = flat(args.vary)
     dref, lo = log_bounds(args.setup, args.vary)
@@ -345,8 +385,19 @@ class CoreOptions(NamedTuple):
     opts: ReferenceOptions | None = None
 
 
+class Tuning(NamedTuple):
+    """The traced settings of one fit (:func:`core`): the soft_l1 scale ``f_scale`` in data
+    units (inf: the linear loss) and Levenberg-Marquardt's step ``budget`` (at most
+    ``CoreOptions.max_steps``; None: that), honoured by the models of one round
+    (``FitModel.lm_rounds``)."""
+
+    f_scale: Any
+    budget: Any = None
+
+
 @functools.partial(jax.jit, static_argnames=("options",))
-def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreResult:
+def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
+         options: CoreOptions) -> CoreResult:
     """One fit, pure: optimise, then the covariance by the delta method.
 
     Arguments:
@@ -354,7 +405,7 @@ def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreR
         p0: the start (and the values of the fixed parameters), of the model's ``params`` type.
         vary: the mask, same type, booleans (traced: one compilation for every candidate).
         consts: :class:`~dampax._fit._params.Constants`.
-        f_scale: soft_l1 scale in data units (inf: linear loss).
+        tuning: the soft_l1 scale and the step budget (:class:`Tuning`, traced).
         options: the model, the optimizer, its budget and tolerances, the integrator's
             options (:class:`CoreOptions`, static).
 
@@ -362,6 +413,7 @@ def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreR
         A :class:`CoreResult`.
     """
     model, optimizer, max_steps, rtol, atol, opts = options
+    f_scale, budget = tuning
     spec = FIT_MODELS[model]
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
@@ -369,8 +421,8 @@ def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreR
     fn = _materialised(functools.partial(_residual_fn, model=spec, opts=opts), args)
     final = None
     if optimizer == "lm":
-        theta, code, steps, final = _lm_rounds(fn, theta0, args, spec, opts, max_steps, rtol,
-                                               atol)
+        theta, code, steps, final = _lm_rounds(fn, theta0, args, spec, options,
+                                               budget if spec.lm_rounds == 1 else None)
     else:
         def loss_fn(th):
             return 0.5 * jnp.sum(fn(th, args) ** 2)
@@ -419,17 +471,19 @@ def core(t, x, weight, p0, vary, consts, f_scale, options: CoreOptions) -> CoreR
                       coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
-def run_core(t, x, weight, p0, vary, consts, f_scale, **static) -> CoreResult:
+def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> CoreResult:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
     the same shapes shares one compiled function. ``static``: the fields of
-    :class:`CoreOptions` by name.
+    :class:`CoreOptions` by name; ``budget``: the steps (traced, at most ``max_steps``;
+    None: ``max_steps``), honoured by the models of one Levenberg-Marquardt round.
 
     Called with concrete values (an eager fit), the compiled program is kept
     (``_cache.call_cached_tree``): a repeated fit, also in a new process, neither traces nor
     compiles it; under jit/vmap the plain traced route runs."""
     args = (jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
             jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
-            as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+            as_arrays(consts), Tuning(jnp.asarray(f_scale, dtype=float), jnp.asarray(
+                static["max_steps"] if budget is None else budget, dtype=int)))
     options = CoreOptions(**static)
     if is_concrete(args):
         return call_cached_tree("fit-core", sorted(static.items()),

@@ -64,14 +64,22 @@ class ReferenceOptions(NamedTuple):
 SWING_MARGIN = {"fit": 1.15, "data": 1.2, "starts": 1.5}
 
 
+#: the smallest budget of a fit's exact model (``use="starts"``): its compiled programs take
+#: the budget as a static size, so traces of 2 to 15 periods (budgets 16, 32, 64 before) each
+#: compiled them again (13-15 s per budget, issue 36); a larger budget costs memory, not time
+#: (one papers'-regime fit with budget 32, 64, 128: 1.48, 1.39, 1.51 s CPU; 1.66, 1.74, 1.80 s)
+MIN_FIT_SWINGS = 64
+
+
 def swing_budget(span: float, w0: float, use: str = "fit") -> int:
     """The reference's half-swing budget over ``span`` seconds at angular frequency ``w0``:
     the span's half swings w0 span / pi times :data:`SWING_MARGIN` [``use``], plus 8; for
-    ``use="starts"`` rounded up to a power of two (at least 16), so that windows of similar
-    length share the compiled batch. The one home of the budget (issue 33).
+    ``use="starts"`` rounded up to a power of two (at least :data:`MIN_FIT_SWINGS`), so that
+    windows of similar length share the compiled fit. The one home of the budget (issue 33).
     """
     need = int(SWING_MARGIN[use] * span * w0 / math.pi) + 8
-    return 1 << int(math.ceil(math.log2(max(need, 16)))) if use == "starts" else need
+    return 1 << int(math.ceil(math.log2(max(need, MIN_FIT_SWINGS)))) if use == "starts" \
+        else need
 
 
 # ----------------------------------------------------------------------------------------------

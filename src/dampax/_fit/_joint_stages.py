@@ -31,6 +31,7 @@ from ._joint_problem import (
     run_joint_batch,
     run_joint_core,
 )
+from ._measures import SETTLE_RTOL, settled_starts
 from ._params import (
     DAMPING,
     FREE,
@@ -234,8 +235,10 @@ def _optimise(init: JointStart, cfg: JointSettings) -> tuple:
             stages.append(f"continued after {done} steps")
         out, arrays, search = _exact_search(out, arrays, init, cfg, opts)
         if search is not None:
-            stages.append(f"{search.n} starts of the exact model, {search.reached} at the "
-                          "optimum")
+            # the settle rule of the verdict (``_measures.settled_starts``), not "reached"
+            stages.append(f"{search.n} starts of the exact model, "
+                          f"{settled_starts(search.costs)} settled within "
+                          f"{100 * SETTLE_RTOL:g} % of the best cost")
     return out, arrays, opts, stages, search
 
 

@@ -215,8 +215,7 @@ def approximation_answers(problem: Problem, plan: Plan,
         return None, state._replace(notes=state.notes + (
             f"the exact model answers: {', '.join(at_zero)} at 0 in the ansatz's optimum, "
             "where a one-step check of the models' agreement is local",))
-    bias = approximation_bias(problem, state.best,
-                              problem.reference_options(spec.name, state.best.params.w0))
+    bias = approximation_bias(problem, state.best)
     state = state._replace(notes=state.notes + (bias.text(),))
     if not bias.negligible:
         return None, state

@@ -133,7 +133,7 @@ class Problem:
         return ReferenceOptions(int(max_swings), 1e-8, 1e-10)
 
     def solve(self, p_start: TraceParams, model: str, fs: float, *,
-              like: Solved | None = None) -> Solved:
+              like: Solved | None = None, budget: int | None = None) -> Solved:
         """Optimise from ``p_start`` with ``model`` (the jitted core, ``_core.run_core``).
 
         Arguments:
@@ -142,15 +142,22 @@ class Problem:
             fs: the soft_l1 scale (inf: the linear loss).
             like: a fit whose integrator options a refit keeps (a held refit of it);
                 default: options for ``p_start``'s w0.
+            budget: the optimizer's steps (default :attr:`steps`); ``budget=1`` returns the
+                start itself with the model's curve and Jacobian there.
 
         Returns:
             :class:`Solved`.
         """
         opts = like.opts if like is not None else self.reference_options(model, p_start.w0)
         s = self.settings
+        budget = self.steps if budget is None else int(budget)
+        # one program for every budget of a model of one Levenberg-Marquardt round (the
+        # exact one): its loop's static size is the default budget, the steps are traced
+        cap = max(budget, MAX_STEPS[s.optimizer]) if s.optimizer == "lm" and \
+            FIT_MODELS[model].lm_rounds == 1 else budget
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
-                       self.consts, fs, model=model, optimizer=s.optimizer,
-                       max_steps=self.steps, rtol=float(s.rtol), atol=float(s.atol), opts=opts)
+                       self.consts, fs, budget, model=model, optimizer=s.optimizer,
+                       max_steps=cap, rtol=float(s.rtol), atol=float(s.atol), opts=opts)
         return Solved(out, model, fs, opts)
 
     def holding(self, *names: str) -> Problem:
@@ -273,10 +280,14 @@ def robust_scale(r) -> float:
 
 
 def bucket(n: int, minimum: int = 4096) -> int:
-    """Padded length: the next power of 4 >= n, at least ``minimum``, so that traces of
-    different lengths share compiled fits (compiling one takes 10-30 s; evaluating the padded
-    samples costs far less)."""
-    return max(minimum, 1 << (2 * int(math.ceil(math.log2(max(n, 1)) / 2))))
+    """Padded length: the next 2^j or 3 2^(j-1) >= n, at least ``minimum``, so that traces of
+    different lengths share compiled fits (compiling one takes 10-30 s). A padded sample
+    costs what a sample costs (the model is evaluated there at weight 0), so the steps are
+    at most 1.5x (powers of 4 before issue 36: the 5,000 samples of ``dampax fit --example``
+    ran as 16,384)."""
+    n = max(int(n), 1)
+    power = 1 << (n - 1).bit_length()  # the next power of two >= n
+    return max(minimum, 3 * power // 4 if 4 * n <= 3 * power else power)
 
 
 def pad(t, x, n_pad):

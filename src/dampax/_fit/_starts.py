@@ -1,14 +1,15 @@
-"""Global starts (issue 11, item 2): a batch of jittered starts optimised in one compiled,
-vmapped call.
+"""Global starts (issue 11, item 2): a batch of jittered starts optimised by one compiled,
+vmapped program (:data:`BATCH_LANES` starts per call).
 
 The first start is the turning-point guess of ``_guess`` (the amplitude lost per swing
 regressed on the Coulomb, viscous and quadratic columns of eq. 21, dA/dt = -(d0 + d1 A +
 d2 A^2), by non-negative least squares). The others multiply each free damping constant by
 exp(1.5 z) (z standard normal: a spread of a factor 4.5 per sigma, in log-parameters), w0 by
-1 + 0.003 z and the initial amplitude by exp(0.1 z). The batch runs on the trace thinned to at
-most :data:`BATCH_SAMPLES` samples (every s-th sample, at least :data:`PER_PERIOD` per period;
-where that leaves more, the first BATCH_SAMPLES of them: the batch then sees the first part of
-the decay), padded to that length, so one compiled function serves every trace, with at most
+1 + 0.003 z and the initial amplitude by exp(0.1 z). The batch runs on the trace thinned to one
+of the lengths :data:`BATCH_SAMPLES` (every s-th sample, at least :data:`PER_PERIOD` per
+period; the shortest length that holds them, else the first samples of the longest: the batch
+then sees the first part of the decay), padded to that length, so two compiled functions serve
+every trace, with at most
 :data:`BATCH_STEPS` optimizer steps per start; the best start is then polished on the whole
 trace by the caller. The report says how many starts reached the best cost (within
 :data:`REACHED_RTOL`) and the spread of the costs.
@@ -25,17 +26,27 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached_tree
-from ._core import FIT_RESULTS, CoreOptions, core
+from ._core import FIT_RESULTS, CoreOptions, Tuning, core
 from ._params import PARAMS, TraceParams, as_arrays
 
-#: samples of the thinned trace of the batch (its padded length)
-BATCH_SAMPLES = 1024
+#: samples of the thinned trace of the batch (its padded length): the smallest of these that
+#: keeps PER_PERIOD samples per period of the whole trace, else the largest (cut to the first
+#: part of the decay). 256 holds the papers' regime of issue 36 (3,000 samples, 2-15 periods:
+#: 12-125 per period); the batch's time follows its length (32 starts of 64 steps: 0.42 s CPU
+#: at 1,024 samples, 0.14-0.19 s at 256; benchmarks/README.md, issue 36 fourth session), and
+#: a long record (spring run 1: 165 periods) keeps 1,024 as before
+BATCH_SAMPLES = (256, 1024)
 #: fewest samples per period kept by the thinning (else the batch covers the trace's start)
 PER_PERIOD = 10
 #: step budget of each start (the best is polished on the whole trace afterwards)
 BATCH_STEPS = 64
 #: a start "reached" the best optimum when its cost is within this relative distance
 REACHED_RTOL = 1e-4
+#: starts per call of the compiled batch: a batch of n starts is ceil(n / BATCH_LANES) calls of
+#: one program (the fit's 32 starts and the 8 of a test at the bound shared none before: two
+#: programs, 3.3 s each of a cold fit's compiling; issue 36). A vmapped loop runs as long as
+#: its slowest lane, so smaller calls cost no more in all
+BATCH_LANES = 8
 
 
 @dataclass(frozen=True)
@@ -99,23 +110,26 @@ def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool =
 
 @functools.partial(jax.jit, static_argnames=("options",))
 def _batch(t, x, weight, p0s, vary, consts, f_scale, options: CoreOptions):
-    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, f_scale, options))(p0s)
+    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, Tuning(f_scale),
+                                   options=options))(p0s)
 
 
 def thin(t: np.ndarray, x: np.ndarray, omega: float):
-    """(t, x, weight, stride): every stride-th sample (at most BATCH_SAMPLES of them, at least
-    PER_PERIOD per period), padded to BATCH_SAMPLES with weight 0."""
+    """(t, x, weight, stride): every stride-th sample (at least PER_PERIOD per period), padded
+    with weight 0 to the first length of BATCH_SAMPLES that holds them (else cut to the last)."""
     n = t.size
     dt = float(np.median(np.diff(t)))
     per_period = 2.0 * math.pi / omega / dt
-    stride = max(1, math.ceil(n / BATCH_SAMPLES))
-    stride = max(1, min(stride, int(per_period // PER_PERIOD))) if n > BATCH_SAMPLES else 1
+    for size in BATCH_SAMPLES:
+        stride = max(1, math.ceil(n / size))
+        stride = max(1, min(stride, int(per_period // PER_PERIOD))) if n > size else 1
+        if math.ceil(n / stride) <= size:
+            break
     td, xd = t[::stride], x[::stride]
-    if td.size > BATCH_SAMPLES:  # too few samples per period to thin further: cut
-        td, xd = td[:BATCH_SAMPLES], xd[:BATCH_SAMPLES]
+    if td.size > size:  # too few samples per period to thin further: cut
+        td, xd = td[:size], xd[:size]
     m = td.size
-    tp, xp, wt = np.full(BATCH_SAMPLES, td[-1]), np.full(BATCH_SAMPLES, xd[-1]), \
-        np.zeros(BATCH_SAMPLES)
+    tp, xp, wt = np.full(size, td[-1]), np.full(size, xd[-1]), np.zeros(size)
     tp[:m], xp[:m], wt[:m] = td, xd, 1.0
     return tp, xp, wt, stride
 
@@ -147,18 +161,25 @@ def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed:
     for j, p in enumerate(extra):
         P[n - 1 - j] = np.asarray(p, dtype=float)
     tp, xp, wt, stride = thin(np.asarray(t), np.asarray(x), omega)
-    p0s = as_arrays(TraceParams(*(jnp.asarray(P[:, i]) for i in range(P.shape[1]))))
     static = dict(model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
                   rtol=rtol, atol=atol, opts=opts)
-    # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
-    out = call_cached_tree("fit-starts", sorted(static.items()),
-                           functools.partial(_batch, options=CoreOptions(**static)),
-                           jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt), p0s,
-                           as_arrays(vary, bool), as_arrays(consts),
-                           jnp.asarray(f_scale, dtype=float))
-    costs = 0.5 * np.asarray(out.chisqr, dtype=float)
-    ok = np.asarray(out.code._value) == FIT_RESULTS.successful._value
-    params = np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1)
+    args = (jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt))
+    fixed = (as_arrays(vary, bool), as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+    chisqr, codes, rows = [], [], []
+    for lo in range(0, n, BATCH_LANES):  # the last call's spare lanes repeat the first start
+        block = np.concatenate([P[lo:lo + BATCH_LANES],
+                                np.tile(P[:1], (max(lo + BATCH_LANES - n, 0), 1))])
+        p0s = as_arrays(TraceParams(*(jnp.asarray(block[:, i]) for i in range(P.shape[1]))))
+        # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
+        out = call_cached_tree("fit-starts", sorted(static.items()),
+                               functools.partial(_batch, options=CoreOptions(**static)),
+                               *args, p0s, *fixed)
+        chisqr.append(np.asarray(out.chisqr, dtype=float))
+        codes.append(np.asarray(out.code._value))
+        rows.append(np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1))
+    costs = 0.5 * np.concatenate(chisqr)[:n]
+    ok = np.concatenate(codes)[:n] == FIT_RESULTS.successful._value
+    params = np.concatenate(rows)[:n]
     finite = np.isfinite(costs) & np.all(np.isfinite(params), axis=1)
     costs = np.where(finite, costs, np.nan)
     # a converged start is preferred (its optimum is a stationary point, the others ran out
