@@ -28,7 +28,6 @@ from ._checks import (
     end_mismatch,
     interval_sd,
     model_end,
-    motion_end,
     newton_step,
     null_directions,
     phase_drift,
@@ -36,10 +35,11 @@ from ._checks import (
 from ._dist import chi2_isf
 from ._measures import (
     SETTLE_RTOL,
-    SETTLE_SHARE,
     Measures,
+    gross_ends,
     measures,
     settled_starts,
+    settles,
     structure_text,
     worst_swing,
 )
@@ -67,8 +67,6 @@ END_PERIODS = 4.0
 #: its delta-method standard error otherwise, where the decrement in noise variances bounds
 #: it), which keeps a 90 % interval's coverage above 87.7 %
 NEWTON_TOL = 0.09
-
-
 
 
 class Inputs(NamedTuple):
@@ -331,20 +329,11 @@ def structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
 
 
 def _gross_end(a: Inputs, m: Measures) -> Finding:
-    """A gross mismatch of the motion ends whatever the noise: the model's halt and the end
-    of the data's swings above max(6 noise, A/50) are :data:`END_PERIODS` periods or a tenth
-    of the window apart. (The noise from second differences misses most of correlated noise:
-    where the residuals pass the test against AR(1) noise their robust scale counts it;
-    structured residuals hold the model's error and say nothing about the noise.)"""
-    t, r = a.t, m.r
-    structured = m.st["p"] < STRUCTURE_P
-    noise, A = a.an.noise, a.derived["A"]
-    scale = noise if structured else \
-        max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
-    level = max(6.0 * scale, 0.02 * A)
-    gross_d = motion_end(t, a.x, m.period, level)
-    gross_m = motion_end(t, a.curve, m.period, level)
-    tol = max(END_PERIODS * m.period, 0.1 * float(t[-1] - t[0]))
+    """A gross mismatch of the motion ends whatever the noise (``_measures.gross_ends``): the
+    model's halt and the end of the data's swings above max(6 noise, A/50) are
+    :data:`END_PERIODS` periods or a tenth of the window apart."""
+    gross_m, gross_d, tol = gross_ends(a.t, a.x, a.curve, m.r, m.period, (
+        a.an.noise, a.derived["A"], m.st["p"] < STRUCTURE_P), END_PERIODS)
     if gross_m < gross_d - tol:
         msg = (f"the model stops moving at t = {gross_m:.5g} s, well before the data "
                f"(t = {gross_d:.5g} s)")
@@ -356,23 +345,37 @@ def _gross_end(a: Inputs, m: Measures) -> Finding:
     return Finding(fails=(msg,), bad=(msg,))
 
 
+def _stands(a: Inputs, m: Measures) -> bool:
+    """Eq. 3's structured residuals at an optimum its search of starts settled on: no start
+    found a lower cost, so the residuals hold what eq. 3 lacks (issue 36, item 4)."""
+    return bool(m.st["p"] < STRUCTURE_P and (a.model == "reference" or a.exact) and
+                settles(a.search))
+
+
 def motion_ends(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """Where the model halts against where the data stop: the residuals between the two ends
-    against those elsewhere (:func:`end_mismatch`), else a gross mismatch."""
+    against those elsewhere (:func:`end_mismatch`), else a gross mismatch. Where eq. 3's
+    optimum stands (:func:`_stands`), a mismatch is what it lacks: inadequate, not failed
+    (the 100 deg torsion release, whose frequency follows its amplitude)."""
     end_m = model_end(a.t, a.curve)
     end_d = a.an.end_t if a.an.halted else float(a.t[-1])
     p_end = end_mismatch(a.t, m.r, end_m, end_d, m.st["phi"])
     diag = {"end_model": end_m, "end_data": end_d, "end_p": p_end}
+    found = Finding(diag=diag)
     if p_end < END_P:
         msg = (f"the model stops moving at t = {end_m:.5g} s, before the data (t = {end_d:.5g} "
                "s)" if end_m < end_d else
                f"the model still moves at t = {end_m:.5g} s, after the data stop "
                f"(t = {end_d:.5g} s)")
-        return Finding(fails=(msg + f": the residuals between are beyond the noise "
-                              f"(p = {p_end:.1g})",), bad=(msg,), diag=diag)
-    if end_m < float(a.t[-1]) - 0.5 * m.period:
-        return _gross_end(a, m)._replace(diag=diag)
-    return Finding(diag=diag)
+        found = Finding(fails=(msg + f": the residuals between are beyond the noise "
+                               f"(p = {p_end:.1g})",), bad=(msg,), diag=diag)
+    elif end_m < float(a.t[-1]) - 0.5 * m.period:
+        found = _gross_end(a, m)._replace(diag=diag)
+    if found.fails and _stands(a, m):
+        return found._replace(fails=(), bad=tuple(
+            f"{b} (the optimum stands: the exact model's starts found no lower cost)"
+            for b in found.bad))
+    return found
 
 
 def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
@@ -388,7 +391,7 @@ def exact_structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
     where = structure_text(a, m)
     search = a.search
     settled = 0 if search is None else settled_starts(search.costs)
-    if search is not None and settled >= max(2, SETTLE_SHARE * search.n):
+    if _stands(a, m):
         return Finding(bad=(f"the residuals hold structure that eq. 3 with these terms lacks "
                             f"({where}): {search.n} starts found no lower cost, {settled} "
                             f"settled within {100 * SETTLE_RTOL:g} % of it",))

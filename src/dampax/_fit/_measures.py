@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._checks import residual_structure
+from ._checks import motion_end, residual_structure
 from ._intervals import hac_covariance
 from ._text import time_span
 
@@ -136,6 +136,28 @@ def k3_hint(an, t, x) -> str:
 #: "reached" within 1e-4 counted 1); a start in another basin costs more by a structure's share
 SETTLE_SHARE = 0.25
 SETTLE_RTOL = 0.01
+
+
+def settles(search) -> bool:
+    """Whether a search of starts (``_starts.Starts`` or None) settled on its best cost
+    (:data:`SETTLE_SHARE` of its starts, and two, within :data:`SETTLE_RTOL`)."""
+    return search is not None and settled_starts(search.costs) >= max(2, SETTLE_SHARE *
+                                                                       search.n)
+
+
+def gross_ends(t, x, curve, r, period: float, level: tuple, tol_periods: float):
+    """Where the data's and the model's swings above a level end, and the tolerance between
+    them: (model end, data end, tol). ``level``: (noise, amplitude, structured); the level is
+    max(6 noise, A/50), the noise the robust scale of the residuals r where they are not
+    structured (the noise from second differences misses most of correlated noise; structured
+    residuals hold the model's error and say nothing about the noise); tol is
+    ``tol_periods`` periods or a tenth of the window."""
+    noise, A, structured = level
+    scale = noise if structured else \
+        max(noise, 1.4826 * float(np.median(np.abs(r - np.median(r)))))
+    cut = max(6.0 * scale, 0.02 * A)
+    tol = max(tol_periods * period, 0.1 * float(t[-1] - t[0]))
+    return motion_end(t, curve, period, cut), motion_end(t, x, period, cut), tol
 
 
 def settled_starts(costs) -> int:
