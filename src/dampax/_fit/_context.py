@@ -62,18 +62,24 @@ class FitContext:
     exact: bool = False
 
 
+def _decay_and_halt(t, a, bp, c):
+    return decay(t, a, bp, c), halt_time(a, bp, c)
+
+
 def _envelope_curve(t, a, bp, c):
-    """f(t) of eq. 20 for the figure's envelope, by one kept compiled program
-    (``_cache.call_cached``): eagerly, decay is some 40 small programs, each lowered and read
-    from the cache in every new process (issue 26); compiled as one, f may differ from the
-    eager value in the last bit. The arguments: concrete numbers; t padded to its bucket
-    (``_problem.bucket``), so that windows of other lengths share the program (issue 36: a
-    trace of a new length compiled it again, 0.2-0.3 s)."""
+    """(f(t) of eq. 20 for the figure's envelope, the halt time of eq. 20) by one kept
+    compiled program (``_cache.call_cached``): eagerly, decay is some 40 small programs and
+    the halt time 15, each compiled or read from the cache in every new process (issue 26;
+    0.5 s of a cold fit, issue 36); compiled as one, f may differ from the eager value in the
+    last bit. The arguments: concrete numbers; t padded to its bucket (``_problem.bucket``),
+    so that windows of other lengths share the program (issue 36: a trace of a new length
+    compiled it again, 0.2-0.3 s)."""
 
     t = np.asarray(t, dtype=float)
     tp, _, _ = pad(t, t, bucket(t.size, 256))
     args = (jax.device_put(np.asarray(v, dtype=float)) for v in (tp, a, bp, c))
-    return call_cached("fit-envelope", (), decay, *args)[:t.size]
+    f, halt = call_cached("fit-envelope", ("halt",), _decay_and_halt, *args)
+    return np.asarray(f)[:t.size], float(halt)
 
 
 def trace_derived(params: dict, coords, ctx: FitContext):
@@ -98,8 +104,8 @@ def trace_derived(params: dict, coords, ctx: FitContext):
     envelope = None
     t_start = float(ctx.t[0])
     if math.isfinite(A) and A > 0:
-        envelope = A * np.asarray(_envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A))
-        derived["halt_time"] = t_start + float(halt_time(d2 * A, d1, d0 / A))
+        f, halt = _envelope_curve(ctx.t - t_start, d2 * A, d1, d0 / A)
+        envelope, derived["halt_time"] = A * f, t_start + halt
     derived["A"], derived["phi"] = A, phi
     fixed = {"m": m, "g": g}
     if not ctx.vary.w0:
