@@ -309,7 +309,8 @@ def test_real_traces_succeed_with_what_eq3_lacks_named():
     default: the ansatz answers for eq. 3, b and D only) and the 100 deg torsion release (by
     default: the exact model answers; its frequency follows its amplitude so strongly that
     the model halts 13 s before the data) succeed, adequate False with the structure and the
-    early halt named (runs 1-2 jointly: tests/fit/test_joint.py). Both windows pad to 12,288
+    early halt named (runs 1-2 jointly: tests/fit/test_joint.py); run 2 agrees with the exact
+    model's fit that issue 36 quotes. Both windows pad to 12,288
     samples: they share their compiled programs. Run 1's values agree with an independent fit
     (scipy least_squares on solve_ivp DOP853, tuned: b 0.0053608 kg/s, D 0.025342 kg/m, w0
     8.44685 rad/s; benchmarks/README.md) within a quarter of their interval sd."""
@@ -328,6 +329,12 @@ def test_real_traces_succeed_with_what_eq3_lacks_named():
     sd = single.hac_stderr
     for name, scipy_value in (("b", 0.0053608), ("D", 0.025342), ("w0", 8.44685)):
         assert abs(single.params[name] - scipy_value) < 0.25 * sd[name], (name, sd[name])
+    # item 6: run 2 by default holds the exact model's values of issue 36 (model="reference",
+    # b 0.00548 kg/s, D 0.0247 kg/m) inside its 95 % intervals (its programs are run 1's)
+    run2 = fit(load_trace(DATA / "spring_mass_airdrag" / "run2.csv"), oscillator=osc,
+               free=("b", "D"), fit_omega0=True)
+    ci = run2.conf_interval(0.95)
+    assert run2.success and ci["b"][0] < 0.00548 < ci["b"][1] and ci["D"][0] < 0.0247 < ci["D"][1]
 
 
 @needs_data
