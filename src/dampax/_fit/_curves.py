@@ -18,16 +18,13 @@ The solver that fits them (residuals, optimisers, covariance) is ``_core``.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 
-from .._cache import call_cached_tree
 from .._models._cubic import phase_excess
 from .._models._decay import _decay_constants, _decay_from, decay
 from .._oscillator import Oscillator
@@ -40,7 +37,6 @@ from ._params import (
     TraceParams,
     ansatz_v0,
     ansatz_y,
-    as_arrays,
     damping_d,
     envelope_setup,
     phase_rate,
@@ -241,24 +237,3 @@ def model_curve(model: FitModel, t, q, setup: Setup, opts):
     """The model at the data times, q in the model's coordinates."""
     return model.curve(t - setup.t0, q, setup.consts, setup.span, opts)
 
-
-def _curves(t, P, consts, *, model, opts):
-    """The model at the times t for every row of P (physical parameters in the layout
-    PARAMS); t[0] is the fit start."""
-    spec = FIT_MODELS[model]
-    span = jnp.maximum(jnp.max(t) - t[0], 1e-12)
-
-    def one(p):
-        q = spec.to_coords(TraceParams(*(p[i] for i in range(p.shape[0]))), consts)
-        return spec.curve(t - t[0], q, consts, span, opts)
-
-    return jax.vmap(one)(P)
-
-
-def curves(t, P, consts, *, model: str, opts=None):
-    """:func:`_curves` through a kept program (one per model, padded length and options):
-    the model curves of a batch of parameter vectors, for the checks of a finished fit."""
-    args = (jnp.asarray(t, dtype=float), jnp.asarray(P, dtype=float), as_arrays(consts))
-    static = dict(model=model, opts=opts)
-    return call_cached_tree("fit-curves", sorted(static.items()),
-                            functools.partial(_curves, **static), *args)

@@ -9,10 +9,9 @@ exp(1.5 z) (z standard normal: a spread of a factor 4.5 per sigma, in log-parame
 of the lengths :data:`BATCH_SAMPLES` (every s-th sample, at least :data:`PER_PERIOD` per
 period; the shortest length that holds them, else the first samples of the longest: the batch
 then sees the first part of the decay), padded to that length, so two compiled functions serve
-every trace, with at most
-:data:`BATCH_STEPS` optimizer steps per start; the best start is then polished on the whole
-trace by the caller. The report says how many starts reached the best cost (within
-:data:`REACHED_RTOL`) and the spread of the costs.
+every trace, with at most :data:`BATCH_STEPS` optimizer steps per start; the best start is
+then polished on the whole trace by the caller. The report says how many starts reached the
+best cost (within :data:`REACHED_RTOL`) and the spread of the costs.
 """
 
 from __future__ import annotations
