@@ -231,7 +231,7 @@ def test_each_public_call_validates_once():
 FIT_LAYERS = (
     ("_params", "_dist", "_intervals", "_profile", "_mcmc", "_sampler", "_text",
      "_linalg"),  # ground
-    ("_curves",),  # the fit models: their curves and settings
+    ("_curves", "_lm"),  # the fit models: their curves and settings
     ("_core",),  # the solver core
     ("_analysis", "_guess", "_checks", "_measures", "_assess", "_options"),  # checks, options
     ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example

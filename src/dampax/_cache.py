@@ -23,7 +23,10 @@ JSON, rebuilt from classes of dampax and equinox only), so any pytree (equinox m
 included) comes back whole and a repeated command neither traces nor compiles. The executables
 of both kinds, when compiled in this process (not read from JAX's cache), are also kept whole
 (``.jaxexe``, :func:`_keep_executable`): a repeated command then neither lowers the kept program
-nor hashes it for JAX's cache.
+nor hashes it for JAX's cache. A program compiled afresh goes straight from its trace to its
+kept executable (:func:`_compile_kept`); the ``.jaxcall`` is written only where the executable
+cannot be kept. :func:`prepare_cached` builds a program in a background thread ahead of its
+first call (XLA compiles with Python's lock released).
 
 **Safety** (docs/DESIGN.md, "The cache"). A kept program is code that runs as the user, so the
 cache is used only where nobody else could have put a file, and every file is checked before
@@ -349,9 +352,9 @@ def _spec_text(specs) -> list:
     return [(s.shape, str(s.dtype), bool(getattr(s, "weak_type", False))) for s in specs]
 
 
-def _export_tree(fn, specs):
-    """(exported program, treedef, static leaves, weak types) of ``fn`` flattened to arrays;
-    raises when it cannot be exported or its tree kept."""
+def _flat_tracer(fn):
+    """(flat_fn, traced): ``fn`` flattened to its array leaves; tracing flat_fn records in
+    ``traced`` the output's treedef, its other leaves and the arrays' weak types."""
     traced = {}
 
     def flat_fn(*args):
@@ -363,11 +366,47 @@ def _export_tree(fn, specs):
         traced["weak"] = tuple(bool(jax.typeof(a).weak_type) for a in arrays)
         return arrays
 
-    exported = jax.export.export(jax.jit(flat_fn))(*specs)
+    return flat_fn, traced
+
+
+def _kept_tree(traced) -> tuple:
+    """(treedef, static, weak) of a traced flat_fn; raises when the tree cannot be kept."""
     kept = (traced["treedef"], traced["static"], traced["weak"])
     if _load_tree(_dump_tree(kept)) != kept:
         raise ValueError("the tree does not survive its JSON form")
-    return exported, *kept
+    return kept
+
+
+def _export_tree(fn, specs):
+    """(exported program, treedef, static leaves, weak types) of ``fn`` flattened to arrays;
+    raises when it cannot be exported or its tree kept."""
+    flat_fn, traced = _flat_tracer(fn)
+    exported = jax.export.export(jax.jit(flat_fn))(*specs)
+    return exported, *_kept_tree(traced)
+
+
+def _compile_kept(fn, specs, exe_path):
+    """(executable, treedef, static) of ``fn`` compiled straight from its trace and kept as
+    its ``.jaxexe`` file, or None where that cannot be (no executable file, a program that
+    may not be kept, a tree that cannot, an executable read from JAX's cache): the caller
+    then keeps the ``jax.export`` program. The direct route skips exporting, serializing and
+    lowering the exported program again (0.5-1 s of a cold fit's program, issue 36)."""
+    if exe_path is None:
+        return None
+    flat_fn, traced = _flat_tracer(fn)
+    try:
+        lowered = jax.jit(flat_fn).lower(*specs)
+        treedef, static, _ = _kept_tree(traced)
+    except Exception:  # noqa: BLE001 - the export route decides (and raises what it must)
+        return None
+    if not _keepable(lowered):
+        return None
+    with _fresh_compilation() as fresh:
+        executable = lowered.compile()
+    if not fresh():
+        return None
+    _keep_executable(exe_path, executable, (treedef, static))
+    return executable, treedef, static
 
 
 def _compile_tree(name: str, key, fn, specs):
@@ -399,6 +438,9 @@ def _compile_tree(name: str, key, fn, specs):
         except Exception:  # noqa: BLE001 - verified, yet not readable here: trace again
             exported = None
     if exported is None:
+        kept = _compile_kept(fn, specs, exe_path)
+        if kept is not None:
+            return kept
         try:
             exported, treedef, static, weak = _export_tree(fn, specs)
             payload = exported.serialize()
@@ -426,6 +468,56 @@ def _weak(x):
     return _convert_element_type(x, None, weak_type=True)
 
 
+def _memo(name: str, key, args):
+    """(arrays, specs, memo) of a call of :func:`call_cached`: the memo names its program."""
+    arrays = [jnp.asarray(a) for a in args]
+    specs = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                  for a in arrays)
+    return arrays, specs, (name, repr(key), tuple(map(tuple, _spec_text(specs))))
+
+
+#: the threads that compile programs ahead of their first call (:func:`prepare_cached`)
+_POOL: list = []
+
+
+def prepare_cached(name: str, key, fn, *args) -> None:
+    """Start building the program of ``call_cached(name, key, fn, *args)`` in a background
+    thread, so that it compiles while the caller does other work; its first call then waits
+    for it (nothing else changes: the same memo, files and executable).
+
+    XLA compiles with Python's lock released: on 2 cores a fit whose next programs compile
+    beside the current one's work pays about half of their compiling (issue 36: a cold
+    default fit compiled three programs of 3-6 s one after the other). Only the arguments'
+    shapes and types matter; ``args`` may hold any values. A program already built or being
+    built is not started again; an error in the thread is raised by neither: the first call
+    then builds the program itself.
+    """
+    _, specs, memo = _memo(name, key, args)
+    if memo in _EXECUTABLES:
+        return
+    if not _POOL:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL.append(ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1)),
+                                        thread_name_prefix="dampax-compile"))
+    _EXECUTABLES[memo] = _POOL[0].submit(_compile_tree, name, key, fn, specs)
+
+
+def _entry(name: str, key, fn, specs, memo):
+    """The memo's (executable, treedef, static), built now or awaited from
+    :func:`prepare_cached`'s thread."""
+    entry = _EXECUTABLES.get(memo)
+    if hasattr(entry, "result"):  # being built in the background
+        try:
+            entry = entry.result()
+        except Exception:  # noqa: BLE001 - built again here, where an error is raised
+            entry = None
+    if entry is None:
+        entry = _compile_tree(name, key, fn, specs)
+    _EXECUTABLES[memo] = entry
+    return entry
+
+
 def call_cached(name: str, key, fn, *args):
     """``fn(*args)`` for concrete arrays, through a kept compiled program (eager calls only).
 
@@ -434,7 +526,8 @@ def call_cached(name: str, key, fn, *args):
     ``exported/``, keyed by ``key``, the argument specs, the devices, dampax's source and the
     versions it runs on) plus JAX's persistent compilation cache, across processes: a
     repeated command-line call deserializes the program instead of tracing it. Without a
-    cache directory (``DAMPAX_CACHE=0``) only the in-process memo is kept.
+    cache directory (``DAMPAX_CACHE=0``) only the in-process memo is kept. A program started
+    by :func:`prepare_cached` is awaited.
 
     Arguments:
         name: a readable prefix of the cached file's name.
@@ -448,15 +541,8 @@ def call_cached(name: str, key, fn, *args):
     Returns:
         ``fn(*args)``, computed by the compiled program.
     """
-    arrays = [jnp.asarray(a) for a in args]
-    specs = tuple(jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
-                  for a in arrays)
-    memo = (name, repr(key), tuple(map(tuple, _spec_text(specs))))
-    entry = _EXECUTABLES.get(memo)
-    if entry is None:
-        entry = _compile_tree(name, key, fn, specs)
-        _EXECUTABLES[memo] = entry
-    executable, treedef, static = entry
+    arrays, specs, memo = _memo(name, key, args)
+    executable, treedef, static = _entry(name, key, fn, specs, memo)
     out = executable(*arrays)
     if treedef is None:
         return out
@@ -479,9 +565,19 @@ def call_cached_tree(name: str, key, fn, *args):
     Returns:
         ``fn(*args)``, computed by the compiled program.
     """
+    return call_cached(*_flat_call(name, key, fn, args))
+
+
+def prepare_cached_tree(name: str, key, fn, *args) -> None:
+    """:func:`prepare_cached` for the pytree arguments of :func:`call_cached_tree`."""
+    prepare_cached(*_flat_call(name, key, fn, args))
+
+
+def _flat_call(name: str, key, fn, args) -> tuple:
+    """(name, key, flat fn, *leaves): :func:`call_cached_tree`'s call of :func:`call_cached`."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
 
     def flat(*values):
         return fn(*jax.tree_util.tree_unflatten(treedef, values))
 
-    return call_cached(name, (key, str(treedef)), flat, *leaves)
+    return (name, (key, str(treedef)), flat, *leaves)

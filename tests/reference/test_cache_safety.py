@@ -71,6 +71,13 @@ def _aside(folder):
     return list((folder / "exported" / "rejected").glob("*"))
 
 
+def _export_route(monkeypatch):
+    """Programs kept as ``jax.export`` files (``.jaxcall``) beside their executables, as for a
+    program whose executable alone cannot be kept (a fresh program otherwise goes straight
+    from its trace to a kept executable: ``_cache._compile_kept``)."""
+    monkeypatch.setattr(_cache, "_compile_kept", lambda *args: None)
+
+
 def _only_program(folder, suffix):
     """Where ``suffix`` is the program (.jaxcall), its executable goes: the program is read
     only when no executable was kept."""
@@ -80,10 +87,12 @@ def _only_program(folder, suffix):
 
 @pytest.mark.parametrize("suffix", [".jaxcall", ".jaxexe"])
 @pytest.mark.parametrize("layout", ["old", "new"])
-def test_planted_pickle_runs_nothing(cache, tmp_path, suffix, layout):
+def test_planted_pickle_runs_nothing(cache, tmp_path, suffix, layout, monkeypatch):
     """A pickle that runs a shell command, planted under a kept program's name (in the old
     layout: length + pickle + payload; in the new one: a header and a wrong checksum), is
     refused before anything of it is read; the result is the computed one."""
+    if suffix == ".jaxcall":
+        _export_route(monkeypatch)
     _call()
     _only_program(cache, suffix)
     marker = tmp_path / "pwned"
@@ -100,9 +109,10 @@ def test_planted_pickle_runs_nothing(cache, tmp_path, suffix, layout):
     assert _aside(cache)
 
 
-def test_a_program_kept_for_other_options_is_not_taken_for_the_default(cache):
+def test_a_program_kept_for_other_options_is_not_taken_for_the_default(cache, monkeypatch):
     """A verified file of another key (another rtol, say), copied under the default's name, is
     refused (its header names another program); the default's numbers come back."""
+    _export_route(monkeypatch)
     _call("default")
     default = _kept(cache, ".jaxcall")
     for f in (cache / "exported").glob("safety-*"):
@@ -137,6 +147,8 @@ def test_damaged_files_are_set_aside_and_rebuilt(cache, tmp_path, damage, suffix
     """A flipped byte, a truncated file, a FIFO (would block a plain read), a link to another
     file, an empty file, a file over the size limit: set aside with a warning, rebuilt, same
     numbers; the next call reads the rebuilt file without a warning."""
+    if suffix == ".jaxcall":
+        _export_route(monkeypatch)
     _call()
     _only_program(cache, suffix)
     path = _kept(cache, suffix)
@@ -241,3 +253,26 @@ def test_tree_structures_round_trip_as_json_without_pickle():
         _cache._load_tree(b'{"c": ["os", "system"]}')
     with pytest.raises(ValueError, match="not a class"):
         _cache._load_tree(b'{"c": ["dampax", "solve"]}')
+
+
+def test_a_prepared_program_is_built_once_in_the_background(cache, monkeypatch):
+    """``prepare_cached`` builds the program in a thread; the first call awaits it (one
+    build, the same result as without any cache); a build that fails in the thread is built
+    again by the call, which raises the error itself."""
+    built = []
+    compile_tree = _cache._compile_tree
+    monkeypatch.setattr(_cache, "_compile_tree",
+                        lambda *a: built.append(a[0]) or compile_tree(*a))
+    _cache.prepare_cached("safety", "bg", _fn, jnp.zeros(3))  # any values of the shapes
+    _cache.prepare_cached("safety", "bg", _fn, X)  # already under way: not started again
+    out = _cache.call_cached("safety", "bg", _fn, X)
+    np.testing.assert_array_equal(np.asarray(out["y"]), EXPECTED)
+    assert built == ["safety"]
+
+    def broken(x):
+        raise RuntimeError("no program here")
+
+    _cache.prepare_cached("broken", "bg", broken, X)
+    with pytest.raises(RuntimeError, match="no program here"):
+        _cache.call_cached("broken", "bg", broken, X)
+    assert built == ["safety", "broken", "broken"]

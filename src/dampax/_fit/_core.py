@@ -4,12 +4,12 @@ Everything here works on arrays and named parameter pytrees (``_params``) and is
 friendly; :func:`core` is the one compiled function of every fit (docs/DESIGN.md, fitting).
 The fit models it fits (their curves and settings, :data:`FIT_MODELS`) are in ``_curves``.
 
-Optimisers: optimistix Levenberg-Marquardt (default), optax adam or L-BFGS on the same (robust)
-sum of squares. ``loss="soft_l1"``: rho(z) = 2 (sqrt(1 + z) - 1) of z = (r / s)^2 as scipy,
-by residual reweighting r -> r sqrt(rho(z) / z). Covariance: s2 (J^T J)^-1 with
-s2 = chi2 / (n - n_varys), carried to the physical parameters by the delta method, computed
-as (J_p^T J_p)^-1 with J_p = J G^-1 (G the Jacobian of the map), which stays exact when a
-log-parameter tends to 0.
+Optimisers: Levenberg-Marquardt (default; optimistix's algorithm in one small loop, ``_lm``),
+optax adam or L-BFGS on the same (robust) sum of squares. ``loss="soft_l1"``:
+rho(z) = 2 (sqrt(1 + z) - 1) of z = (r / s)^2 as scipy, by residual reweighting
+r -> r sqrt(rho(z) / z). Covariance: s2 (J^T J)^-1 with s2 = chi2 / (n - n_varys), carried
+to the physical parameters by the delta method, computed as (J_p^T J_p)^-1 with J_p = J G^-1
+(G the Jacobian of the map), which stays exact when a log-parameter tends to 0.
 """
 
 from __future__ import annotations
@@ -20,11 +20,9 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import optax
-import optimistix as optx
 
-from .._cache import call_cached_tree
+from .._cache import call_cached_tree, prepare_cached_tree
 from .._models._solution import result_where
 from .._oscillator import is_concrete
 from ._curves import FIT_MODELS as FIT_MODELS
@@ -35,6 +33,7 @@ from ._curves import model_curve as model_curve
 from ._curves import reference_solution as reference_solution
 from ._curves import swing_budget as swing_budget
 from ._linalg import tall_lstsq, tall_svd
+from ._lm import LMSolution, levenberg_marquardt
 from ._params import (
     Damping,
     Setup,
@@ -49,8 +48,8 @@ from ._params import (
 
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 MAX_STEPS = {"lm": 256, "lbfgs": 1000, "adam": 4000}
-METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix)", "adam": "adam (optax)",
-                "lbfgs": "L-BFGS (optax)"}
+METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust region; _lm)",
+                "adam": "adam (optax)", "lbfgs": "L-BFGS (optax)"}
 
 
 class FIT_RESULTS(eqx.Enumeration):
@@ -176,53 +175,19 @@ def _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol):
     return theta, code, k
 
 
-def _result_code(result) -> FIT_RESULTS:
-    """The :class:`FIT_RESULTS` member of an optimistix result."""
-    ok = result == optx.RESULTS.successful
-    capped = result == optx.RESULTS.nonlinear_max_steps_reached
-    return result_where(ok, FIT_RESULTS.successful,
-                        result_where(capped, FIT_RESULTS.max_steps_reached, FIT_RESULTS.failed))
+def _lm_code(sol: LMSolution) -> FIT_RESULTS:
+    """The :class:`FIT_RESULTS` member of a Levenberg-Marquardt solution."""
+    return result_where(sol.converged, FIT_RESULTS.successful, result_where(
+        sol.finite, FIT_RESULTS.max_steps_reached, FIT_RESULTS.failed))
 
 
-class _Budgeted(optx.AbstractLeastSquaresSolver):
-    """A least-squares solver that also stops after ``budget`` steps, a traced number: one
-    compiled fit serves every budget up to the loop's static ``max_steps`` (issue 36: the
-    exact model's fits with 256 steps, the halt search's with 64 and the one-step check were
-    three programs of 3.3-3.6 s of compiling each). The state is (the solver's, steps)."""
-
-    inner: optx.AbstractLeastSquaresSolver
-    budget: Any
-    rtol: float
-    atol: float
-    norm: Any = eqx.field(static=True)
-
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        return self.inner.init(fn, y, args, options, f_struct, aux_struct, tags), jnp.array(0)
-
-    def step(self, fn, y, args, options, state, tags):
-        y, inner, aux = self.inner.step(fn, y, args, options, state[0], tags)
-        return y, (inner, state[1] + 1), aux
-
-    def terminate(self, fn, y, args, options, state, tags):
-        done, result = self.inner.terminate(fn, y, args, options, state[0], tags)
-        spent = state[1] >= self.budget
-        return done | spent, optx.RESULTS.where(
-            done | ~spent, result, optx.RESULTS.nonlinear_max_steps_reached)
-
-    def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        return self.inner.postprocess(fn, y, aux, args, options, state[0], tags, result)
-
-
-def _lm_once(fn, solver, theta0, args: ResidualArgs, model: FitModel, max_steps, budget):
+def _lm_once(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions, budget):
     """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point)."""
-    if budget is not None:
-        solver = _Budgeted(solver, budget, solver.rtol, solver.atol, solver.norm)
-    sol = optx.least_squares(fn, solver, theta0, args=args, max_steps=int(max_steps),
-                             throw=False)
-    state = sol.state if budget is None else sol.state[0]
-    info = state.f_info  # residuals and Jacobian at the returned (accepted) point
-    return (_clamp_flat(sol.value, args, model), _result_code(sol.result),
-            sol.stats["num_steps"], (info.residual, info.jac.as_matrix()))
+    sol = levenberg_marquardt(lambda th: fn(th, args), theta0, rtol=options.rtol,
+                              atol=options.atol, max_steps=int(options.max_steps),
+                              budget=budget)
+    return (_clamp_flat(sol.value, args, model), _lm_code(sol), sol.steps,
+            (sol.residual, sol.jac))
 
 
 def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions,
@@ -243,12 +208,8 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     _, _, max_steps, rtol, atol, opts = options
     # the step budget is honoured: never more rounds than steps, never more steps in all
     rounds = max(min(model.lm_rounds, int(max_steps)), 1)
-    # normal equations: 5-10x faster per step than the default QR on tall Jacobians; the
-    # internal coordinates are normalised, so J^T J stays well conditioned
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
-                                     linear_solver=lx.Normal(lx.Cholesky()))
     if rounds == 1:
-        return _lm_once(fn, solver, theta0, args, model, max_steps, budget)
+        return _lm_once(fn, theta0, args, model, options, budget)
     per_round = max(int(max_steps) // rounds, 1)
     vary = flat(args.vary)
     dref, lo = log_bounds(args.setup, args.vary)
@@ -261,13 +222,11 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
         return r, r
 
     def solve(theta, scale):
-        def scaled(u, a):
-            return fn(theta + scale * u, a)
-
-        sol = optx.least_squares(scaled, solver, jnp.zeros_like(theta), args=args,
-                                 max_steps=per_round, throw=False)
-        return (_clamp_flat(theta + scale * sol.value, args, model), sol.stats["num_steps"],
-                _result_code(sol.result))
+        sol = levenberg_marquardt(lambda u: fn(theta + scale * u, args),
+                                  jnp.zeros_like(theta), rtol=rtol, atol=atol,
+                                  max_steps=per_round)
+        return (_clamp_flat(theta + scale * sol.value, args, model), sol.steps,
+                _lm_code(sol))
 
     def one(carry, index):
         theta, scale, steps, code, redo = carry
@@ -418,10 +377,11 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
     theta0 = jnp.zeros(len(p0), dtype=st.sx.dtype)
-    fn = _materialised(functools.partial(_residual_fn, model=spec, opts=opts), args)
+    raw = functools.partial(_residual_fn, model=spec, opts=opts)
+    fn = _materialised(raw, args)  # (reverse mode for optax: J built forward, transposed)
     final = None
     if optimizer == "lm":
-        theta, code, steps, final = _lm_rounds(fn, theta0, args, spec, options,
+        theta, code, steps, final = _lm_rounds(raw, theta0, args, spec, options,
                                                budget if spec.lm_rounds == 1 else None)
     else:
         def loss_fn(th):
@@ -471,7 +431,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
                       coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
-def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> CoreResult:
+def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> CoreResult | None:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
     the same shapes shares one compiled function. ``static``: the fields of
     :class:`CoreOptions` by name; ``budget``: the steps (traced, at most ``max_steps``;
@@ -479,13 +439,17 @@ def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> 
 
     Called with concrete values (an eager fit), the compiled program is kept
     (``_cache.call_cached_tree``): a repeated fit, also in a new process, neither traces nor
-    compiles it; under jit/vmap the plain traced route runs."""
+    compiles it; under jit/vmap the plain traced route runs. ``prepare=True`` among
+    ``static``: only start compiling that program in the background
+    (``_cache.prepare_cached_tree``; returns None)."""
+    prepare = static.pop("prepare", False)
     args = (jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
             jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
             as_arrays(consts), Tuning(jnp.asarray(f_scale, dtype=float), jnp.asarray(
                 static["max_steps"] if budget is None else budget, dtype=int)))
     options = CoreOptions(**static)
     if is_concrete(args):
-        return call_cached_tree("fit-core", sorted(static.items()),
-                                functools.partial(core, options=options), *args)
+        call = prepare_cached_tree if prepare else call_cached_tree
+        return call("fit-core", sorted(static.items()), functools.partial(core, options=options),
+                    *args)
     return core(*args, options=options)

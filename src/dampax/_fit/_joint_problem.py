@@ -10,9 +10,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
 from .._cache import call_cached_tree
 from .._models._solution import result_where
@@ -21,10 +19,10 @@ from . import _intervals
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
-    _materialised,
-    _result_code,
+    _lm_code,
 )
 from ._linalg import tall_lstsq
+from ._lm import levenberg_marquardt
 from ._params import (
     DAMPING,
     Constants,
@@ -263,9 +261,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
     """The joint fit, pure: Levenberg-Marquardt in ``ROUNDS`` rounds, then the physical
     Jacobian. ``lay``, ``opts`` and the budget are static."""
     size = lay.size
-    fn = _materialised(functools.partial(_residuals, lay=lay, opts=opts), a)
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol,
-                                     linear_solver=lx.Normal(lx.Cholesky()))
+    fn = functools.partial(_residuals, lay=lay, opts=opts)
     is_log, dref, lo = _log_info(lay, a)
     per_round = max(int(max_steps) // ROUNDS, 1)
 
@@ -274,18 +270,15 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
         return jnp.sum(r * r)
 
     def solve(theta, scale):
-        def scaled(u, args):
-            return fn(theta + scale * u, args)
-
-        sol = optx.least_squares(scaled, solver, jnp.zeros_like(theta), args=a,
-                                 max_steps=per_round, throw=False)
+        sol = levenberg_marquardt(lambda u: fn(theta + scale * u, a), jnp.zeros_like(theta),
+                                  rtol=rtol, atol=atol, max_steps=per_round)
         th = theta + scale * sol.value
         th = jnp.where(is_log, jnp.maximum(th, lo), th)
         # a round that ends non-finite or above its start is not taken (its code says so)
         c0, c1 = cost(theta), cost(th)
         keep = jnp.all(jnp.isfinite(th)) & jnp.isfinite(c1) & ~(c1 > c0)
-        code = result_where(keep, _result_code(sol.result), FIT_RESULTS.failed)
-        return jnp.where(keep, th, theta), sol.stats["num_steps"], code
+        code = result_where(keep, _lm_code(sol), FIT_RESULTS.failed)
+        return jnp.where(keep, th, theta), sol.steps, code
 
     # first each run's own coordinates with the shared ones held at the start: a run whose
     # single fit was poor gets a start consistent with the shared constants

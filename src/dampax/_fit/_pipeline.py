@@ -267,6 +267,20 @@ def _with_k3_hint(res: FitResult, problem: Problem) -> FitResult:
     return dataclasses.replace(res, inadequacy=items)
 
 
+def prepare_programs(problem: Problem, plan: Plan) -> None:
+    """Start compiling, in the background, the fits that follow the batch of starts: the
+    first model's fit and, where it starts the exact model, the exact model's (for the
+    guess's frequency: the approximate optimum's nearly always shares its swing budget). A
+    warm process finds them built; a cold one compiles them beside the batch (issue 36)."""
+    s = problem.settings
+    if s.optimizer != "lm":
+        return
+    first = first_model(problem, plan)
+    problem.solve(problem.guess, first, math.inf, prepare=True)
+    if first != s.model:
+        problem.solve(problem.guess, s.model, math.inf, prepare=True)
+
+
 def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     """Fit a prepared problem by ``plan`` (the module docstring's stages).
 
@@ -278,6 +292,7 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     Returns:
         The :class:`FitResult`.
     """
+    prepare_programs(problem, plan)
     state = global_starts(problem, plan)
     state = robust_restart(problem, state)
     answered, state = approximation_answers(problem, plan, state)

@@ -133,7 +133,8 @@ class Problem:
         return ReferenceOptions(int(max_swings), 1e-8, 1e-10)
 
     def solve(self, p_start: TraceParams, model: str, fs: float, *,
-              like: Solved | None = None, budget: int | None = None) -> Solved:
+              like: Solved | None = None, budget: int | None = None,
+              prepare: bool = False) -> Solved | None:
         """Optimise from ``p_start`` with ``model`` (the jitted core, ``_core.run_core``).
 
         Arguments:
@@ -144,9 +145,10 @@ class Problem:
                 default: options for ``p_start``'s w0.
             budget: the optimizer's steps (default :attr:`steps`); ``budget=1`` returns the
                 start itself with the model's curve and Jacobian there.
+            prepare: only start compiling the fit's program in the background (None).
 
         Returns:
-            :class:`Solved`.
+            :class:`Solved`, or None where ``prepare``.
         """
         opts = like.opts if like is not None else self.reference_options(model, p_start.w0)
         s = self.settings
@@ -157,8 +159,9 @@ class Problem:
             FIT_MODELS[model].lm_rounds == 1 else budget
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
                        self.consts, fs, budget, model=model, optimizer=s.optimizer,
-                       max_steps=cap, rtol=float(s.rtol), atol=float(s.atol), opts=opts)
-        return Solved(out, model, fs, opts)
+                       max_steps=cap, rtol=float(s.rtol), atol=float(s.atol), opts=opts,
+                       prepare=prepare)
+        return None if prepare else Solved(out, model, fs, opts)
 
     def holding(self, *names: str) -> Problem:
         """The problem with the parameters ``names`` held at the start's values."""

@@ -109,8 +109,13 @@ def jittered(p0: TraceParams, free, n: int, *, seed: int = 0, fit_omega0: bool =
 
 @functools.partial(jax.jit, static_argnames=("options",))
 def _batch(t, x, weight, p0s, vary, consts, f_scale, options: CoreOptions):
-    return jax.vmap(lambda p: core(t, x, weight, p, vary, consts, Tuning(f_scale),
-                                   options=options))(p0s)
+    """The fits of the starts ``p0s``: (chisqr, code, params) of each (what a batch keeps;
+    XLA then drops the statistics that a single fit computes)."""
+    def one(p):
+        out = core(t, x, weight, p, vary, consts, Tuning(f_scale), options=options)
+        return out.chisqr, out.code, out.params
+
+    return jax.vmap(one)(p0s)
 
 
 def thin(t: np.ndarray, x: np.ndarray, omega: float):
@@ -173,9 +178,9 @@ def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed:
         out = call_cached_tree("fit-starts", sorted(static.items()),
                                functools.partial(_batch, options=CoreOptions(**static)),
                                *args, p0s, *fixed)
-        chisqr.append(np.asarray(out.chisqr, dtype=float))
-        codes.append(np.asarray(out.code._value))
-        rows.append(np.stack([np.asarray(v, dtype=float) for v in out.params], axis=1))
+        chisqr.append(np.asarray(out[0], dtype=float))
+        codes.append(np.asarray(out[1]._value))
+        rows.append(np.stack([np.asarray(v, dtype=float) for v in out[2]], axis=1))
     costs = 0.5 * np.concatenate(chisqr)[:n]
     ok = np.concatenate(codes)[:n] == FIT_RESULTS.successful._value
     params = np.concatenate(rows)[:n]

@@ -36,6 +36,25 @@ DT0_W0 = 0.25
 _KINDS = {"recursive": "checkpointed", "forward": "lax", "direct": "bounded"}
 
 
+def domain_input(osc, x0, v0, t_end):
+    """(checks, ok_in, osc, x0, v0, t_end, w_hi) of one trajectory: the input checks; input
+    out of the domain (non-finite or non-positive m, k, g, negative mu, b, D, a non-finite
+    state, t_end not > 0) replaced by a harmless stand-in (at rest) and flagged by ok_in; and
+    the fastest the motion can get, w_hi: with a hardening spring (k3 > 0) the tangent
+    stiffness k + 3 k3 x^2 is at most k + 6 k3 E0/k (|x|^2 <= 2 E0/k), so w_hi = w0 sqrt(1 +
+    6 k3 E0/k^2) bounds the local frequency (exactly w0 when k3 <= 0). Shared by the engines
+    (this one and ``_diffrax``)."""
+    checks = (*input_checks(osc, x0, v0),
+              (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end))
+    ok_in = ~functools.reduce(jnp.logical_or, [failed for failed, _ in checks])
+    osc = jax.tree_util.tree_map(lambda a: jnp.where(ok_in, a, 1.0), osc)
+    x0, v0, t_end = (jnp.where(ok_in, x0, 0.0), jnp.where(ok_in, v0, 0.0),
+                     jnp.where(ok_in, t_end, 1.0))
+    k3_hard = jnp.maximum(osc.k3, 0.0)
+    w_hi = osc.omega0 * jnp.sqrt(1.0 + 6.0 * k3_hard * osc.energy(x0, v0) / (osc.k * osc.k))
+    return checks, ok_in, osc, x0, v0, t_end, w_hi
+
+
 def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adjoint: str):
     """Integrate one trajectory (all inputs scalars).
 
@@ -45,21 +64,8 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
         shape (max_swings, 2), NaN-padded, the result (a RESULTS member), and the input check
         ok_in.
     """
-    # out of the domain (non-finite or non-positive m, k, g, negative mu, b, D, a non-finite
-    # state, t_end not > 0): integrate a harmless stand-in (at rest) and flag it
-    checks = (*input_checks(osc, x0, v0),
-              (~(jnp.isfinite(t_end) & (t_end > 0.0)), RESULTS.invalid_t_end))
-    ok_in = ~functools.reduce(jnp.logical_or, [failed for failed, _ in checks])
-    osc = jax.tree_util.tree_map(lambda a: jnp.where(ok_in, a, 1.0), osc)
-    x0, v0, t_end = (jnp.where(ok_in, x0, 0.0), jnp.where(ok_in, v0, 0.0),
-                     jnp.where(ok_in, t_end, 1.0))
+    checks, ok_in, osc, x0, v0, t_end, w_hi = domain_input(osc, x0, v0, t_end)
     params = ode_args(osc, 0.0)[1:]
-    w0 = osc.omega0
-    # the fastest the motion can get: with a hardening spring (k3 > 0) the tangent stiffness
-    # k + 3 k3 x^2 is at most k + 6 k3 E0/k (|x|^2 <= 2 E0/k), so w_hi = w0 sqrt(1 + 6 k3 E0/k^2)
-    # bounds the local frequency (exactly w0 when k3 <= 0)
-    k3_hard = jnp.maximum(osc.k3, 0.0)
-    w_hi = w0 * jnp.sqrt(1.0 + 6.0 * k3_hard * osc.energy(x0, v0) / (osc.k * osc.k))
     dtmax = DTMAX_W0 / w_hi
     zero = jnp.zeros((), dtype=float)
 

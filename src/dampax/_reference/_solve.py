@@ -10,6 +10,7 @@ import numpy as np
 
 from .._models._solution import RESULTS
 from .._oscillator import Oscillator, check_finite, check_real, is_concrete
+from ._diffrax import integrate as integrate_diffrax
 from ._engine import _KINDS, integrate
 from ._solution import FIELDS, ReferenceSolution, sample_single
 
@@ -113,10 +114,11 @@ def default_swings(osc, x0, v0, t_end) -> int:
     return _round_up(int(math.ceil(need)))
 
 
-def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoint):
+def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoint,
+                  engine="dampax"):
     """Unbatched core of `solve_reference` (all inputs scalars)."""
-    out = integrate(osc, x0, v0, t_end, rtol=rtol, atol=atol, max_swings=max_swings,
-                    rows=rows, adjoint=adjoint)
+    out = ENGINES[engine](osc, x0, v0, t_end, rtol=rtol, atol=atol, max_swings=max_swings,
+                          rows=rows, adjoint=adjoint)
     ok_in = out["ok_in"]
     halted = out["halted"] & ok_in
     sol = ReferenceSolution(
@@ -156,13 +158,19 @@ def _solve_batched(osc, x0, v0, t_end, ts, **kw):
 
 
 _solve_jit = jax.jit(_solve_batched,
-                     static_argnames=("rtol", "atol", "max_swings", "rows", "adjoint"))
+                     static_argnames=("rtol", "atol", "max_swings", "rows", "adjoint", "engine"))
+
+
+#: the integrators of the reference, by ``engine``: dampax's DOP853 loop (``_engine``) and
+#: diffrax's Dopri8 swing by swing (``_diffrax``; diffrax itself is imported when it runs)
+ENGINES = {"dampax": integrate, "diffrax": integrate_diffrax}
 
 
 def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
                     atol: float = 1e-12, max_swings: int | None = None,
                     max_steps_per_swing: int | None = None, ts=None,
-                    adjoint: str = "recursive", solver: str = "dop853") -> ReferenceSolution:
+                    adjoint: str = "recursive", solver: str = "dop853",
+                    engine: str = "dampax") -> ReferenceSolution:
     """Integrate eq. 3 swing by swing with exact stick-slip: the reference for the analytic
     models (DESIGN.md section 2.6).
 
@@ -190,6 +198,9 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         adjoint: "recursive" (default; reverse mode, jax.grad), "forward" (jax.jacfwd) or
             "direct" (both; slower).
         solver: "dop853" (the only one; kept as an option for clarity).
+        engine: "dampax" (default: its own DOP853 loop, ``_engine``) or "diffrax" (diffrax's
+            Dopri8 with its events, swing by swing, ``_diffrax``: an independent second
+            integrator of the same equation, slower; the same solution type).
 
     Returns:
         A `ReferenceSolution`. Called eagerly it raises ValueError when x0, v0 or t_end is not
@@ -199,7 +210,7 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
     options = check_reference_options(x0, v0, t_end=t_end, rtol=rtol, atol=atol,
                                       max_swings=max_swings,
                                       max_steps_per_swing=max_steps_per_swing, ts=ts,
-                                      adjoint=adjoint, solver=solver)
+                                      adjoint=adjoint, solver=solver, engine=engine)
     return solve_reference_checked(osc, x0, v0, **options)
 
 
@@ -214,7 +225,8 @@ def _whole(value, low: int, high: int) -> bool:
 def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: float = 1e-12,
                             max_swings: int | None = None,
                             max_steps_per_swing: int | None = None, ts=None,
-                            adjoint: str = "recursive", solver: str = "dop853") -> dict:
+                            adjoint: str = "recursive", solver: str = "dop853",
+                            engine: str = "dampax") -> dict:
     """The checks of :func:`solve_reference` (at the edge: ``dp.solve``, ``solve_reference``):
     ValueError naming the option; x0, v0, t_end and ts finite where concrete.
 
@@ -223,6 +235,13 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
     """
     if solver not in ("dop853", "dopri8"):
         raise ValueError(f"solver must be 'dop853' (Hairer's 8th-order pair), got {solver!r}")
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {tuple(ENGINES)}, got {engine!r}")
+    if engine == "diffrax":
+        try:
+            import diffrax  # noqa: F401
+        except ImportError as err:
+            raise ValueError("engine='diffrax' needs diffrax: pip install diffrax") from err
     if adjoint not in _KINDS:
         raise ValueError(f"adjoint must be one of {tuple(_KINDS)}, got {adjoint!r}")
     if jnp.asarray(0.0, dtype=float).dtype != jnp.float64:
@@ -251,13 +270,14 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
         if ts.ndim != 1:
             raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}")
     return dict(t_end=t_end, rtol=rtol, atol=atol, max_swings=max_swings,
-                max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint)
+                max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint, engine=engine)
 
 
 def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
                             atol: float = 1e-12, max_swings: int | None = None,
                             max_steps_per_swing: int | None = None, ts=None,
-                            adjoint: str = "recursive") -> ReferenceSolution:
+                            adjoint: str = "recursive",
+                            engine: str = "dampax") -> ReferenceSolution:
     """:func:`solve_reference` for options already checked (:func:`check_reference_options`):
     the integration, and eagerly the failure's ValueError (budget named)."""
     x0 = jnp.asarray(x0, dtype=float)
@@ -270,7 +290,7 @@ def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float 
                       else DEFAULT_SWINGS)
     per_swing = rows_per_swing(rtol) if max_steps_per_swing is None else max_steps_per_swing
     sol = _solve_jit(osc, x0, v0, t_end, ts, rtol=rtol, atol=atol, max_swings=int(max_swings),
-                     rows=int(max_swings) * int(per_swing), adjoint=adjoint)
+                     rows=int(max_swings) * int(per_swing), adjoint=adjoint, engine=engine)
     if is_concrete(sol.result._value) and sol.message:
         budget = bool(np.any(np.asarray(sol.result == RESULTS.max_swings_reached)))
         raise ValueError(sol.message + (f" (now max_swings = {max_swings}, max_steps_per_swing"

@@ -32,6 +32,7 @@ import numpy as np
 from .._cache import compile_cached
 from .._models._registry import ANALYTIC, MODELS, check_models
 from .._oscillator import Oscillator, ratio_constants
+from .._reference._solve import check_reference_options
 from .._solve import solve_checked
 from .._version import __version__
 from ._budget import ACCELERATOR_CHUNK as ACCELERATOR_CHUNK
@@ -127,6 +128,7 @@ class _Config:
     max_swings: int  # of the reference, per segment
     seg_blocks: int  # blocks per segment of the reference (all of them: one segment)
     cubic: bool = False  # rows carry a fifth column, k3_ratio (issue 14)
+    engine: str = "dampax"  # the reference's integrator (issue 35: "diffrax" beside it)
 
     @property
     def width(self) -> int:
@@ -148,7 +150,7 @@ class _Config:
 def _solve_reference(cfg: _Config, osc, x0, v0, t_end):
     if cfg.reference == "reference":
         sol = solve_checked(osc, x0, v0, method="reference", t_end=t_end, rtol=cfg.rtol,
-                            atol=cfg.atol, max_swings=cfg.max_swings)
+                            atol=cfg.atol, max_swings=cfg.max_swings, engine=cfg.engine)
     else:  # exact half-swings: valid only where D = 0 and b < 2 sqrt(k m) (its result says)
         sol = solve_checked(osc, x0, v0, **MODELS[cfg.reference].solve_options)
     halted = jnp.isfinite(sol.halt_time) & (sol.halt_time <= t_end)
@@ -326,12 +328,18 @@ def _compiled(cfg: _Config, device_ids: tuple[int, ...]):
 
     by_id = {d.id: d for d in jax.local_devices()}
     devices = [by_id[i] for i in device_ids]
-    mesh = jax.make_mesh((len(devices),), ("points",), devices=devices,
-                         axis_types=(jax.sharding.AxisType.Explicit,))
+    # diffrax's event root find closure-converts its function, whose traced and called
+    # arguments differ inside shard_map (their types carry the manual axes): for that engine
+    # the step is a plain jit of the vmap, the rows sharded over an Auto mesh (XLA partitions)
+    diffrax = cfg.engine != "dampax"
+    kind = jax.sharding.AxisType.Auto if diffrax else jax.sharding.AxisType.Explicit
+    mesh = jax.make_mesh((len(devices),), ("points",), devices=devices, axis_types=(kind,))
 
     def step(rows):
         return jax.vmap(lambda r: _per_point(cfg, r))(rows)
 
+    if diffrax:
+        return jax.jit(step), mesh
     sharded = jax.shard_map(step, mesh=mesh, in_specs=P("points"), out_specs=P("points"),
                             check_vma=False)
     return jax.jit(sharded), mesh
@@ -413,7 +421,7 @@ def _positive_int(name: str, value, minimum: int = 1) -> int:
 
 
 def _config(models, reference, periods, samples_per_period, rtol, atol,
-            cubic: bool = False) -> _Config:
+            cubic: bool = False, engine: str = "dampax") -> _Config:
     """The static settings of the compiled step (arguments already checked)."""
     n_samples = int(math.floor(periods * samples_per_period + 1e-9)) + 1
     if n_samples > MAX_SAMPLES:
@@ -432,7 +440,7 @@ def _config(models, reference, periods, samples_per_period, rtol, atol,
                   samples_per_period=samples_per_period, block=block,
                   rtol=float(rtol), atol=float(atol),
                   max_swings=2 * math.ceil(seg_periods) + 6, seg_blocks=seg_blocks,
-                  cubic=cubic)
+                  cubic=cubic, engine=engine)
     return cfg
 
 
@@ -445,7 +453,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               samples_per_period: int = 64, chunk_size: int | None = None,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
               progress: bool = True, k3_ratio=None, processes: int | None = None,
-              timeout: float = DEFAULT_TIMEOUT):
+              timeout: float = DEFAULT_TIMEOUT, engine: str = "dampax"):
     """Errors of the analytic models against a reference over a grid of damping ratios.
 
     Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
@@ -477,6 +485,9 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             "coulomb_exact" (the exact half-swings, analytic and fast: valid only where
             d2 = 0 and d1 < 1, NaN elsewhere).
         rtol, atol: tolerances of the DOP853 reference (at A0 = 1, w0 = 1).
+        engine: the integrator of ``reference="reference"``: "dampax" (default, its own
+            DOP853 loop) or "diffrax" (diffrax's Dopri8 with its events, swing by swing: an
+            independent second integrator, slower; ``solve_reference``).
         progress: show a tqdm progress bar over the steps (on stderr; nothing else is printed).
         k3_ratio: optional cubic stiffness axis k3 A0^2/k (issue 14; a number or a 1-D
             sequence, either sign, finite). Default None: no such axis, the map (its dims, its
@@ -527,6 +538,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
+    if engine != "dampax":
+        check_reference_options(0.0, 0.0, engine=engine)  # a ValueError naming engine
     if chunk_size is not None:
         chunk_size = _positive_int("chunk_size", chunk_size)
     samples_per_period = _positive_int("samples_per_period", samples_per_period, 2)
@@ -544,7 +557,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
                    samples_per_period)
     processes = check_processes(processes)
     timeout = check_timeout(timeout)
-    cfg = _config(models, reference, periods, samples_per_period, rtol, atol, cubic)
+    cfg = _config(models, reference, periods, samples_per_period, rtol, atol, cubic, engine)
     n_samples = cfg.n_samples
     if processes is not None and processes > 1:
         if jax.distributed.is_initialized():
@@ -553,7 +566,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
 
         checked = dict(axes, models=models, periods=periods,
                        samples_per_period=samples_per_period, chunk_size=chunk_size,
-                       reference=reference, rtol=rtol, atol=atol, k3_ratio=axes.get("k3_ratio"))
+                       reference=reference, rtol=rtol, atol=atol, k3_ratio=axes.get("k3_ratio"),
+                       engine=engine)
         return run_local(checked, processes, timeout=timeout, progress=progress)
 
     shape = tuple(a.size for a in axes.values())
@@ -668,8 +682,11 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "models": ", ".join(models),
         "reference": reference,
         "reference_description": (
-            "DOP853 integration of eq. 3, swing by swing with exact stick-slip"
+            ("DOP853 integration of eq. 3, swing by swing with exact stick-slip"
+             if engine == "dampax" else "diffrax Dopri8 integration of eq. 3, swing by swing "
+             "with its events and exact stick-slip")
             if reference == "reference" else "exact Coulomb (+ viscous) half-swings (D = 0)"),
+        "reference_engine": engine if reference == "reference" else "",
         "reference_rtol": float(rtol) if reference == "reference" else 0.0,
         "reference_atol": float(atol) if reference == "reference" else 0.0,
         "reference_max_swings": cfg.max_swings,

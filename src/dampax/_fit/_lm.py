@@ -1,0 +1,133 @@
+"""Levenberg-Marquardt in one small loop: optimistix's algorithm, written out for the fits.
+
+The fits ran ``optimistix.least_squares`` with ``LevenbergMarquardt(linear_solver=
+lx.Normal(lx.Cholesky()))``. Its generality (pytrees, linear operators, a closure-converted
+function, an implicit adjoint, a verbose hook) costs tracing and compiling: a cold default fit
+compiled the optimiser around each model three times (the ansatz's batch of starts, its single
+fit, the exact model's fit), 4-6 s each on 2 cores (issue 36: a first fit in a fresh process
+took 15 s against a goal of 8 s). This module runs the same iteration on flat arrays with an
+explicit Jacobian (the fit models materialise it anyway), so a program holds the model, its
+Jacobian and a 7 x 7 Cholesky solve, nothing more.
+
+The iteration (optimistix 0.1: ``AbstractGaussNewton.step`` with ``ClassicalTrustRegion`` and
+``DampedNewtonDescent``):
+
+- evaluate r, J at the candidate y_eval; the predicted reduction of the last step is
+  0.5 (|J d + r|^2 - |r|^2) with (r, J) at the accepted y, d = y_eval - y; the actual one
+  0.5 |r_eval|^2 - 0.5 |r|^2;
+- accept when actual <= 0.01 predicted (always on the first step); a good step (actual <
+  0.99 predicted < 0) multiplies the step size by 3.5, a rejected one by 0.25;
+- on acceptance: stop when max |d| / (atol + rtol |y_eval|) < 1 and max |r_eval - r| /
+  (atol + rtol |r_eval|) < 1 (Cauchy termination, max norm);
+- the next candidate: y - (J^T J + lambda I)^-1 J^T r with lambda = 1 / step size (the
+  normal equations of [J; sqrt(lambda) I] d = [r; 0], Cholesky).
+
+The returned point is the last accepted one, with its residuals and Jacobian (the fit's
+statistics reuse them). ``budget`` (traced) stops earlier than the loop's static
+``max_steps``: one compiled fit serves every budget.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+#: optimistix's ClassicalTrustRegion constants
+LOW_CUTOFF, HIGH_CUTOFF, LOW_CONSTANT, HIGH_CONSTANT = 0.01, 0.99, 0.25, 3.5
+
+
+class LMSolution(NamedTuple):
+    """The outcome of :func:`levenberg_marquardt`.
+
+    Attributes:
+        value: the last accepted point.
+        converged: the termination criterion held (else the budget ran out, or no finite
+            point was reached: see ``finite``).
+        finite: the returned point is finite.
+        steps: the steps made (function evaluations).
+        residual, jac: the residuals and the Jacobian at ``value``.
+    """
+
+    value: jax.Array
+    converged: jax.Array
+    finite: jax.Array
+    steps: jax.Array
+    residual: jax.Array
+    jac: jax.Array
+
+
+def _rows_and_jacobian(fn, y):
+    J, r = jax.jacfwd(lambda th: (fn(th),) * 2, has_aux=True)(y)
+    return r, J
+
+
+def _damped_step(r, J, step_size):
+    """(J^T J + lambda I)^-1 J^T r with lambda = 1 / step_size (optimistix's damped Newton
+    step: lambda the largest float where the step size is below eps)."""
+    eps = jnp.finfo(r.dtype).eps
+    pred = step_size > eps
+    lam = jnp.where(pred, 1.0 / jnp.where(pred, step_size, 1.0), jnp.finfo(r.dtype).max)
+    A = J.T @ J + lam * jnp.eye(J.shape[1], dtype=J.dtype)
+    L = jnp.linalg.cholesky(A)
+    return jax.scipy.linalg.cho_solve((L, True), J.T @ r)
+
+
+class _State(NamedTuple):
+    k: Any
+    y: Any
+    r: Any
+    J: Any
+    y_eval: Any
+    step_size: Any
+    first: Any
+    done: Any
+
+
+def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
+                        budget=None) -> LMSolution:
+    """Minimise 0.5 |fn(y)|^2 from ``y0`` (the module docstring's iteration).
+
+    Arguments:
+        fn: residuals of a flat parameter vector (jax-traceable, forward-differentiable).
+        y0: the start.
+        rtol, atol: the termination tolerances.
+        max_steps: the loop's static bound.
+        budget: a traced bound (at most ``max_steps``), or None.
+
+    Returns:
+        :class:`LMSolution`.
+    """
+    r0 = jax.eval_shape(fn, y0)
+    limit = max_steps if budget is None else jnp.minimum(budget, max_steps)
+    zero_r = jnp.zeros(r0.shape, r0.dtype)
+    init = _State(jnp.array(0), y0, zero_r, jnp.zeros(r0.shape + y0.shape, y0.dtype), y0,
+                  jnp.array(1.0, dtype=y0.dtype), jnp.array(True), jnp.array(False))
+
+    def cond(s: _State):
+        return (s.k < limit) & ~s.done
+
+    def body(s: _State):
+        r_eval, J_eval = _rows_and_jacobian(fn, s.y_eval)
+        d = s.y_eval - s.y
+        predicted = 0.5 * (jnp.sum((s.J @ d + s.r) ** 2) - jnp.sum(s.r ** 2))
+        actual = 0.5 * jnp.sum(r_eval ** 2) - 0.5 * jnp.sum(s.r ** 2)
+        accept = (actual <= LOW_CUTOFF * predicted) | s.first
+        good = (actual < HIGH_CUTOFF * predicted) & (predicted < 0) & ~s.first
+        mul = jnp.where(accept, jnp.where(good, HIGH_CONSTANT, 1.0), LOW_CONSTANT)
+        y_scale = atol + rtol * jnp.abs(s.y_eval)
+        f_scale = atol + rtol * jnp.abs(r_eval)
+        small = (jnp.max(jnp.abs(d) / y_scale) < 1) & \
+            (jnp.max(jnp.abs(r_eval - s.r) / f_scale) < 1)
+        y = jnp.where(accept, s.y_eval, s.y)
+        r = jnp.where(accept, r_eval, s.r)
+        J = jnp.where(accept, J_eval, s.J)
+        step_size = mul * s.step_size
+        y_eval = y - _damped_step(r, J, step_size)
+        return _State(s.k + 1, y, r, J, y_eval, step_size, jnp.array(False),
+                      accept & small | ~jnp.all(jnp.isfinite(y)))
+
+    s = jax.lax.while_loop(cond, body, init)
+    finite = jnp.all(jnp.isfinite(s.y))
+    return LMSolution(s.y, s.done & finite, finite, s.k, s.r, s.J)

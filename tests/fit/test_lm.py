@@ -1,0 +1,60 @@
+"""The fits' Levenberg-Marquardt (``_fit._lm``) against optimistix's, whose algorithm it
+writes out, and against scipy's least_squares optimum."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+import pytest
+from scipy.optimize import least_squares
+
+from dampax._fit._lm import levenberg_marquardt
+
+T = np.linspace(0.0, 4.0, 60)
+DATA = 2.0 * np.exp(-0.7 * T) * np.cos(3.0 * T + 0.4) + 0.01 * np.random.default_rng(
+    0).standard_normal(T.size)
+
+
+def _residuals(p):
+    return p[0] * jnp.exp(-p[1] * T) * jnp.cos(p[2] * T + p[3]) - DATA
+
+
+def _rosenbrock(p):
+    return jnp.stack([10.0 * (p[1] - p[0] ** 2), 1.0 - p[0]])
+
+
+@pytest.mark.parametrize("fn, y0", [(_residuals, [1.5, 0.5, 2.9, 0.0]),
+                                    (_rosenbrock, [-1.2, 1.0])])
+def test_same_path_as_optimistix_and_scipys_optimum(fn, y0):
+    """Same iterates as optimistix's LevenbergMarquardt (normal equations, Cholesky): the
+    same number of steps and the same point to rounding; the optimum is scipy's."""
+    y0 = jnp.asarray(y0, dtype=float)
+    ours = jax.jit(lambda y: levenberg_marquardt(fn, y, rtol=1e-10, atol=1e-12,
+                                                 max_steps=200))(y0)
+    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12,
+                                     linear_solver=lx.Normal(lx.Cholesky()))
+    ref = optx.least_squares(lambda y, _: fn(y), solver, y0, max_steps=200, throw=False)
+    assert bool(ours.converged) and ref.result == optx.RESULTS.successful
+    assert int(ours.steps) == int(ref.stats["num_steps"])
+    np.testing.assert_allclose(ours.value, ref.value, rtol=1e-9, atol=1e-12)
+    sp = least_squares(lambda y: np.asarray(fn(jnp.asarray(y))), np.asarray(y0),
+                       xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    np.testing.assert_allclose(ours.value, sp.x, rtol=1e-7, atol=1e-10)
+    # the residuals and Jacobian returned are those of the returned point
+    np.testing.assert_allclose(ours.residual, fn(ours.value), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(ours.jac, jax.jacfwd(fn)(ours.value), rtol=1e-10, atol=1e-12)
+
+
+def test_budget_under_vmap_and_a_start_that_is_not_finite():
+    """A traced budget stops the loop (not converged, finite); under vmap each lane keeps
+    its own; a NaN start is reported as not finite."""
+    starts = jnp.asarray([[1.5, 0.5, 2.9, 0.0], [1.5, 0.5, 2.9, jnp.nan]])
+    budgets = jnp.asarray([3, 200])
+    out = jax.vmap(lambda y, b: levenberg_marquardt(_residuals, y, rtol=1e-10, atol=1e-12,
+                                                    max_steps=200, budget=b))(starts, budgets)
+    assert list(np.asarray(out.steps)) == [3, 1]  # the NaN start: accepted once, not finite
+    assert not bool(out.converged[0]) and bool(out.finite[0])
+    assert not bool(out.converged[1]) and not bool(out.finite[1])
