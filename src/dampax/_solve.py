@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._cache import call_cached_tree
+from ._cache import call_cached_tree, prepare_cached_tree
 from ._models._ansatz import AnsatzSolution, solve_ansatz
 from ._models._coulomb import solve_coulomb_exact, solve_rizcallah, with_coulomb_tail
 from ._models._registry import METHODS
@@ -210,13 +210,23 @@ def _as_float64(value):
     return jnp.asarray(value, dtype=float)
 
 
-def _reference_kept(osc, x0, v0, options):
+def prepare_reference(osc, x0, v0, **options) -> None:
+    """Start building, in a background thread, the kept program of the eager call
+    ``solve(osc, x0, v0, method="reference", **options)`` (``_cache.prepare_cached_tree``), so
+    that a caller who knows the call ahead (a fit's search of the neighbouring halts) finds it
+    compiled. Only the options and the budget they imply matter, not the values."""
+    _, _, options = check_options(osc, x0, v0, method="reference", options=options)
+    _reference_kept(osc, x0, v0, options, prepare=True)
+
+
+def _reference_kept(osc, x0, v0, options, prepare: bool = False):
     """An eager ``solve_reference`` through a kept compiled program (``_cache.call_cached_tree``:
     a repeated call, also in a new process, neither traces nor compiles the integrator).
 
     Returns:
         The solution, or None where the plain route must run: options that are not plain
         values, or a failed solution (the plain route raises its ValueError, budget named).
+        ``prepare``: the program is only started (``_cache.prepare_cached_tree``): None.
     """
     static = {k: v for k, v in options.items() if k != "t_end" and v is not None}
     t_end = options.get("t_end")
@@ -233,9 +243,10 @@ def _reference_kept(osc, x0, v0, options):
         return solve_reference_checked(osc, x0, v0, t_end=t_end[0] if t_end else None,
                                        **static)
 
-    sol = call_cached_tree("reference", (sorted(static.items()), t_end is None), program,
-                           osc, _as_float64(x0), _as_float64(v0), *extra)
-    return None if sol.message else sol
+    call = prepare_cached_tree if prepare else call_cached_tree
+    sol = call("reference", (sorted(static.items()), t_end is None), program, osc,
+               _as_float64(x0), _as_float64(v0), *extra)
+    return None if prepare or sol.message else sol
 
 
 _AUTO_MARGIN = 2.0

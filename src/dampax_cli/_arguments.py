@@ -25,8 +25,8 @@ QUANTITIES = ("halt_time", "halt_position", "energy", "x", "max_error")
 FIT_MODELS = {"ansatz": "the closed form of Lelas & Pezer (fast)",
               "reference": "eq. 3 integrated by DOP853, started from the ansatz fit"}
 OPTIMIZERS = ("lm", "adam", "lbfgs")
-METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix)", "adam": "adam (optax)",
-                "lbfgs": "L-BFGS (optax)"}
+METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust region; _lm)",
+                "adam": "adam (optax)", "lbfgs": "L-BFGS (optax)"}
 LOSSES = ("linear", "soft_l1")
 
 #: Grid and settings of ``dampax errormap`` (a few minutes on 2 cores with the reference) and

@@ -188,7 +188,7 @@ def test_eager_sensitivity_is_kept_compiled_and_equals_the_traced_path():
     kept = len(_cache._EXECUTABLES)
     again = dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=0.04, D=2.0), 0.2, 0.0, ts, **kw)
     assert len(_cache._EXECUTABLES) == kept  # new values, same program
-    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jaxcall"))
+    assert list(_cache.dampax_cache_dir().glob("exported/sensitivity-*.jax*"))
     traced = jax.jit(lambda mu: dp.sensitivity(dp.Oscillator(m=1.0, k=30.0, mu=mu, D=2.0),
                                                0.2, 0.0, ts, **kw))(0.03)
     for name in ("x", "dx", "energy", "dhalt_time", "dhalt_position"):
@@ -213,8 +213,9 @@ def _leaves_equal(a, b) -> bool:
 
 def test_kept_program_returns_equinox_modules_whole():
     """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
-    comes back with the traced path's treedef and bits; the file holds program and treedef,
-    and a process that reads it (here: the memo cleared) rebuilds the same result."""
+    comes back with the traced path's treedef and bits; the file holds the program (an
+    executable, kept straight from the trace) and its treedef, and a process that reads it
+    (here: the memo cleared) rebuilds the same result."""
     import equinox as eqx
 
     from dampax import _cache
@@ -228,7 +229,7 @@ def test_kept_program_returns_equinox_modules_whole():
     traced = eqx.filter_jit(fn)(*args)
     assert _leaves_equal(kept, traced)
     assert kept[1].weak_type  # jnp.asarray(3) is weakly typed; serialization drops it
-    files = list(_cache.dampax_cache_dir().glob("exported/test-tree-*.jaxcall"))
+    files = list(_cache.dampax_cache_dir().glob("exported/test-tree-*.jax*"))
     assert len(files) == 1
     entries = len(_cache._EXECUTABLES)
     other = _cache.call_cached_tree("test-tree", "undamped", fn,
@@ -264,7 +265,7 @@ def test_run_models_is_kept_compiled_and_equals_the_traced_path():
     _summary.run_models(dp.Oscillator(m=1.0, k=30.0, mu=0.03, D=2.0), 0.2, 0.0,
                         models=["matched", "matched_tail"])
     assert len(_cache._EXECUTABLES) == entries
-    assert len(list(_cache.dampax_cache_dir().glob("exported/solve-model-*.jaxcall"))) >= 2
+    assert len(list(_cache.dampax_cache_dir().glob("exported/solve-model-*.jax*"))) >= 2
 
 
 def test_eager_fit_core_is_kept_compiled_and_equals_the_traced_path():
@@ -290,7 +291,7 @@ def test_eager_fit_core_is_kept_compiled_and_equals_the_traced_path():
     entries = len(_cache._EXECUTABLES)
     _core.run_core(t, 1.01 * x, *args[2:], **static)
     assert len(_cache._EXECUTABLES) == entries
-    assert list(_cache.dampax_cache_dir().glob("exported/fit-core-*.jaxcall"))
+    assert list(_cache.dampax_cache_dir().glob("exported/fit-core-*.jax*"))
 
 
 def test_ar1_filter_equals_lfilter_to_the_bit():

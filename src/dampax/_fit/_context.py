@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import jax
 import numpy as np
 
-from .._cache import call_cached
+from .._cache import call_cached, prepare_cached
 from .._models._decay import decay, halt_time
 from ._core import FIT_MODELS
 from ._params import Constants, damping_d
@@ -80,6 +80,16 @@ def _envelope_curve(t, a, bp, c):
     args = (jax.device_put(np.asarray(v, dtype=float)) for v in (tp, a, bp, c))
     f, halt = call_cached("fit-envelope", ("halt",), _decay_and_halt, *args)
     return np.asarray(f)[:t.size], float(halt)
+
+
+def prepare_envelope(t) -> None:
+    """Start compiling :func:`_envelope_curve`'s program for the window ``t`` in the
+    background (``_cache.prepare_cached``)."""
+    t = np.asarray(t, dtype=float)
+    tp, _, _ = pad(t, t, bucket(t.size, 256))
+    zero = jax.device_put(np.asarray(0.0))
+    prepare_cached("fit-envelope", ("halt",), _decay_and_halt, jax.device_put(tp), zero, zero,
+                   zero)
 
 
 def trace_derived(params: dict, coords, ctx: FitContext):

@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from .._oscillator import Oscillator
-from .._solve import solve
+from .._solve import prepare_reference, solve
 from ._core import FIT_RESULTS
 from ._problem import predicted_start
 from ._profile import LR_CHI2, LR_Z
@@ -35,15 +35,28 @@ HALT_STEPS = 64
 NEAR_RISE = 100.0
 
 
-def _motion(res, m: float, g: float, k3: float, mu_s=None):
+def _motion(res, m: float, g: float, k3: float, mu_s=None, *, prepare: bool = False):
     """The reference solution of a fit's motion from its start over twice its window (one
-    compiled program for every call of a search), and the window's span."""
+    compiled program for every call of a search), and the window's span; ``prepare``: only
+    start compiling its program (``_solve.prepare_reference``; None)."""
 
     p = res.params
     osc = Oscillator(m=m, k=m * p["w0"] ** 2, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
                      mu_s=None if mu_s is None else max(float(mu_s), float(p["mu"])))
     span = float(res.t[-1] - res.t[0])
+    if prepare:
+        return prepare_reference(osc, p["x0"], p["v0"], t_end=2.0 * span)
     return solve(osc, p["x0"], p["v0"], method="reference", t_end=2.0 * span), span
+
+
+def prepare_motion(params, t, m: float, g: float, k3: float) -> None:
+    """Start compiling, in the background, the program of :func:`other_halts`'s motion for a
+    fit near ``params`` (a TraceParams, the guess) over the window ``t``."""
+    from types import SimpleNamespace
+
+    ns = SimpleNamespace(params={k: float(v) for k, v in params._asdict().items()},
+                         t=np.asarray(t))
+    _motion(ns, m, g, k3, prepare=True)
 
 
 def turning_points(res, m: float, g: float, k3: float, mu_s=None):

@@ -38,8 +38,15 @@ import numpy as np
 
 from ._answer import approximation_bias
 from ._checks import looks_stuck
+from ._context import prepare_envelope
 from ._core import FIT_MODELS, FIT_RESULTS
-from ._halts import above_mu_s, other_halt_check, search_other_halts, with_static_halt
+from ._halts import (
+    above_mu_s,
+    other_halt_check,
+    prepare_motion,
+    search_other_halts,
+    with_static_halt,
+)
 from ._measures import k3_hint
 from ._params import varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
@@ -268,17 +275,22 @@ def _with_k3_hint(res: FitResult, problem: Problem) -> FitResult:
 
 
 def prepare_programs(problem: Problem, plan: Plan) -> None:
-    """Start compiling, in the background, the fits that follow the batch of starts: the
+    """Start compiling, in the background, the programs that follow the batch of starts: the
     first model's fit and, where it starts the exact model, the exact model's (for the
-    guess's frequency: the approximate optimum's nearly always shares its swing budget). A
-    warm process finds them built; a cold one compiles them beside the batch (issue 36)."""
-    s = problem.settings
+    guess's frequency: the approximate optimum's nearly always shares its swing budget), the
+    motion of the neighbouring-halt search and the report's envelope. A warm process finds
+    them built; a cold one compiles them beside the batch (issue 36)."""
+    s, c = problem.settings, problem.consts
     if s.optimizer != "lm":
         return
     first = first_model(problem, plan)
     problem.solve(problem.guess, first, math.inf, prepare=True)
     if first != s.model:
         problem.solve(problem.guess, s.model, math.inf, prepare=True)
+    if plan.neighbouring_halts and FIT_MODELS[s.model].integrates and problem.vary.mu and \
+            c.mu_s is None and s.loss == "linear":
+        prepare_motion(problem.guess, problem.data.t, c.m, c.g, 0.0 if c.k3 is None else c.k3)
+    prepare_envelope(problem.data.t)
 
 
 def run(problem: Problem, plan: Plan = FULL) -> FitResult:

@@ -11,11 +11,12 @@ accurate as the step), and the turning point is found on the crossing step's pol
 (``_events.turning_point``): diffrax's own root find on its dense output (Dopri8's
 interpolant) put the turning point 1e-9 to 1e-8 A0 off at rtol = 1e-10, and every swing
 restarted from there (undamped motion over 4 periods: 4.7e-8 A0 from the exact solution,
-against 1.7e-10 this way). There the block sticks for good if |k x + k3 x^3| <= mu_s m g,
-else the next swing starts from (x*, 0) with the opposite sign. The solution is a
-``ReferenceSolution`` like any other: x(ts), v(ts), the energy, the turning points, jit, vmap
-and both modes of differentiation (``adjoint``: diffrax's ``RecursiveCheckpointAdjoint``,
-``ForwardMode`` or ``DirectAdjoint``).
+against 1.7e-10 this way), and that root find (closure-converted by optimistix) failed inside
+the error map's ``shard_map`` (docs/DESIGN.md, pitfalls). There the block sticks for good if
+|k x + k3 x^3| <= mu_s m g, else the next swing starts from (x*, 0) with the opposite sign. The
+solution is a ``ReferenceSolution`` like any other: x(ts), v(ts), the energy, the turning
+points, jit, vmap and both modes of differentiation (``adjoint``: diffrax's
+``RecursiveCheckpointAdjoint``, ``ForwardMode`` or ``DirectAdjoint``).
 
 The steps are diffrax's (its Runge-Kutta tableau, its error control, its loop): the tests
 compare the two engines as independent numbers on every platform (where scipy's integrator

@@ -328,18 +328,12 @@ def _compiled(cfg: _Config, device_ids: tuple[int, ...]):
 
     by_id = {d.id: d for d in jax.local_devices()}
     devices = [by_id[i] for i in device_ids]
-    # diffrax's event root find closure-converts its function, whose traced and called
-    # arguments differ inside shard_map (their types carry the manual axes): for that engine
-    # the step is a plain jit of the vmap, the rows sharded over an Auto mesh (XLA partitions)
-    diffrax = cfg.engine != "dampax"
-    kind = jax.sharding.AxisType.Auto if diffrax else jax.sharding.AxisType.Explicit
-    mesh = jax.make_mesh((len(devices),), ("points",), devices=devices, axis_types=(kind,))
+    mesh = jax.make_mesh((len(devices),), ("points",), devices=devices,
+                         axis_types=(jax.sharding.AxisType.Explicit,))
 
     def step(rows):
         return jax.vmap(lambda r: _per_point(cfg, r))(rows)
 
-    if diffrax:
-        return jax.jit(step), mesh
     sharded = jax.shard_map(step, mesh=mesh, in_specs=P("points"), out_specs=P("points"),
                             check_vma=False)
     return jax.jit(sharded), mesh
