@@ -25,7 +25,7 @@ QUANTITIES = ("halt_time", "halt_position", "energy", "x", "max_error")
 FIT_MODELS = {"ansatz": "the closed form of Lelas & Pezer (fast)",
               "reference": "eq. 3 integrated by DOP853, started from the ansatz fit"}
 OPTIMIZERS = ("lm", "adam", "lbfgs")
-METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust region; _lm)",
+METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust-region algorithm)",
                 "adam": "adam (optax)", "lbfgs": "L-BFGS (optax)"}
 LOSSES = ("linear", "soft_l1")
 

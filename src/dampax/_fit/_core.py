@@ -48,7 +48,7 @@ from ._params import (
 
 OPTIMIZERS = ("lm", "adam", "lbfgs")
 MAX_STEPS = {"lm": 256, "lbfgs": 1000, "adam": 4000}
-METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust region; _lm)",
+METHOD_NAMES = {"lm": "Levenberg-Marquardt (optimistix's trust-region algorithm)",
                 "adam": "adam (optax)", "lbfgs": "L-BFGS (optax)"}
 
 
