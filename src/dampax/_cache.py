@@ -476,8 +476,13 @@ def _memo(name: str, key, args):
     return arrays, specs, (name, repr(key), tuple(map(tuple, _spec_text(specs))))
 
 
-#: the threads that compile programs ahead of their first call (:func:`prepare_cached`)
-_POOL: list = []
+@functools.lru_cache(maxsize=1)
+def _pool():
+    """The threads that compile programs ahead of their first call (:func:`prepare_cached`)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1)),
+                              thread_name_prefix="dampax-compile")
 
 
 def prepare_cached(name: str, key, fn, *args) -> None:
@@ -493,14 +498,8 @@ def prepare_cached(name: str, key, fn, *args) -> None:
     then builds the program itself.
     """
     _, specs, memo = _memo(name, key, args)
-    if memo in _EXECUTABLES:
-        return
-    if not _POOL:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL.append(ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1)),
-                                        thread_name_prefix="dampax-compile"))
-    _EXECUTABLES[memo] = _POOL[0].submit(_compile_tree, name, key, fn, specs)
+    if memo not in _EXECUTABLES:
+        _EXECUTABLES[memo] = _pool().submit(_compile_tree, name, key, fn, specs)
 
 
 def _entry(name: str, key, fn, specs, memo):

@@ -75,21 +75,23 @@ def _envelope_curve(t, a, bp, c):
     so that windows of other lengths share the program (issue 36: a trace of a new length
     compiled it again, 0.2-0.3 s)."""
 
+    f, halt = call_cached("fit-envelope", ("halt",), _decay_and_halt,
+                          *_envelope_args(t, a, bp, c))
+    return np.asarray(f)[:np.size(t)], float(halt)
+
+
+def _envelope_args(t, a, bp, c) -> list:
+    """The arguments of the envelope's kept program: t padded to its bucket, float64 arrays."""
     t = np.asarray(t, dtype=float)
     tp, _, _ = pad(t, t, bucket(t.size, 256))
-    args = (jax.device_put(np.asarray(v, dtype=float)) for v in (tp, a, bp, c))
-    f, halt = call_cached("fit-envelope", ("halt",), _decay_and_halt, *args)
-    return np.asarray(f)[:t.size], float(halt)
+    return [jax.device_put(np.asarray(v, dtype=float)) for v in (tp, a, bp, c)]
 
 
 def prepare_envelope(t) -> None:
     """Start compiling :func:`_envelope_curve`'s program for the window ``t`` in the
     background (``_cache.prepare_cached``)."""
-    t = np.asarray(t, dtype=float)
-    tp, _, _ = pad(t, t, bucket(t.size, 256))
-    zero = jax.device_put(np.asarray(0.0))
-    prepare_cached("fit-envelope", ("halt",), _decay_and_halt, jax.device_put(tp), zero, zero,
-                   zero)
+    prepare_cached("fit-envelope", ("halt",), _decay_and_halt,
+                   *_envelope_args(t, 0.0, 0.0, 0.0))
 
 
 def trace_derived(params: dict, coords, ctx: FitContext):

@@ -33,7 +33,7 @@ from ._curves import model_curve as model_curve
 from ._curves import reference_solution as reference_solution
 from ._curves import swing_budget as swing_budget
 from ._linalg import tall_lstsq, tall_svd
-from ._lm import LMSolution, levenberg_marquardt
+from ._lm import LMSolution, levenberg_marquardt, rows_and_jacobian
 from ._params import (
     Damping,
     Setup,
@@ -109,11 +109,11 @@ def _residual_fn(theta, args: ResidualArgs, model: FitModel, opts):
 def _materialised(fn, args):
     """``fn(theta, args)`` whose derivative is an explicit Jacobian matrix (custom_jvp).
 
-    Its JVP computes r and J = jacfwd(fn) together and returns J @ dtheta, so the linear map
-    that optimistix keeps per step is a matrix product: materialising it (as QR or the normal
-    equations do) and transposing it cost nothing more, and the model (for "reference" the
-    whole reference integrator) is traced and compiled once per step instead of once for the
-    linearisation and again for its transpose.
+    Its JVP computes r and J = jacfwd(fn) together and returns J @ dtheta: a linear map whose
+    transpose is J^T, so reverse mode (optax's gradients) works on a model that is only
+    forward-differentiable (the reference integrator with ``adjoint="forward"``), and the
+    model is traced and compiled once instead of once for the linearisation and again for its
+    transpose. (Levenberg-Marquardt, ``_lm``, takes the Jacobian of the plain function.)
     """
     @jax.custom_jvp
     def residuals(theta):
@@ -122,7 +122,7 @@ def _materialised(fn, args):
     @residuals.defjvp
     def residuals_jvp(primals, tangents):
         (theta,), (dtheta,) = primals, tangents
-        J, r = jax.jacfwd(lambda th: (fn(th, args),) * 2, has_aux=True)(theta)
+        r, J = rows_and_jacobian(lambda th: fn(th, args), theta)
         return r, J @ dtheta
 
     return lambda theta, args: residuals(theta)
@@ -218,8 +218,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     lo = flat(on_damping(model.coords, lo, -jnp.inf))
 
     def rows(th):
-        r = _residual_rows(th, args, model, opts, clamped=False)
-        return r, r
+        return _residual_rows(th, args, model, opts, clamped=False)
 
     def solve(theta, scale):
         sol = levenberg_marquardt(lambda u: fn(theta + scale * u, args),
@@ -233,7 +232,7 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
         again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
         theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),
                                             theta, scale)
-        J, r = jax.jacfwd(rows, has_aux=True)(theta)
+        r, J = rows_and_jacobian(rows, theta)
         # Gauss-Newton step in (p for the damping constants, theta for the rest)
         p = dref * jnp.exp(theta)
         Jx = jnp.where(is_log, J / p, J)
@@ -396,7 +395,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         # to compile); a constant at its lower bound has a zero column there and gets no
         # standard error
         if final is None:
-            J, r = jax.jacfwd(lambda th: (fn(th, args),) * 2, has_aux=True)(theta)
+            r, J = rows_and_jacobian(lambda th: fn(th, args), theta)
         else:
             r, J = final
         r, J = r[:npad], J[:npad]

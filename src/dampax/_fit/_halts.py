@@ -35,28 +35,27 @@ HALT_STEPS = 64
 NEAR_RISE = 100.0
 
 
-def _motion(res, m: float, g: float, k3: float, mu_s=None, *, prepare: bool = False):
-    """The reference solution of a fit's motion from its start over twice its window (one
-    compiled program for every call of a search), and the window's span; ``prepare``: only
-    start compiling its program (``_solve.prepare_reference``; None)."""
-
-    p = res.params
+def _motion_start(p: dict, t, m: float, g: float, k3: float, mu_s=None):
+    """(oscillator, x0, v0, span) of a fit's motion: parameters ``p`` over the window ``t``."""
     osc = Oscillator(m=m, k=m * p["w0"] ** 2, mu=p["mu"], b=p["b"], D=p["D"], g=g, k3=k3,
                      mu_s=None if mu_s is None else max(float(mu_s), float(p["mu"])))
-    span = float(res.t[-1] - res.t[0])
-    if prepare:
-        return prepare_reference(osc, p["x0"], p["v0"], t_end=2.0 * span)
-    return solve(osc, p["x0"], p["v0"], method="reference", t_end=2.0 * span), span
+    return osc, p["x0"], p["v0"], float(t[-1] - t[0])
+
+
+def _motion(res, m: float, g: float, k3: float, mu_s=None):
+    """The reference solution of a fit's motion from its start over twice its window (one
+    compiled program for every call of a search), and the window's span."""
+    osc, x0, v0, span = _motion_start(res.params, res.t, m, g, k3, mu_s)
+    return solve(osc, x0, v0, method="reference", t_end=2.0 * span), span
 
 
 def prepare_motion(params, t, m: float, g: float, k3: float) -> None:
     """Start compiling, in the background, the program of :func:`other_halts`'s motion for a
-    fit near ``params`` (a TraceParams, the guess) over the window ``t``."""
-    from types import SimpleNamespace
-
-    ns = SimpleNamespace(params={k: float(v) for k, v in params._asdict().items()},
-                         t=np.asarray(t))
-    _motion(ns, m, g, k3, prepare=True)
+    fit near ``params`` (a TraceParams, the guess) over the window ``t``
+    (``_solve.prepare_reference``)."""
+    p = {k: float(v) for k, v in params._asdict().items()}
+    osc, x0, v0, span = _motion_start(p, np.asarray(t), m, g, k3)
+    prepare_reference(osc, x0, v0, t_end=2.0 * span)
 
 
 def turning_points(res, m: float, g: float, k3: float, mu_s=None):

@@ -22,7 +22,7 @@ from ._core import (
     _lm_code,
 )
 from ._linalg import tall_lstsq
-from ._lm import levenberg_marquardt
+from ._lm import levenberg_marquardt, rows_and_jacobian
 from ._params import (
     DAMPING,
     Constants,
@@ -290,7 +290,7 @@ def joint_core(a: JointArrays, *, lay: Layout, opts, max_steps: int, rtol: float
         again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
         theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),
                                             theta, scale)
-        J, r = jax.jacfwd(lambda th: (_residuals(th, a, lay, opts),) * 2, has_aux=True)(theta)
+        r, J = rows_and_jacobian(lambda th: _residuals(th, a, lay, opts), theta)
         # Gauss-Newton step in the physical damping constants: one it sends to <= 0 goes to
         # its lower bound (the single fit's rounds, ``_core._lm_rounds``)
         p = dref * jnp.exp(theta)

@@ -58,7 +58,8 @@ class LMSolution(NamedTuple):
     jac: jax.Array
 
 
-def _rows_and_jacobian(fn, y):
+def rows_and_jacobian(fn, y):
+    """(fn(y), its Jacobian), by one forward-mode pass."""
     J, r = jax.jacfwd(lambda th: (fn(th),) * 2, has_aux=True)(y)
     return r, J
 
@@ -109,7 +110,7 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
         return (s.k < limit) & ~s.done
 
     def body(s: _State):
-        r_eval, J_eval = _rows_and_jacobian(fn, s.y_eval)
+        r_eval, J_eval = rows_and_jacobian(fn, s.y_eval)
         d = s.y_eval - s.y
         predicted = 0.5 * (jnp.sum((s.J @ d + s.r) ** 2) - jnp.sum(s.r ** 2))
         actual = 0.5 * jnp.sum(r_eval ** 2) - 0.5 * jnp.sum(s.r ** 2)

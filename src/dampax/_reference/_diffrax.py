@@ -45,12 +45,6 @@ def _adjoint(dfx, adjoint: str):
             "direct": dfx.DirectAdjoint}[adjoint]()
 
 
-def _strong(a):
-    """``a`` as a strongly typed float64 array (diffrax's event root find closure-converts its
-    function and refuses a weakly typed time where it traced a strong one)."""
-    return jnp.asarray(a, dtype=jnp.float64) + jnp.zeros((), dtype=jnp.float64)
-
-
 def _vector_field(t, y, args):
     return jnp.stack([y[1], acceleration(y[0], y[1], args)])
 
@@ -77,7 +71,6 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
     import diffrax as dfx
 
     checks, ok_in, osc, x0, v0, t_end, w_hi = domain_input(osc, x0, v0, t_end)
-    osc, x0, v0, t_end, w_hi = jax.tree_util.tree_map(_strong, (osc, x0, v0, t_end, w_hi))
     params = ode_args(osc, 0.0)[1:]
     per_swing = max(2 * (rows // max_swings), MIN_STEPS_PER_SWING)
     term = dfx.ODETerm(_vector_field)

@@ -532,8 +532,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
-    if engine != "dampax":
-        check_reference_options(0.0, 0.0, engine=engine)  # a ValueError naming engine
+    check_reference_options(0.0, 0.0, engine=engine)  # a ValueError naming engine
     if chunk_size is not None:
         chunk_size = _positive_int("chunk_size", chunk_size)
     samples_per_period = _positive_int("samples_per_period", samples_per_period, 2)
