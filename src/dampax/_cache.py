@@ -352,9 +352,10 @@ def _spec_text(specs) -> list:
     return [(s.shape, str(s.dtype), bool(getattr(s, "weak_type", False))) for s in specs]
 
 
-def _flat_tracer(fn):
-    """(flat_fn, traced): ``fn`` flattened to its array leaves; tracing flat_fn records in
-    ``traced`` the output's treedef, its other leaves and the arrays' weak types."""
+def _flat_tracer(fn, name: str):
+    """(flat_fn, traced): ``fn`` flattened to its array leaves, named ``name`` (in JAX's
+    compilation logs and profiles); tracing flat_fn records in ``traced`` the output's
+    treedef, its other leaves and the arrays' weak types."""
     traced = {}
 
     def flat_fn(*args):
@@ -366,6 +367,7 @@ def _flat_tracer(fn):
         traced["weak"] = tuple(bool(jax.typeof(a).weak_type) for a in arrays)
         return arrays
 
+    flat_fn.__name__ = flat_fn.__qualname__ = name.replace("-", "_")
     return flat_fn, traced
 
 
@@ -377,15 +379,15 @@ def _kept_tree(traced) -> tuple:
     return kept
 
 
-def _export_tree(fn, specs):
+def _export_tree(name: str, fn, specs):
     """(exported program, treedef, static leaves, weak types) of ``fn`` flattened to arrays;
     raises when it cannot be exported or its tree kept."""
-    flat_fn, traced = _flat_tracer(fn)
+    flat_fn, traced = _flat_tracer(fn, name)
     exported = jax.export.export(jax.jit(flat_fn))(*specs)
     return exported, *_kept_tree(traced)
 
 
-def _compile_kept(fn, specs, exe_path):
+def _compile_kept(name: str, fn, specs, exe_path):
     """(executable, treedef, static) of ``fn`` compiled straight from its trace and kept as
     its ``.jaxexe`` file, or None where that cannot be (no executable file, a program that
     may not be kept, a tree that cannot, an executable read from JAX's cache): the caller
@@ -393,7 +395,7 @@ def _compile_kept(fn, specs, exe_path):
     lowering the exported program again (0.5-1 s of a cold fit's program, issue 36)."""
     if exe_path is None:
         return None
-    flat_fn, traced = _flat_tracer(fn)
+    flat_fn, traced = _flat_tracer(fn, name)
     try:
         lowered = jax.jit(flat_fn).lower(*specs)
         treedef, static, _ = _kept_tree(traced)
@@ -438,11 +440,11 @@ def _compile_tree(name: str, key, fn, specs):
         except Exception:  # noqa: BLE001 - verified, yet not readable here: trace again
             exported = None
     if exported is None:
-        kept = _compile_kept(fn, specs, exe_path)
+        kept = _compile_kept(name, fn, specs, exe_path)
         if kept is not None:
             return kept
         try:
-            exported, treedef, static, weak = _export_tree(fn, specs)
+            exported, treedef, static, weak = _export_tree(name, fn, specs)
             payload = exported.serialize()
             exported = jax.export.deserialize(payload)  # the program a later process reads
         except Exception:  # noqa: BLE001 - not exportable: the plain route

@@ -614,8 +614,10 @@ def test_grad_through_many_samples_matches_finite_differences():
                               max_swings=24, ts=ts if with_ts else None)
         return jnp.sum(sol.x(ts) * jnp.cos(ts))
 
+    # one program per path and derivative (eager, every op would compile alone)
+    grad, f = jax.jit(jax.grad(f), static_argnums=1), jax.jit(f, static_argnums=1)
     q = jnp.array([0.01, 1.0])
     for with_ts in (False, True):
-        g = np.asarray(jax.grad(f)(q, with_ts))
+        g = np.asarray(grad(q, with_ts))
         fd = _finite_differences(lambda p, w=with_ts: np.asarray(f(p, w))[None], q, eps=1e-6)[0]
         np.testing.assert_allclose(g, fd, rtol=1e-6)
