@@ -238,21 +238,26 @@ def _x_at(k3, mu=0.02, b=0.2, D=0.8, t=1.3):
     return sol.x(t) + 0.1 * sol.energy(0.7)
 
 
+# one compiled program each, shared by the tests below (eagerly every operation compiles alone)
+_x_jit = jax.jit(_x_at)
+_grad_x = jax.jit(jax.grad(_x_at, argnums=(0, 1, 2, 3)))
+
+
 @pytest.mark.parametrize("k3", [0.0, 150.0, -150.0])
 def test_gradients_against_finite_differences(k3):
-    g = jax.grad(_x_at, argnums=(0, 1, 2, 3))(k3, 0.02, 0.2, 0.8)
+    g = _grad_x(k3, 0.02, 0.2, 0.8)
     assert all(np.isfinite(float(v)) for v in g)
     h = 1e-3
-    fd = (float(_x_at(k3 + h)) - float(_x_at(k3 - h))) / (2 * h)
+    fd = (float(_x_jit(k3 + h)) - float(_x_jit(k3 - h))) / (2 * h)
     assert float(g[0]) == pytest.approx(fd, rel=1e-5, abs=1e-10)
     h = 1e-6
-    fd_b = (float(_x_at(k3, b=0.2 + h)) - float(_x_at(k3, b=0.2 - h))) / (2 * h)
+    fd_b = (float(_x_jit(k3, b=0.2 + h)) - float(_x_jit(k3, b=0.2 - h))) / (2 * h)
     assert float(g[2]) == pytest.approx(fd_b, rel=1e-5)
 
 
 def test_gradients_finite_without_damping_terms():
     for mu, b, D in ((0.0, 0.2, 0.8), (0.02, 0.0, 0.8), (0.02, 0.2, 0.0), (0.0, 0.0, 0.0)):
-        g = jax.grad(_x_at, argnums=(0, 1, 2, 3))(0.0, mu, b, D)
+        g = _grad_x(0.0, mu, b, D)
         assert all(np.isfinite(float(v)) for v in g), (mu, b, D, g)
         assert float(g[0]) != 0.0  # d/dk3 at k3 = 0 is carried (a fit can leave k3 = 0)
 
