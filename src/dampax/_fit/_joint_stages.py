@@ -260,10 +260,10 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
                   opts) -> tuple:
     """The exact model's own search (issue 36, item 4): the exact joint fit again from each
     candidate start of the shared constants (the median of the single fits, each run's),
-    in one vmapped batch, beside the fit started from the approximate model's optimum, where
-    some run's residuals are structured (:func:`_structured`). Structured residuals at an
-    optimum that no start improves on, on which the starts settle, are the model's (it lacks
-    something), not a local optimum's.
+    in one batch (``run_joint_batch``: start by start on a CPU), beside the fit started from
+    the approximate model's optimum, where some run's residuals are structured
+    (:func:`_structured`). Structured residuals at an optimum that no start improves on, on
+    which the starts settle, are the model's (it lacks something), not a local optimum's.
 
     Arguments:
         out, arrays: the exact fit from the approximate model's optimum and its arrays.
