@@ -32,22 +32,11 @@ def data_dir() -> Path:
 def child(arm: str) -> dict:
     """One arm in this (fresh) process: the cold joint fit, then the same fit warm."""
     began = time.perf_counter()
-    import functools
-
-    import jax
-
     import dampax as dp
-    from dampax._cache import call_cached_tree
-    from dampax._fit import _joint_stages
-    from dampax._fit._joint_problem import joint_core
+    from dampax._fit import _joint_problem, _joint_stages
 
     if arm == "vmapped":  # the batch as it ran before: one vmapped program of its own
-        def vmapped(batch, **static):
-            batch = jax.tree_util.tree_map(lambda v: jax.numpy.asarray(v, dtype=float), batch)
-            fn = jax.vmap(functools.partial(joint_core, **static))
-            return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
-
-        _joint_stages.run_joint_batch = vmapped
+        _joint_stages.run_joint_batch = _joint_problem.vmapped_batch
     imported = time.perf_counter()
     osc = dp.Oscillator(m=0.2016, k=14.91945)
     traces = [dp.load_trace(data_dir() / "spring_mass_airdrag" / f"run{i}.csv") for i in (1, 2)]

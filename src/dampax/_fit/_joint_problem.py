@@ -356,15 +356,22 @@ def run_joint_batch(batch: JointArrays, **static) -> JointCore:
     2 cores for two runs, and no start waits for the slowest of its batch; a GPU runs the
     lanes side by side)."""
     batch = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), batch)
-    fn = jax.vmap(functools.partial(joint_core, **static))
-    if not is_concrete(batch):
-        return fn(batch)
-    if FIT_MODELS[static["lay"].model].integrates and jax.default_backend() == "cpu":
+    if is_concrete(batch) and FIT_MODELS[static["lay"].model].integrates \
+            and jax.default_backend() == "cpu":
         size = jax.tree_util.tree_leaves(batch)[0].shape[0]
         outs = [run_joint_core(jax.tree_util.tree_map(lambda v, i=i: v[i], batch), **static)
                 for i in range(size)]
         return jax.tree_util.tree_map(lambda *v: jnp.stack(v), *outs)
-    return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
+    return vmapped_batch(batch, **static)
+
+
+def vmapped_batch(batch: JointArrays, **static) -> JointCore:
+    """:func:`joint_core` vmapped over the batch's leading axis, through a kept program when
+    eager (``benchmarks/joint_cold.py`` races it against the CPU's start-by-start route)."""
+    fn = jax.vmap(functools.partial(joint_core, **static))
+    if is_concrete(batch):
+        return call_cached_tree("fit-joint-batch", sorted(static.items()), fn, batch)
+    return fn(batch)
 
 
 def best_start(out: JointCore) -> int:

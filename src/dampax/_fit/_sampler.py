@@ -317,17 +317,18 @@ def sample(residual: Callable, args, layout: Layout, prior: Prior, theta0, *,
                  L=jnp.eye(dim), mask=None if mask is None else jnp.asarray(mask, dtype=bool))
     static = dict(residual=residual, layout=layout, mode=mode)
 
-    def fun(th):
+    def value_and_grad(th):  # the one compiled gradient: the mode search's and the Hessian's
         v, gr = _neg_value_and_grad(jnp.asarray(th), data, **static)
-        v = float(v)
-        return (v, np.asarray(gr, dtype=float)) if math.isfinite(v) else (1e300, np.zeros_like(th))
+        return float(v), np.asarray(gr, dtype=float)
+
+    def fun(th):
+        v, gr = value_and_grad(th)
+        return (v, gr) if math.isfinite(v) else (1e300, np.zeros_like(th))
 
     opt = minimize(fun, np.asarray(theta0, dtype=float), jac=True, method="L-BFGS-B",
                    options={"maxiter": 500})
     theta_map = np.asarray(opt.x, dtype=float)
-    H = _neg_hessian(lambda th: np.asarray(_neg_value_and_grad(jnp.asarray(th), data,
-                                                                **static)[1], dtype=float),
-                     theta_map)
+    H = _neg_hessian(lambda th: value_and_grad(th)[1], theta_map)
     if not np.all(np.isfinite(H)):
         H = np.diag(1.0 / np.asarray(width, dtype=float) ** 2)
     ev, V = np.linalg.eigh(H)
