@@ -4,7 +4,9 @@ On the machine's GPU (JAX's default backend), float64 as dampax always runs:
 
 1. the reference (eq. 3, DOP853, exact stick-slip, rtol 1e-10, atol 1e-12) of random
    oscillators (the problem of benchmarks/peer_race.py: Coulomb, viscous and quadratic
-   damping, 5 s) with x at 1,000 samples, for 4,096 and 131,072 trajectories in one call;
+   damping, 5 s) with x at 1,000 samples, for 4,096 and 131,072 trajectories in one call:
+   the default engine (``engine="auto"``: the fused Pallas kernel where it passed its
+   self-check, issue 35 item 2) and, where that is the kernel, the XLA engine beside it;
 2. error maps: the default grid (16 x 16 x 8, as ``dampax errormap``) with the chunk size
    dampax chooses and with fixed ones (128, 1,024, 4,096), and a 128 x 128 x 8 grid;
 3. the matched ansatz's x(ts) over the same 131,072 x 1,000 samples against the limit of
@@ -67,11 +69,11 @@ def timed(fn, repeat):
     return first, best, out
 
 
-def reference_program(ts):
+def reference_program(ts, engine="auto"):
     def f(k, mu, b, D, x0, v0):
         osc = dp.Oscillator(m=M, k=k, mu=mu, b=b, D=D)
         return dp.solve(osc, x0, v0, method="reference", t_end=T_END, rtol=RTOL, atol=ATOL,
-                        ts=ts).x(ts)
+                        ts=ts, engine=engine).x(ts)
 
     return jax.jit(f)
 
@@ -172,14 +174,26 @@ def main(argv=None) -> int:
               flush=True)
         results[name] = dict(first_s=first, best_s=best, n=n)
 
-    # 1. the reference
-    ref = reference_program(ts)
+    # 1. the reference: the default engine ("auto": the fused kernel where it passed its
+    # self-check) and the XLA engine, on the same trajectories
+    from dampax._reference._solve import resolve_engine
+
+    chosen = resolve_engine("auto")
+    print(f"  engine='auto' runs {chosen!r} here", flush=True)
+    results["auto_engine"] = chosen
+    ref, xla = reference_program(ts), reference_program(ts, "dampax")
     ref_x = {}
     for n in args.n:
         prob = random_problem(n)
         first, best, out = timed(lambda prob=prob: ref(*prob), args.repeat)
         ref_x[n] = np.asarray(out[:64])
         report(f"reference, {n} trajectories x {SAMPLES} samples", first, best, n)
+        if chosen != "dampax":
+            first_x, best_x, out_x = timed(lambda prob=prob: xla(*prob), args.repeat)
+            diff = float(np.nanmax(np.abs(np.asarray(out_x[:64]) - ref_x[n])))
+            report(f"reference by the XLA engine, {n} trajectories", first_x, best_x, n,
+                   f" ({best_x / best:.3g}x the kernel's time; max |x - kernel's| over 64 "
+                   f"trajectories: {diff:.2g} m)")
 
     # 2. error maps
     kw = dict(d0_ratio=np.linspace(0.0, 0.1, 16), d2_ratio=np.linspace(0.0, 0.75, 16),

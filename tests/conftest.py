@@ -43,7 +43,7 @@ COST_ORDER = (
     "notebooks/04_fitting_real_data.ipynb", "tests/fit/test_joint.py",
     "tests/reference/test_reference.py", "tests/reference/test_speed.py",
     "tests/fit/test_posterior.py", "tests/studies/test_sensitivity.py",
-    "tests/reference/test_diffrax_engine.py",
+    "tests/reference/test_diffrax_engine.py", "tests/reference/test_kernel.py",
     "tests/reference/test_static_friction.py", "tests/studies/test_maps.py",
     "tests/models/test_models.py", "tests/models/test_results.py",
     "notebooks/05_sensitivity.ipynb", "tests/studies/test_distributed.py",

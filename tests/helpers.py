@@ -149,3 +149,37 @@ def count_reads(monkeypatch, x) -> tuple:
                 _analysis.analyse and module is not _analysis:
             monkeypatch.setattr(module, "analyse", counted_analyse)
     return seen, analysed
+
+
+#: a batch that every reference engine must solve alike (tests/reference/test_diffrax_engine.py,
+#: test_kernel.py): every damping term, a cubic spring, static friction, starts in all four
+#: quadrants, a start at rest in the band, an invalid oscillator
+#      m    k     mu     b     D     k3     mu_s   x0     v0
+ENGINE_CASES = [(1.0, 25.0, 0.02, 0.0, 0.0, 0.0, None, 1.0, 0.0),   # Coulomb alone
+                (0.5, 10.0, 0.0, 0.1, 0.0, 0.0, None, -0.3, 1.0),  # viscous alone: never halts
+                (1.0, 25.0, 0.0, 0.0, 0.4, 0.0, None, -0.5, -2.0),  # drag alone
+                (2.0, 30.0, 0.05, 0.2, 0.3, 0.0, None, 0.4, -1.5),  # all three
+                (1.0, 25.0, 0.03, 0.05, 0.1, 40.0, None, 0.6, 1.0),  # hardening spring
+                (1.0, 25.0, 0.03, 0.0, 0.1, 0.0, 0.06, -0.8, 0.0),  # static friction above mu
+                (1.0, 25.0, 0.05, 0.0, 0.0, 0.0, None, 0.01, 0.0),  # at rest inside the band
+                (1.0, 25.0, -0.1, 0.0, 0.0, 0.0, None, 1.0, 0.0)]  # mu < 0: invalid
+
+
+def solve_cases(engine, t_end, ts, **options):
+    """:data:`ENGINE_CASES` solved in one batch by ``engine`` (jitted: traced inputs, so the
+    invalid oscillator reaches the engine; eagerly it is refused)."""
+    import jax
+
+    from dampax._oscillator import Oscillator
+    from dampax._reference import solve_reference
+
+    cases = ENGINE_CASES
+    cols = [np.asarray([c[j] for c in cases], dtype=float) for j in (0, 1, 2, 3, 4, 5, 7, 8)]
+    mu_s = np.asarray([c[6] if c[6] is not None else max(c[2], 0.0) for c in cases])
+
+    @jax.jit
+    def solve(m, k, mu, b, D, k3, mu_s, x0, v0):
+        osc = Oscillator(m=m, k=k, mu=mu, b=b, D=D, k3=k3, mu_s=mu_s)
+        return solve_reference(osc, x0, v0, t_end=t_end, ts=ts, engine=engine, **options)
+
+    return solve(*cols[:6], mu_s, *cols[6:])

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import evaluate, scipy_stick_slip
+from helpers import ENGINE_CASES, evaluate, scipy_stick_slip, solve_cases
 
 import dampax as dp
 from dampax._oscillator import Oscillator
@@ -22,27 +22,11 @@ pytest.importorskip("diffrax")
 T_END = 6.0
 TS = np.linspace(0.0, T_END, 301)
 OPTIONS = dict(rtol=1e-11, atol=1e-13, max_swings=32, max_steps_per_swing=48)
-#      m    k     mu     b     D     k3     mu_s   x0     v0
-CASES = [(1.0, 25.0, 0.02, 0.0, 0.0, 0.0, None, 1.0, 0.0),   # Coulomb alone
-         (0.5, 10.0, 0.0, 0.1, 0.0, 0.0, None, -0.3, 1.0),  # viscous alone: never halts
-         (1.0, 25.0, 0.0, 0.0, 0.4, 0.0, None, -0.5, -2.0),  # drag alone
-         (2.0, 30.0, 0.05, 0.2, 0.3, 0.0, None, 0.4, -1.5),  # all three
-         (1.0, 25.0, 0.03, 0.05, 0.1, 40.0, None, 0.6, 1.0),  # hardening spring
-         (1.0, 25.0, 0.03, 0.0, 0.1, 0.0, 0.06, -0.8, 0.0),  # static friction above mu
-         (1.0, 25.0, 0.05, 0.0, 0.0, 0.0, None, 0.01, 0.0),  # at rest inside the band
-         (1.0, 25.0, -0.1, 0.0, 0.0, 0.0, None, 1.0, 0.0)]  # mu < 0: invalid
+CASES = ENGINE_CASES
 
 
 def _solve(engine):
-    cols = [np.asarray([c[j] for c in CASES], dtype=float) for j in (0, 1, 2, 3, 4, 5, 7, 8)]
-    m, k, mu, b, D, k3, x0, v0 = cols
-    mu_s = np.asarray([c[6] if c[6] is not None else max(c[2], 0.0) for c in CASES])
-    @jax.jit  # traced: the invalid oscillator reaches the engines (eagerly it is refused)
-    def solve(m, k, mu, b, D, k3, mu_s, x0, v0):
-        osc = Oscillator(m=m, k=k, mu=mu, b=b, D=D, k3=k3, mu_s=mu_s)
-        return solve_reference(osc, x0, v0, t_end=T_END, ts=TS, engine=engine, **OPTIONS)
-
-    return solve(m, k, mu, b, D, k3, mu_s, x0, v0)
+    return solve_cases(engine, T_END, TS, **OPTIONS)
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,9 @@
 - `_events`: the velocity zero at a swing's end and sticking there;
 - `_engine`: the one flat loop of steps, turning points and the halt, storing one row per step;
 - `_sampling`: the rows' interpolating polynomials and their evaluation at sample times;
+- `_kernel`: the same loop as one fused Pallas kernel (a CUDA GPU; interpreted elsewhere),
+  its samples written inside the loop;
+- `_diffrax`: diffrax's Dopri8 swing by swing, a second, independent integrator;
 - `_solution`, `_solve`: `ReferenceSolution` and `solve_reference`.
 """
 

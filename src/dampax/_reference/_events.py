@@ -55,7 +55,11 @@ def turning_point(row, t_a, h, v_a, v_b, mask):
     Returns:
         (t*, x(t*)).
     """
-    c = [row[..., 2 + k] for k in range(10)]
+    return turning_point_of([row[..., 2 + k] for k in range(10)], t_a, h, v_a, v_b, mask)
+
+
+def turning_point_of(c, t_a, h, v_a, v_b, mask):
+    """:func:`turning_point` of a step given by its ten coefficients c_0..c_9 (a list)."""
     denom = jnp.where(mask & (v_a != v_b), v_a - v_b, 1.0)
     th = jax.lax.stop_gradient(jnp.clip(jnp.where(mask, v_a / denom, 0.0), 0.0, 1.0))
     c_fixed = [jax.lax.stop_gradient(ck) for ck in c]

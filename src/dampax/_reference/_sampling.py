@@ -45,6 +45,12 @@ def hermite_row(t_a, t_b, x_a, v_a, x_b, v_b, args):
     first four derivatives (eq. 3 with the swing's sign, in ``args``) at both ends. Works
     elementwise on arrays of steps as on scalars.
     """
+    return jnp.stack(hermite_columns(t_a, t_b, x_a, v_a, x_b, v_b, args), axis=-1)
+
+
+def hermite_columns(t_a, t_b, x_a, v_a, x_b, v_b, args):
+    """:func:`hermite_row` as a list of its twelve columns (t_a, 1/h, c_0..c_9), not stacked
+    (the fused kernel keeps them as separate registers)."""
     h = t_b - t_a
     da = derivatives(args, x_a, v_a)
     db = derivatives(args, x_b, v_b)
@@ -55,19 +61,24 @@ def hermite_row(t_a, t_b, x_a, v_a, x_b, v_b, args):
     inv_h = jnp.where(h > 0.0, 1.0 / jnp.where(h > 0.0, h, 1.0), 0.0)
     # a zero-length step (a turning point found at its step's start): constant, v = v_a
     c[1] = jnp.where(h > 0.0, c[1], v_a)
-    return jnp.stack([t_a, inv_h] + c, axis=-1)
+    return [t_a, inv_h] + c
 
 
 def _horner(coef, th, zero_length):
     """x and v of one gathered row (t_a, 1/h, c_0..c_9) at th."""
-    c = [coef[..., 2 + k] for k in range(10)]
+    return horner([coef[..., k] for k in range(WIDTH)], th, zero_length)
+
+
+def horner(cols, th, zero_length):
+    """x and v at th of a row given as its twelve columns (t_a, 1/h, c_0..c_9)."""
+    c = cols[2:]
     x = c[9]
     dx = 9.0 * c[9]
     for k in range(8, -1, -1):
         x = c[k] + th * x
         if k > 0:
             dx = k * c[k] + th * dx
-    return x, jnp.where(zero_length, c[1], dx * coef[..., 1])
+    return x, jnp.where(zero_length, c[1], dx * cols[1])
 
 
 def _rows_sorted(starts, t):

@@ -27,7 +27,7 @@ def _batched(single, sol, *args):
     return fn(sol, *args)
 
 
-def _mask(sol, t, x, v):
+def mask_samples(sol, t, x, v):
     """The dense output's values where the motion was integrated; the rest position after the
     halt; NaN before 0, beyond the integrated interval, and for input out of the domain."""
     resting = sol.halted & (t >= sol.halt_time)
@@ -38,11 +38,27 @@ def _mask(sol, t, x, v):
     return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
 
 
+def from_engine(out, osc, x0, v0, t_end):
+    """The `ReferenceSolution` (no samples) of an engine's output dict (`_engine.integrate`'s;
+    elementwise, so also of a batch of them)."""
+    ok_in = out["ok_in"]
+    halted = out["halted"] & ok_in
+    return ReferenceSolution(
+        osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted,
+        halt_time=jnp.where(halted, out["t_halt"], jnp.where(ok_in, jnp.inf, jnp.nan)),
+        halt_position=jnp.where(halted, out["x_halt"], jnp.nan),
+        result=out["result"], n_swings=out["n_swings"],
+        swing_times=out["turns"][..., 0], turning_x=out["turns"][..., 1],
+        t_cover=jnp.where(halted, jnp.inf, out["t"]), rows=out["rows"],
+        n_rows=out["n_rows"],
+    )
+
+
 def sample_single(sol, t, grid=None):
     """(x, v) of one (unbatched) trajectory at the times t (any shape)."""
     u = t.reshape(-1)
     x, v = sample(sol.rows, sol.n_rows, u, grid)
-    x, v = _mask(sol, u, x, v)
+    x, v = mask_samples(sol, u, x, v)
     return x.reshape(t.shape), v.reshape(t.shape)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -10,9 +11,12 @@ import numpy as np
 
 from .._models._solution import RESULTS
 from .._oscillator import Oscillator, check_finite, check_real, is_concrete
+from . import _kernel as kernel_module
 from ._diffrax import integrate as integrate_diffrax
 from ._engine import _KINDS, integrate
-from ._solution import FIELDS, ReferenceSolution, sample_single
+from ._kernel import available as kernel_native
+from ._kernel import self_check, solve_flat
+from ._solution import FIELDS, ReferenceSolution, from_engine, sample_single
 
 # Default t_end in undamped periods: 25 periods are about 50 swings.
 DEFAULT_PERIODS = 25.0
@@ -119,17 +123,7 @@ def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoi
     """Unbatched core of `solve_reference` (all inputs scalars)."""
     out = ENGINES[engine](osc, x0, v0, t_end, rtol=rtol, atol=atol, max_swings=max_swings,
                           rows=rows, adjoint=adjoint)
-    ok_in = out["ok_in"]
-    halted = out["halted"] & ok_in
-    sol = ReferenceSolution(
-        osc=osc, x0=x0, v0=v0, t_end=t_end, halted=halted,
-        halt_time=jnp.where(halted, out["t_halt"], jnp.where(ok_in, jnp.inf, jnp.nan)),
-        halt_position=jnp.where(halted, out["x_halt"], jnp.nan),
-        result=out["result"], n_swings=out["n_swings"],
-        swing_times=out["turns"][:, 0], turning_x=out["turns"][:, 1],
-        t_cover=jnp.where(halted, jnp.inf, out["t"]), rows=out["rows"],
-        n_rows=out["n_rows"],
-    )
+    sol = from_engine(out, osc, x0, v0, t_end)
     if ts is None:
         return sol
     xs, vs = sample_single(sol, ts)
@@ -138,10 +132,12 @@ def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoi
 
 
 def _solve_batched(osc, x0, v0, t_end, ts, **kw):
-    """`_solve_single` over the broadcast shape of all inputs (vmapped when not scalar)."""
+    """`_solve_single` over the broadcast shape of all inputs (vmapped when not scalar); the
+    fused kernel (``engine="pallas"``) over all of them at once."""
     leaves = jax.tree_util.tree_leaves((osc, x0, v0, t_end))
     shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in leaves))
-    if shape == ():
+    kernel = kw.get("engine") == "pallas"
+    if shape == () and not kernel:
         return _solve_single(osc, x0, v0, t_end, ts, **kw)
     size = math.prod(shape)
 
@@ -149,12 +145,43 @@ def _solve_batched(osc, x0, v0, t_end, ts, **kw):
         return jnp.broadcast_to(a, shape).reshape(size)
 
     args = jax.tree_util.tree_map(flat, (osc, x0, v0, t_end))
-    sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, ts, **kw))(*args)
+    if kernel:
+        sol = _kernel_solve(tuple(sorted(kw.items())))(*args, ts)
+    else:
+        sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, ts, **kw))(*args)
     out = jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), sol)
     if ts is not None:  # the sample times are shared, not batched
         out = ReferenceSolution(**{**{f: getattr(out, f) for f in FIELDS}, "ts": ts,
                                    "xs": out.xs, "vs": out.vs})
     return out
+
+
+def _no_ts(sol):
+    """``sol`` without its sample times (kept: the samples)."""
+    return ReferenceSolution(**{f: getattr(sol, f) for f in FIELDS}, xs=sol.xs, vs=sol.vs)
+
+
+@functools.cache
+def _kernel_solve(kw: tuple):
+    """The fused kernel's solve of a flat batch (`_kernel.solve_flat`) with the XLA engine's
+    reverse mode as its VJP (the same steps and results, to rounding; issue 35 item 2)."""
+    kw = dict(kw)
+    opts = {k: kw[k] for k in ("rtol", "atol", "max_swings", "rows")}
+    xla = dict(kw, engine="dampax", adjoint="recursive")
+
+    @jax.custom_vjp
+    def solve(osc, x0, v0, t_end, ts):
+        return solve_flat(osc, x0, v0, t_end, ts, interpret=not kernel_native(), **opts)
+
+    def forward(*args):
+        return solve(*args), args
+
+    def backward(args, cotangent):
+        return jax.vjp(lambda *a: _no_ts(_solve_batched(*a, **xla)), *args)[1](
+            cotangent)
+
+    solve.defvjp(forward, backward)
+    return solve
 
 
 _solve_jit = jax.jit(_solve_batched,
@@ -164,13 +191,16 @@ _solve_jit = jax.jit(_solve_batched,
 #: the integrators of the reference, by ``engine``: dampax's DOP853 loop (``_engine``) and
 #: diffrax's Dopri8 swing by swing (``_diffrax``; diffrax itself is imported when it runs)
 ENGINES = {"dampax": integrate, "diffrax": integrate_diffrax}
+#: what ``engine`` accepts: the integrators above, the fused kernel of a whole batch
+#: (``_kernel``: "pallas") and "auto" (:func:`resolve_engine`)
+ENGINE_NAMES = (*ENGINES, "pallas", "auto")
 
 
 def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
                     atol: float = 1e-12, max_swings: int | None = None,
                     max_steps_per_swing: int | None = None, ts=None,
                     adjoint: str = "recursive", solver: str = "dop853",
-                    engine: str = "dampax") -> ReferenceSolution:
+                    engine: str = "auto") -> ReferenceSolution:
     """Integrate eq. 3 swing by swing with exact stick-slip: the reference for the analytic
     models (DESIGN.md section 2.6).
 
@@ -198,7 +228,10 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         adjoint: "recursive" (default; reverse mode, jax.grad), "forward" (jax.jacfwd) or
             "direct" (both; slower).
         solver: "dop853" (the only one; kept as an option for clarity).
-        engine: "dampax" (default: its own DOP853 loop, ``_engine``) or "diffrax" (diffrax's
+        engine: "auto" (default: the fused kernel on a CUDA GPU for reverse mode, else
+            "dampax"; :func:`resolve_engine`), "dampax" (its own DOP853 loop in XLA,
+            ``_engine``), "pallas" (the same loop as one fused kernel, ``_kernel``: the same
+            results to rounding; off a GPU it runs interpreted, slowly) or "diffrax" (diffrax's
             Dopri8 with its events, swing by swing, ``_diffrax``: an independent second
             integrator of the same equation, slower; the same solution type).
 
@@ -226,7 +259,7 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
                             max_swings: int | None = None,
                             max_steps_per_swing: int | None = None, ts=None,
                             adjoint: str = "recursive", solver: str = "dop853",
-                            engine: str = "dampax") -> dict:
+                            engine: str = "auto") -> dict:
     """The checks of :func:`solve_reference` (at the edge: ``dp.solve``, ``solve_reference``):
     ValueError naming the option; x0, v0, t_end and ts finite where concrete.
 
@@ -235,8 +268,10 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
     """
     if solver not in ("dop853", "dopri8"):
         raise ValueError(f"solver must be 'dop853' (Hairer's 8th-order pair), got {solver!r}")
-    if engine not in ENGINES:
-        raise ValueError(f"engine must be one of {tuple(ENGINES)}, got {engine!r}")
+    if engine not in ENGINE_NAMES:
+        raise ValueError(f"engine must be one of {ENGINE_NAMES}, got {engine!r}")
+    if engine == "pallas" and kernel_module.pl is None:
+        raise ValueError("engine='pallas' needs jax.experimental.pallas, which this jax lacks")
     if engine == "diffrax":
         try:
             import diffrax  # noqa: F401
@@ -270,7 +305,20 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
         if ts.ndim != 1:
             raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}")
     return dict(t_end=t_end, rtol=rtol, atol=atol, max_swings=max_swings,
-                max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint, engine=engine)
+                max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint,
+                engine=resolve_engine(engine, adjoint))
+
+
+def resolve_engine(engine: str, adjoint: str = "recursive") -> str:
+    """The engine that runs for ``engine`` (a name of :data:`ENGINE_NAMES`): "auto" is the
+    fused kernel ("pallas") on a CUDA GPU, for the reverse-mode adjoint, once it has passed
+    its self-check in this process (`_kernel.self_check`); "dampax" (the XLA engine)
+    otherwise. Other names are returned as they are."""
+    if engine != "auto":
+        return engine
+    if adjoint == "recursive" and kernel_native() and self_check(_solve_jit):
+        return "pallas"
+    return "dampax"
 
 
 def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,

@@ -447,7 +447,7 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
               samples_per_period: int = 64, chunk_size: int | None = None,
               reference: str = "reference", rtol: float = 1e-10, atol: float = 1e-12,
               progress: bool = True, k3_ratio=None, processes: int | None = None,
-              timeout: float = DEFAULT_TIMEOUT, engine: str = "dampax"):
+              timeout: float = DEFAULT_TIMEOUT, engine: str = "auto"):
     """Errors of the analytic models against a reference over a grid of damping ratios.
 
     Every combination of the axes is one initial-value problem at w0 = 1, A0 = 1 (m = k = 1,
@@ -479,9 +479,11 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
             "coulomb_exact" (the exact half-swings, analytic and fast: valid only where
             d2 = 0 and d1 < 1, NaN elsewhere).
         rtol, atol: tolerances of the DOP853 reference (at A0 = 1, w0 = 1).
-        engine: the integrator of ``reference="reference"``: "dampax" (default, its own
-            DOP853 loop) or "diffrax" (diffrax's Dopri8 with its events, swing by swing: an
-            independent second integrator, slower; ``solve_reference``).
+        engine: the integrator of ``reference="reference"``: "auto" (default: the fused
+            kernel on a CUDA GPU, else "dampax"), "dampax" (its own DOP853 loop), "pallas"
+            (the same loop as one fused kernel) or "diffrax" (diffrax's Dopri8 with its
+            events, swing by swing: an independent second integrator, slower;
+            ``solve_reference``).
         progress: show a tqdm progress bar over the steps (on stderr; nothing else is printed).
         k3_ratio: optional cubic stiffness axis k3 A0^2/k (issue 14; a number or a 1-D
             sequence, either sign, finite). Default None: no such axis, the map (its dims, its
@@ -532,7 +534,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
-    check_reference_options(0.0, 0.0, engine=engine)  # a ValueError naming engine
+    # a ValueError naming engine; "auto" resolved here, outside the compiled step
+    engine = check_reference_options(0.0, 0.0, engine=engine)["engine"]
     if chunk_size is not None:
         chunk_size = _positive_int("chunk_size", chunk_size)
     samples_per_period = _positive_int("samples_per_period", samples_per_period, 2)
@@ -676,7 +679,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "reference": reference,
         "reference_description": (
             ("DOP853 integration of eq. 3, swing by swing with exact stick-slip"
-             if engine == "dampax" else "diffrax Dopri8 integration of eq. 3, swing by swing "
+             + (" (one fused kernel)" if engine == "pallas" else "")
+             if engine != "diffrax" else "diffrax Dopri8 integration of eq. 3, swing by swing "
              "with its events and exact stick-slip")
             if reference == "reference" else "exact Coulomb (+ viscous) half-swings (D = 0)"),
         "reference_engine": engine if reference == "reference" else "",

@@ -1,0 +1,149 @@
+"""The reference as one fused kernel (``engine="pallas"``, issue 35 item 2) against dampax's XLA
+engine, run here in Pallas's interpreter (a CPU has no Triton): the same arithmetic, so the
+same solution to rounding (1e-12), whatever the GPU will make of its speed.
+
+One batch of every kind of motion (tests/helpers.py ``ENGINE_CASES``), solved by both engines
+with samples written inside the kernel's loop; the row table behind later ``sol.x(t)``; times
+out of order (the samples then come from the table); the gradient (the kernel's custom VJP is
+the XLA engine's reverse mode) against finite differences; the kernel under ``jax.vmap``; and
+the choice ``engine="auto"`` makes.
+"""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import ENGINE_CASES, evaluate, scipy_stick_slip, solve_cases
+
+import dampax as dp
+from dampax._oscillator import Oscillator
+from dampax._reference import _kernel, _solve, solve_reference
+
+T_END = 6.0
+TS = np.linspace(-0.05, T_END + 0.05, 240)  # before 0 and after t_end: NaN, as the XLA engine
+OPTIONS = dict(rtol=1e-11, atol=1e-13, max_swings=32, max_steps_per_swing=48)
+
+
+@pytest.fixture(scope="module")
+def both():
+    return solve_cases("dampax", T_END, TS, **OPTIONS), solve_cases("pallas", T_END, TS,
+                                                                     **OPTIONS)
+
+
+def _same(a, b, atol, name):
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    assert np.array_equal(np.isnan(a), np.isnan(b)), name
+    assert np.array_equal(np.isinf(a), np.isinf(b)), name
+    ok = np.isfinite(a)
+    np.testing.assert_allclose(b[ok], a[ok], rtol=0, atol=atol, err_msg=name)
+
+
+def test_the_kernel_is_the_xla_engine_on_every_case(both):
+    """Halts, turning points, swing counts, results and the samples written inside the loop
+    agree to 1e-12 (amplitudes about 1, velocities about 5); the invalid oscillator is
+    invalid for both."""
+    xla, fused = both
+    assert list(np.asarray(fused.result._value)) == list(np.asarray(xla.result._value))
+    assert list(np.asarray(fused.valid)) == [True] * 7 + [False]
+    for name in ("halted", "n_swings", "n_rows"):
+        np.testing.assert_array_equal(getattr(fused, name), getattr(xla, name), err_msg=name)
+    for name in ("halt_time", "halt_position", "swing_times", "turning_x", "t_cover"):
+        _same(getattr(xla, name), getattr(fused, name), 1e-12, name)
+    _same(xla.xs, fused.xs, 1e-12, "xs")
+    _same(xla.vs, fused.vs, 1e-11, "vs")
+
+
+def test_the_kernel_against_scipy(both):
+    """The kernel's samples within 1e-8 A0 of scipy's DOP853 with events (an independent
+    integrator: the cubic spring and static friction included)."""
+    fused = both[1]
+    inside = (TS >= 0) & (TS <= T_END)
+    for i, (m, k, mu, b, D, k3, mu_s, x0, v0) in enumerate(ENGINE_CASES[:-1]):
+        segs, _, rest = scipy_stick_slip(m, k, mu, b, D, x0, v0, T_END, k3=k3,
+                                         mu_s=mu_s if mu_s is not None else mu)
+        x_sp, _ = evaluate(segs, rest, TS[inside])
+        np.testing.assert_allclose(np.asarray(fused.xs)[i, inside], x_sp, rtol=0, atol=1e-8,
+                                   err_msg=str(ENGINE_CASES[i]))
+
+
+def test_the_kernels_row_table_serves_later_times(both):
+    """sol.x at times not given to the solve (any order) reads the kernel's row table: the
+    XLA engine's values; the table holds the same steps (sizes and coefficients within 1e-6,
+    1e-7 absolute: the controller's factor err^(-1/8) of an error estimate near rounding
+    differs in its last bits between the two programs' fusions, which moves no sample beyond
+    1e-12)."""
+    xla, fused = both
+    t = jnp.asarray(np.random.default_rng(3).uniform(0.0, T_END, 57))
+    _same(xla.x(t), fused.x(t), 1e-12, "x(t)")
+    rows_a, rows_b = np.asarray(xla.rows), np.asarray(fused.rows)
+    assert np.array_equal(np.isfinite(rows_a), np.isfinite(rows_b))
+    ok = np.isfinite(rows_a)
+    np.testing.assert_allclose(rows_b[ok], rows_a[ok], rtol=1e-6, atol=1e-7)
+
+
+def _one(m, k, mu, b, D, x0, v0, ts):
+    osc = Oscillator(m=m, k=k, mu=mu, b=b, D=D)
+    return solve_reference(osc, x0, v0, t_end=T_END, ts=ts, engine="pallas", **OPTIONS).xs
+
+
+# one trajectory's solve vmapped over three (Pallas batches the kernel): shared by the tests
+_THREE = jax.jit(jax.vmap(_one, in_axes=(0,) * 7 + (None,)))
+WEIGHTS = np.cos(np.arange(TS.size))
+
+
+def test_the_kernel_under_vmap_and_with_unsorted_times(both):
+    """A single-trajectory solve vmapped over three oscillators (the kernel batched by Pallas)
+    and the same times reversed (samples from the row table): the batched solve's values."""
+    xla = both[0]
+    cols = [jnp.asarray([c[j] for c in ENGINE_CASES[:3]], dtype=float)
+            for j in (0, 1, 2, 3, 4, 7, 8)]
+    _same(np.asarray(xla.xs)[:3], _THREE(*cols, jnp.asarray(TS)), 1e-12, "vmapped")
+    _same(np.asarray(xla.xs)[:3, ::-1], _THREE(*cols, jnp.asarray(TS[::-1])), 1e-12,
+          "reversed")
+
+
+def test_gradient_through_the_kernel():
+    """jax.grad through the kernel (its VJP: the XLA engine's reverse mode) of a weighted sum
+    of x(ts) in (mu, D), against central finite differences of the kernel's own values."""
+    base = np.asarray([1.0, 25.0, 0.02, 0.05, 0.15, 0.7, 0.4])
+
+    def loss(q):
+        xs = _one(*base[:2], q[0], base[3], q[1], *base[5:], jnp.asarray(TS))
+        return jnp.nansum(xs * WEIGHTS)
+
+    g = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(base[[2, 4]])))
+    eps = 1e-6
+    shifts = [(2, eps), (2, -eps), (4, eps), (4, -eps), (2, 0.0), (2, 0.0)]
+    points = np.tile(base, (6, 1))
+    for row, (j, d) in enumerate(shifts):
+        points[row, j] += d
+    xs = np.concatenate([_THREE(*jnp.asarray(points[i:i + 3].T), jnp.asarray(TS))
+                         for i in (0, 3)])
+    val = np.nansum(xs * WEIGHTS, axis=1)
+    fd = [(val[0] - val[1]) / (2 * eps), (val[2] - val[3]) / (2 * eps)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
+
+
+def test_auto_takes_the_xla_engine_off_a_gpu():
+    """engine="auto" (the default) is the XLA engine on a CPU and for forward mode; an engine
+    that is not known is named."""
+    assert not _kernel.available()
+    assert _solve.resolve_engine("auto") == "dampax"
+    assert _solve.resolve_engine("auto", "forward") == "dampax"
+    assert _solve.resolve_engine("pallas") == "pallas"
+    with pytest.raises(ValueError, match="engine must be one of .*'pallas', 'auto'"):
+        dp.solve(Oscillator(m=1, k=1, mu=0.1), 1.0, 0.0, method="reference", engine="triton")
+
+
+def test_auto_keeps_the_xla_engine_where_the_kernel_fails_its_check(monkeypatch):
+    """Where the kernel is taken to run natively but does not (here: Triton's lowering on a
+    CPU), the one-time self-check warns with the reason and "auto" stays with XLA."""
+    monkeypatch.setattr(_solve, "kernel_native", lambda: True)
+    monkeypatch.setattr(_kernel, "_CHECK", {})
+    with pytest.warns(RuntimeWarning, match="fused GPU kernel .* not used: it does not run"):
+        assert _solve.resolve_engine("auto") == "dampax"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # decided once per process: no second warning
+        assert _solve.resolve_engine("auto") == "dampax"
