@@ -147,3 +147,21 @@ def test_auto_keeps_the_xla_engine_where_the_kernel_fails_its_check(monkeypatch)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # decided once per process: no second warning
         assert _solve.resolve_engine("auto") == "dampax"
+
+
+def test_the_kernel_lowers_to_triton_for_a_cuda_gpu(monkeypatch):
+    """The natural call with the kernel, lowered for CUDA on this CPU (no GPU needed to lower):
+    every primitive of the kernel has a Triton lowering (no ``reduce_or``, no slices, blocks
+    of powers of two) and it becomes one Triton custom call with BLOCK / 32 warps. Whether
+    the GPU's compiler and the figures hold is for benchmarks/gpu.py on a GPU."""
+    monkeypatch.setattr(_solve, "kernel_native", lambda: True)  # not interpreted
+
+    def natural(k, mu, x0, ts):
+        osc = Oscillator(m=1.0, k=k, mu=mu, D=0.1)
+        return solve_reference(osc, x0, 0.0, t_end=5.0, ts=ts, engine="pallas").x(ts)
+
+    shapes = [jax.ShapeDtypeStruct((300,), jnp.float64)] * 3 + \
+        [jax.ShapeDtypeStruct((1000,), jnp.float64)]
+    text = jax.jit(natural).trace(*shapes).lower(lowering_platforms=("cuda",)).as_text()
+    assert text.count("__gpu$xla.gpu.triton") == 1
+    assert f"num_warps = {_kernel.BLOCK // 32}" in text and "grid_x = 3" in text

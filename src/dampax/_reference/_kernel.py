@@ -112,6 +112,11 @@ def _initial(p):
                 ptr=jnp.zeros(rest0.shape, jnp.int32))
 
 
+def _any(flags):
+    """Whether any lane's flag is set (a max over int32: Triton lowers no ``reduce_or``)."""
+    return jnp.max(jnp.where(flags, 1, 0).astype(jnp.int32)) > 0
+
+
 def _running(c):
     return ~(c["halted"] | c["finished"] | c["failed"] | c["budget"])
 
@@ -203,7 +208,7 @@ def _write_samples(refs, c, d, p, store):
         return store[:, None] & ((tv < upper) | (last & (tv <= t_end)))
 
     def pending(ptr):
-        return jnp.any(inside(_load(refs["ts"].at[ptr[:, None] + window[:, :1]])))
+        return _any(inside(_load(refs["ts"].at[ptr[:, None]])))
 
     def one_pass(ptr):
         idx = ptr[:, None] + window
@@ -225,7 +230,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps):
     p = {k: refs[k][...] for k in _INPUTS}
 
     def cond(c):
-        return jnp.any(_running(c)) & (c["k"] < max_steps)
+        return _any(_running(c)) & (c["k"] < max_steps)
 
     def body(c):
         run = _running(c)
@@ -298,6 +303,9 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
         out_specs=[lane] * (len(_FLOATS) + len(_INTS)) + [block_of(a) for a in buffers.values()],
         input_output_aliases={first + j: len(_FLOATS) + len(_INTS) + j
                               for j in range(len(buffers))},
+        # Triton, one thread per trajectory (BLOCK / 32 warps); not Mosaic GPU, whose
+        # blocks live in shared memory (a row table of 128 trajectories does not fit)
+        compiler_params=plt.CompilerParams(num_warps=BLOCK // 32, num_stages=1),
         interpret=interpret)(*args)
     out = {k: a[:size] for k, a in zip(out_names, res, strict=True)}
     final = {k: out["out_" + k] for k in _FLOATS}
