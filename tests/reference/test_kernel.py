@@ -28,8 +28,15 @@ OPTIONS = dict(rtol=1e-11, atol=1e-13, max_swings=32, max_steps_per_swing=48)
 
 @pytest.fixture(scope="module")
 def both():
-    return solve_cases("dampax", T_END, TS, **OPTIONS), solve_cases("pallas", T_END, TS,
-                                                                     **OPTIONS)
+    """The cases by the XLA engine and by the kernel, the kernel with queues: 2 lanes per
+    program, each integrating 3 trajectories one after the other (2 programs, 4 padding
+    trajectories), as a GPU batch beyond its resident lanes runs."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(_kernel, "BLOCK", 2)
+        mp.setattr(_kernel, "RESIDENT", 3)
+        assert _kernel.queues(len(ENGINE_CASES)) == (2, 3)
+        fused = solve_cases("pallas", T_END, TS, **OPTIONS)
+    return solve_cases("dampax", T_END, TS, **OPTIONS), fused
 
 
 def _same(a, b, atol, name):
@@ -165,3 +172,19 @@ def test_the_kernel_lowers_to_triton_for_a_cuda_gpu(monkeypatch):
     text = jax.jit(natural).trace(*shapes).lower(lowering_platforms=("cuda",)).as_text()
     assert text.count("__gpu$xla.gpu.triton") == 1
     assert f"num_warps = {_kernel.BLOCK // 32}" in text and "grid_x = 3" in text
+
+
+def test_the_work_estimate_orders_the_trajectories_by_their_steps():
+    """The kernel sorts its batch by `work_estimate` so that a program's lanes take about as
+    long: on 64 random stick-slip trajectories its ranks follow the steps the XLA engine
+    takes (Spearman's rho > 0.9; 0.989 Pearson on 16,384 of benchmarks/peer_race.py's)."""
+    rng = np.random.default_rng(5)
+    k, mu, b, D = (rng.uniform(10, 50, 64), rng.uniform(0, 0.05, 64), rng.uniform(0, 0.5, 64),
+                   rng.uniform(0, 3, 64))
+    x0, v0 = rng.uniform(-0.3, 0.3, 64), rng.uniform(-1, 1, 64)
+    osc = Oscillator(m=np.ones(64), k=k, mu=mu, b=b, D=D)
+    steps = np.asarray(solve_reference(osc, x0, v0, t_end=5.0, max_swings=64).n_rows)
+    inputs, _, _ = _kernel.prepare(osc, jnp.asarray(x0), jnp.asarray(v0), jnp.full(64, 5.0))
+    est = np.asarray(_kernel.work_estimate(inputs))
+    ranks = [np.argsort(np.argsort(a)) for a in (est, steps)]
+    assert np.corrcoef(*ranks)[0, 1] > 0.9

@@ -22,6 +22,18 @@ The buffers arrive pre-filled (rows inf, turning points and samples NaN) and are
 the outputs, so the kernel only writes what a trajectory produced. Where ts is not sorted the
 samples come from the row table as in the XLA engine.
 
+Lanes that do not wait (issue 35 item 1, on the GPU): a program's lanes run until the last of
+them is done, so the batch is sorted by an estimate of each trajectory's steps
+(:func:`work_estimate`, from the amplitude equation: it correlates 0.989 with the steps) and a
+program takes neighbours in that order, the longest first; and where the batch exceeds the
+lanes a GPU holds at once (:data:`RESIDENT`), each lane keeps a queue of trajectories and
+starts its next one as soon as its current one ends (its outcome written, its state reset
+from the next one's inputs), instead of waiting for a whole program to finish. On the steps
+of 16,384 random trajectories (benchmarks/README.md), the lane-iterations per useful one fall
+from 1.94 (programs of 128 lanes in the given order) to 1.14 sorted, 1.08 sorted with queues
+of 4. Nothing is permuted: the lanes read their trajectory's index from the order and write
+its results at that index.
+
 Selection: :func:`available` says whether the kernel runs natively (a CUDA GPU, where Triton
 lowers it); ``engine="auto"`` (the default of ``solve_reference``) takes it there for the
 reverse-mode adjoint after a one-time self-check against the XLA engine in the process
@@ -59,6 +71,11 @@ from ._stepping import error_norm, ode_args, rk_step, step_factor
 
 #: trajectories per program (a power of two, as Triton's blocks must be): 4 warps of 32
 BLOCK = 128
+#: lanes a GPU holds at once with this kernel's registers (an estimate for an H100: about 256
+#: threads per SM of 132 at ~250 float64 registers each); a batch beyond it is queued
+RESIDENT = 32768
+#: the longest queue of trajectories per lane
+MAX_DEPTH = 16
 #: sample times evaluated per pass of the inner sampling loop (a power of two)
 SAMPLES_PER_PASS = 16
 # the per-trajectory inputs of the kernel, in order
@@ -170,19 +187,18 @@ def _next_state(c, d, run, p, rows, max_swings):
     return dict(out, k=c["k"] + 1, ptr=c["ptr"])
 
 
-def _write_step(refs, c, d, run, rows, max_swings):
+def _write_step(refs, cur, c, d, run, rows, max_swings):
     """Store the step's row at the trajectory's next row and its turning point (masked scatter
-    stores: only what the trajectory produced)."""
-    lanes = jnp.arange(c["t"].shape[0], dtype=jnp.int32)
+    stores at each lane's current trajectory ``cur``: only what it produced)."""
     store = run & d["accepted"] & (c["n_rows"] < rows)
     at_row = jnp.minimum(c["n_rows"], rows - 1)
     for j, col in enumerate(d["cols"]):
-        col = jnp.broadcast_to(col, lanes.shape)
-        _store(refs["rows"].at[lanes, at_row, jnp.full_like(lanes, j)], col, store)
+        col = jnp.broadcast_to(col, cur.shape)
+        _store(refs["rows"].at[cur, at_row, jnp.full_like(cur, j)], col, store)
     turn = run & d["crossed"] & (c["n_turns"] < max_swings)
     at_turn = jnp.minimum(c["n_turns"], max_swings - 1)
     for j, val in enumerate((d["t_sw"], d["x_sw"])):
-        _store(refs["turns"].at[lanes, at_turn, jnp.full_like(lanes, j)], val, turn)
+        _store(refs["turns"].at[cur, at_turn, jnp.full_like(cur, j)], val, turn)
     return store
 
 
@@ -194,11 +210,10 @@ def _load(ref):
     return plt.load(ref)
 
 
-def _write_samples(refs, c, d, p, store):
+def _write_samples(refs, cur, c, d, p, store):
     """x, v at the sample times inside the stored step, from its polynomial: passes of
     :data:`SAMPLES_PER_PASS` times from each trajectory's pointer until every pointer has
     passed its step's end (t_end included on the last step). Returns the pointers."""
-    lanes = jnp.arange(c["t"].shape[0], dtype=jnp.int32)[:, None]
     window = jnp.arange(SAMPLES_PER_PASS, dtype=jnp.int32)[None, :]
     upper = jnp.where(d["crossed"], d["t_sw"], c["t"] + d["h"])[:, None]
     last, t_end = d["last"][:, None], p["t_end"][:, None]
@@ -216,7 +231,7 @@ def _write_samples(refs, c, d, p, store):
         ok = inside(tv)
         th = jnp.clip((tv - cols[0]) * cols[1], 0.0, 1.0)
         x, v = horner(cols, th, cols[1] == 0.0)
-        lane_idx = jnp.broadcast_to(lanes, idx.shape)
+        lane_idx = jnp.broadcast_to(cur[:, None], idx.shape)
         _store(refs["xs"].at[lane_idx, idx], x, ok)
         _store(refs["vs"].at[lane_idx, idx], v, ok)
         return ptr + jnp.sum(ok, axis=1, dtype=jnp.int32)
@@ -224,28 +239,49 @@ def _write_samples(refs, c, d, p, store):
     return jax.lax.while_loop(pending, one_pass, c["ptr"])
 
 
-def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps):
-    """One block of trajectories: the whole integration loop (see the module docstring)."""
+def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth):
+    """One program: ``block`` lanes, each integrating its queue of ``depth`` trajectories one
+    after the other (program i, lane j, queue position q: the trajectory ``order[i block depth
+    + q block + j]``); a lane whose trajectory ends writes its outcome and starts its next one
+    in the same iteration (see the module docstring)."""
     refs = dict(zip(names, refs, strict=True))
-    p = {k: refs[k][...] for k in _INPUTS}
+    lane = jnp.arange(block, dtype=jnp.int32)
+    first = pl.program_id(0) * (block * depth)
 
-    def cond(c):
-        return _any(_running(c)) & (c["k"] < max_steps)
+    def at(q):  # the trajectory of each lane at queue position q: the order's entry
+        return _load(refs["order"].at[first + jnp.minimum(q, depth - 1) * block + lane])
 
-    def body(c):
-        run = _running(c)
+    def start(cur):
+        p = {k: _load(refs[k].at[cur]) for k in _INPUTS}
+        return p, dict(_initial(p), k=jnp.zeros(cur.shape, jnp.int32))
+
+    def live(c):
+        return _running(c) & (c["k"] < max_steps)
+
+    def cond(state):
+        return _any(state["q"] < depth)
+
+    def body(state):
+        q, p, c, cur = state["q"], state["p"], state["c"], state["cur"]
+        run = live(c) & (q < depth)
         d = _step(c, p, rtol, atol)
-        store = _write_step(refs, c, d, run, rows, max_swings)
-        new = _next_state(c, d, run, p, rows, max_swings)
+        store = _write_step(refs, cur, c, d, run, rows, max_swings)
+        new = dict(_next_state(c, d, run, p, rows, max_swings),
+                   k=c["k"] + jnp.where(run, 1, 0).astype(jnp.int32))
         if "ts" in refs:
-            new["ptr"] = _write_samples(refs, c, d, p, store)
-        return new
+            new["ptr"] = _write_samples(refs, cur, c, d, p, store)
+        ended = (q < depth) & ~live(new)
+        for k in _FLOATS + _INTS:
+            _store(refs["out_" + k].at[cur], new[k].astype(refs["out_" + k].dtype), ended)
+        q = q + jnp.where(ended, 1, 0).astype(jnp.int32)
+        nxt = jnp.where(ended, at(q), cur)
+        p_next, c_next = start(nxt)
+        return dict(q=q, cur=nxt, p={k: jnp.where(ended, p_next[k], p[k]) for k in p},
+                    c={k: jnp.where(ended, c_next[k], new[k]) for k in new})
 
-    final = jax.lax.while_loop(cond, body, _initial(p))
-    for k in _FLOATS:
-        refs["out_" + k][...] = final[k]
-    for k in _INTS:
-        refs["out_" + k][...] = final[k].astype(jnp.int32)
+    q0 = jnp.zeros(block, jnp.int32)
+    p0, c0 = start(at(q0))
+    jax.lax.while_loop(cond, body, dict(q=q0, cur=at(q0), p=p0, c=c0))
 
 
 def _padded_times(ts):
@@ -255,7 +291,46 @@ def _padded_times(ts):
     return jnp.concatenate([ts, jnp.full((n_pad - n,), jnp.inf, ts.dtype)])
 
 
-def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret: bool):
+def work_estimate(p):
+    """The steps each trajectory will take, up to a factor: its half-swings before the halt or
+    t_end, min(t_end, T) w_hi / pi, T the halt time of the amplitude equation dA/dt =
+    -(d0 + d1 A + d2 A^2) (eq. 21 with the constants of eq. 3: d0 = 2 mu g / (pi w0),
+    d1 = b / 2m, d2 = 4 D w0 / (3 pi m)) from A0 down to the sticking amplitude mu g / w0^2,
+    by the trapezoid rule on 17 log-spaced amplitudes. It correlates 0.989 with the steps
+    taken on benchmarks/peer_race.py's problem; the kernel sorts the batch by it, so that
+    the lanes of a program take about as long (benchmarks/README.md)."""
+    w = jnp.sqrt(p["w2"])
+    a0 = jnp.sqrt(p["x0"] ** 2 + (p["v0"] / w) ** 2)
+    d0, d1, d2 = 2.0 * p["fric"] / (math.pi * w), 0.5 * p["bm"], 4.0 * p["dm"] * w / (3 * math.pi)
+    low = jnp.maximum(p["fric"] / p["w2"], 1e-6 * a0)
+    moving = (a0 > low) & (low > 0.0)
+    a0, low = jnp.where(moving, a0, 1.0), jnp.where(moving, low, 0.5)
+    amp = low * (a0 / low) ** jnp.linspace(0.0, 1.0, 17)[:, None]
+    rate = amp / jnp.maximum(d0 + d1 * amp + d2 * amp * amp, 1e-300)
+    t_halt = jnp.sum(0.5 * (rate[1:] + rate[:-1]), axis=0) * jnp.log(a0 / low) / 16.0
+    span = jnp.where(moving, jnp.minimum(p["t_end"], t_halt), 0.0)
+    return jax.lax.stop_gradient(jnp.nan_to_num(span * p["w_hi"] / math.pi))
+
+
+def queues(size: int) -> tuple[int, int]:
+    """(lanes per program, trajectories per lane) for a batch of ``size``: :data:`BLOCK` lanes,
+    and queues long enough that the batch fits :data:`RESIDENT` lanes (at most
+    :data:`MAX_DEPTH`)."""
+    return BLOCK, max(1, min(MAX_DEPTH, -(-size // RESIDENT)))
+
+
+def _buffers(n_pad, ts, rows, max_swings):
+    """The pre-filled buffers the kernel writes into (aliased to its outputs)."""
+    out = {"rows": jnp.full((n_pad, rows, WIDTH), jnp.inf),
+           "turns": jnp.full((n_pad, max_swings, 2), jnp.nan)}
+    if ts is not None:
+        out.update(xs=jnp.full((n_pad, ts.shape[0]), jnp.nan),
+                   vs=jnp.full((n_pad, ts.shape[0]), jnp.nan))
+    return out
+
+
+def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret: bool,
+               block: int | None = None, depth: int | None = None):
     """The kernel over 1-D per-trajectory ``inputs`` (from :func:`prepare`).
 
     Arguments:
@@ -263,50 +338,48 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
         ts: sorted sample times (n,), or None.
         rtol, atol, max_swings, rows: as `_engine.integrate`.
         interpret: run Pallas's interpreter (off a GPU).
+        block, depth: lanes per program and trajectories per lane (default :func:`queues`).
 
     Returns:
         The dict of `_engine.integrate` (batched over B) without ``result`` and ``ok_in``,
         with ``xs``, ``vs`` (B, n) when ts is given (NaN where no step passed the sample).
     """
     size = inputs["x0"].shape[0]
-    lanes = -(-size // BLOCK) * BLOCK
+    default = queues(size)
+    block, depth = block or default[0], depth or default[1]
+    per = block * depth
+    n_pad = -(-size // per) * per
     stand_in = dict(x0=0.0, v0=0.0, t_end=1.0, rest0=1.0, s0=1.0, k3k=0.0, k3m=0.0)
-    args = [jnp.concatenate([inputs[k], jnp.full((lanes - size,), stand_in.get(k, 1.0))])
-            for k in _INPUTS]
-    lane = pl.BlockSpec((BLOCK,), lambda i: (i,))
-    names, specs = list(_INPUTS), [lane] * len(_INPUTS)
-    buffers = {"rows": jnp.full((lanes, rows, WIDTH), jnp.inf),
-               "turns": jnp.full((lanes, max_swings, 2), jnp.nan)}
+    args = {k: jnp.concatenate([inputs[k], jnp.full((n_pad - size,), stand_in.get(k, 1.0))])
+            for k in _INPUTS}
+    # the longest trajectories first, neighbours in work side by side (`work_estimate`)
+    args["order"] = jnp.argsort(-work_estimate(args)).astype(jnp.int32)
     if ts is not None:
-        tpad = _padded_times(ts)
-        names.append("ts")
-        specs.append(pl.BlockSpec(tpad.shape, lambda i: (0,)))
-        args.append(tpad)
-        buffers.update(xs=jnp.full((lanes, tpad.shape[0]), jnp.nan),
-                       vs=jnp.full((lanes, tpad.shape[0]), jnp.nan))
+        args["ts"] = _padded_times(ts)
+    buffers = _buffers(n_pad, None if ts is None else args["ts"], rows, max_swings)
+    args.update({f"in_{k}": a for k, a in buffers.items()})
 
-    def block_of(a):
-        return pl.BlockSpec((BLOCK,) + a.shape[1:], lambda i: (i,) + (0,) * (a.ndim - 1))
+    def spec(a):  # every program sees whole arrays: its trajectories are the order's
+        return pl.BlockSpec(a.shape, lambda i: (0,) * a.ndim)
 
-    first = len(args)
-    names += [f"in_{k}" for k in buffers]
-    specs += [block_of(a) for a in buffers.values()]
-    args += list(buffers.values())
-    outs = [jax.ShapeDtypeStruct((lanes,), jnp.float64) for _ in _FLOATS] + \
-        [jax.ShapeDtypeStruct((lanes,), jnp.int32) for _ in _INTS] + \
+    outs = [jax.ShapeDtypeStruct((n_pad,), jnp.float64 if k in _FLOATS else jnp.int32)
+            for k in _FLOATS + _INTS] + \
         [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in buffers.values()]
     out_names = [f"out_{k}" for k in _FLOATS + _INTS] + list(buffers)
-    kernel = functools.partial(_kernel, names=tuple(names + out_names), rtol=rtol, atol=atol,
-                               max_swings=max_swings, rows=rows, max_steps=2 * rows + 64)
+    kernel = functools.partial(_kernel, names=tuple(args) + tuple(out_names), rtol=rtol,
+                               atol=atol, max_swings=max_swings, rows=rows,
+                               max_steps=2 * rows + 64, block=block, depth=depth)
+    first = len(args) - len(buffers)
     res = pl.pallas_call(
-        kernel, out_shape=outs, grid=(lanes // BLOCK,), in_specs=specs,
-        out_specs=[lane] * (len(_FLOATS) + len(_INTS)) + [block_of(a) for a in buffers.values()],
+        kernel, out_shape=outs, grid=(n_pad // per,),
+        in_specs=[spec(a) for a in args.values()],
+        out_specs=[spec(o) for o in outs],
         input_output_aliases={first + j: len(_FLOATS) + len(_INTS) + j
                               for j in range(len(buffers))},
-        # Triton, one thread per trajectory (BLOCK / 32 warps); not Mosaic GPU, whose
-        # blocks live in shared memory (a row table of 128 trajectories does not fit)
-        compiler_params=plt.CompilerParams(num_warps=BLOCK // 32, num_stages=1),
-        interpret=interpret)(*args)
+        # Triton, one thread per lane (block / 32 warps); not Mosaic GPU, whose blocks live
+        # in shared memory (a row table of 128 trajectories does not fit)
+        compiler_params=plt.CompilerParams(num_warps=max(1, block // 32), num_stages=1),
+        interpret=interpret)(*args.values())
     out = {k: a[:size] for k, a in zip(out_names, res, strict=True)}
     final = {k: out["out_" + k] for k in _FLOATS}
     final.update({k: out["out_" + k] != 0 for k in _INTS[:4]})
