@@ -188,3 +188,14 @@ def test_the_work_estimate_orders_the_trajectories_by_their_steps():
     est = np.asarray(_kernel.work_estimate(inputs))
     ranks = [np.argsort(np.argsort(a)) for a in (est, steps)]
     assert np.corrcoef(*ranks)[0, 1] > 0.9
+
+
+@pytest.mark.skipif(not _kernel.available(), reason="no CUDA GPU: the kernel runs natively "
+                    "only there")
+def test_on_a_cuda_gpu_the_kernel_runs_natively_and_auto_takes_it(both):
+    """Where a CUDA GPU is the backend: the kernel compiles (Triton), passes its self-check,
+    "auto" takes it, and the cases solved natively match the XLA engine to 1e-12."""
+    assert _solve.resolve_engine("auto") == "pallas"
+    native = solve_cases("pallas", T_END, TS, **OPTIONS)
+    _same(both[0].xs, native.xs, 1e-12, "xs on the GPU")
+    _same(both[0].halt_time, native.halt_time, 1e-12, "halt_time on the GPU")
