@@ -191,12 +191,14 @@ def _write_step(refs, cur, c, d, run, rows, max_swings):
     """Store the step's row at the trajectory's next row and its turning point (masked scatter
     stores at each lane's current trajectory ``cur``: only what it produced)."""
     store = run & d["accepted"] & (c["n_rows"] < rows)
-    at_row = jnp.minimum(c["n_rows"], rows - 1)
+    # 64-bit indices: the row table of a large batch has more than 2^31 elements
+    cur = cur.astype(jnp.int64)
+    at_row = jnp.minimum(c["n_rows"], rows - 1).astype(jnp.int64)
     for j, col in enumerate(d["cols"]):
         col = jnp.broadcast_to(col, cur.shape)
         _store(refs["rows"].at[cur, at_row, jnp.full_like(cur, j)], col, store)
     turn = run & d["crossed"] & (c["n_turns"] < max_swings)
-    at_turn = jnp.minimum(c["n_turns"], max_swings - 1)
+    at_turn = jnp.minimum(c["n_turns"], max_swings - 1).astype(jnp.int64)
     for j, val in enumerate((d["t_sw"], d["x_sw"])):
         _store(refs["turns"].at[cur, at_turn, jnp.full_like(cur, j)], val, turn)
     return store
@@ -231,9 +233,10 @@ def _write_samples(refs, cur, c, d, p, store):
         ok = inside(tv)
         th = jnp.clip((tv - cols[0]) * cols[1], 0.0, 1.0)
         x, v = horner(cols, th, cols[1] == 0.0)
-        lane_idx = jnp.broadcast_to(cur[:, None], idx.shape)
-        _store(refs["xs"].at[lane_idx, idx], x, ok)
-        _store(refs["vs"].at[lane_idx, idx], v, ok)
+        at = (jnp.broadcast_to(cur[:, None], idx.shape).astype(jnp.int64),
+              idx.astype(jnp.int64))  # 64-bit: a large batch's samples pass 2^31
+        _store(refs["xs"].at[at], x, ok)
+        _store(refs["vs"].at[at], v, ok)
         return ptr + jnp.sum(ok, axis=1, dtype=jnp.int32)
 
     return jax.lax.while_loop(pending, one_pass, c["ptr"])
