@@ -199,3 +199,29 @@ def test_on_a_cuda_gpu_the_kernel_runs_natively_and_auto_takes_it(both):
     native = solve_cases("pallas", T_END, TS, **OPTIONS)
     _same(both[0].xs, native.xs, 1e-12, "xs on the GPU")
     _same(both[0].halt_time, native.halt_time, 1e-12, "halt_time on the GPU")
+
+
+def test_the_kernel_fails_as_the_xla_engine_does():
+    """Out of the domain and out of budget (jitted, so nothing is refused at the edge): a
+    start beyond a softening spring's barrier, t_end <= 0, a non-finite start, and motions
+    that need more swings than max_swings = 3 (one Coulomb, one viscous). The same result
+    codes, and the same samples (NaN where invalid, the covered part where out of budget)."""
+    k3 = jnp.asarray([-100.0, 0.0, 0.0, 0.0, 0.0])
+    t_end = jnp.asarray([2.0, -1.0, 2.0, 6.0, 6.0])
+    x0 = jnp.asarray([0.5, 0.3, jnp.nan, 1.0, 0.5])
+    mu, b = jnp.asarray([0.02, 0.02, 0.02, 0.01, 0.0]), jnp.asarray([0.0, 0, 0, 0, 0.1])
+
+    def solve(engine, mu, b, k3, x0, t_end):
+        osc = Oscillator(m=1.0, k=25.0, mu=mu, b=b, k3=k3)
+        return solve_reference(osc, x0, 0.0, t_end=t_end, ts=TS[:64], engine=engine,
+                               rtol=1e-10, atol=1e-12, max_swings=3)
+
+    xla, fused = (jax.jit(solve, static_argnums=0)(e, mu, b, k3, x0, t_end)
+                  for e in ("dampax", "pallas"))
+    codes = np.asarray(fused.result._value)
+    assert list(codes) == list(np.asarray(xla.result._value))
+    expected = (dp.RESULTS.unconfined, dp.RESULTS.invalid_t_end, dp.RESULTS.nonfinite_state,
+                dp.RESULTS.max_swings_reached, dp.RESULTS.max_swings_reached)
+    assert list(codes) == [int(r._value) for r in expected]
+    _same(xla.t_cover, fused.t_cover, 1e-12, "t_cover")
+    _same(xla.xs, fused.xs, 1e-12, "xs")
