@@ -225,3 +225,16 @@ def test_the_kernel_fails_as_the_xla_engine_does():
     assert list(codes) == [int(r._value) for r in expected]
     _same(xla.t_cover, fused.t_cover, 1e-12, "t_cover")
     _same(xla.xs, fused.xs, 1e-12, "xs")
+
+
+def test_error_map_with_the_kernel_as_its_reference():
+    """The map's reference by the kernel (what "auto" runs on a CUDA GPU: each chunk's points
+    one batch of the kernel, inside the map's compiled step) gives the XLA engine's map to
+    1e-12 and says which engine it used. (The same small map as test_diffrax_engine.py.)"""
+    kw = dict(d0_ratio=[0.0, 0.03], d2_ratio=[0.0, 0.2], phi0=[0.4, 2.5], periods=4,
+              samples_per_period=16, progress=False)
+    ours, fused = dp.error_map(**kw), dp.error_map(**kw, engine="pallas")
+    assert fused.attrs["reference_engine"] == "pallas"
+    assert "fused kernel" in fused.attrs["reference_description"]
+    for name in ("max_error", "rms_error", "reference_halt_time"):
+        _same(ours[name].values, fused[name].values, 1e-12, name)
