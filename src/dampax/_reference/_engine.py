@@ -55,6 +55,49 @@ def domain_input(osc, x0, v0, t_end):
     return checks, ok_in, osc, x0, v0, t_end, w_hi
 
 
+def decide(c, h, remaining, x1, v1, err, dtmax, w_hi) -> dict:
+    """What a step of size h from the state c decides (both engines: this loop and the fused
+    kernel's): accepted or not, whether it crossed the swing's velocity zero, whether it was
+    the last, the next step size, and failure (non-finite, or a step size that vanished)."""
+    # the step sizes are chosen, not differentiated: derivatives are those of the numerical
+    # solution for the steps it took (and the controller's power of a vanishing or infinite
+    # error would give NaN cotangents)
+    err = jax.lax.stop_gradient(err)
+    finite = jnp.isfinite(x1) & jnp.isfinite(v1) & jnp.isfinite(err)
+    accepted = finite & (err <= 1.0)
+    crossed = accepted & (c["s"] * v1 <= 0.0)
+    plain = accepted & ~crossed
+    last = plain & (h >= remaining)
+    h_next = jnp.minimum(h * step_factor(jnp.where(finite, err, jnp.inf)), dtmax)
+    h_next = jax.lax.stop_gradient(jnp.where(last, c["h"], h_next))
+    tiny = ~accepted & (h_next <= 1e-13 * jnp.maximum(c["t"], 1.0 / w_hi))
+    return dict(h=h, x1=x1, v1=v1, accepted=accepted, crossed=crossed, plain=plain, last=last,
+                h_next=h_next, failed=(~finite & (h <= 0.0)) | tiny)
+
+
+def next_state(c, d, t_end, rows: int, max_swings: int) -> dict:
+    """The loop's state after the step ``d`` (:func:`decide`, with the turning point t_sw,
+    x_sw and whether the block sticks there or reverses): both engines' update, the row
+    table's and the turning points' writes aside."""
+    t, x, v = c["t"], c["x"], c["v"]
+    plain, crossed, last, stick = d["plain"], d["crossed"], d["last"], d["stick"]
+    full = d["accepted"] & (c["n_rows"] >= rows)
+    return dict(
+        t=jnp.where(plain, jnp.where(last, t_end, t + d["h"]),
+                    jnp.where(crossed, d["t_sw"], t)),
+        x=jnp.where(plain, d["x1"], jnp.where(crossed, d["x_sw"], x)),
+        v=jnp.where(plain, d["v1"], jnp.where(crossed, 0.0, v)),
+        s=jnp.where(d["reverse"], -jnp.sign(d["x_sw"]), c["s"]), h=d["h_next"],
+        halted=c["halted"] | stick,
+        t_halt=jnp.where(stick, d["t_sw"], c["t_halt"]),
+        x_halt=jnp.where(stick, d["x_sw"], c["x_halt"]),
+        finished=c["finished"] | last, failed=c["failed"] | d["failed"],
+        budget=c["budget"] | full | (d["reverse"] & (c["n_swings"] >= max_swings)),
+        n_rows=c["n_rows"] + jnp.where(d["accepted"] & ~full, 1, 0),
+        n_swings=c["n_swings"] + jnp.where(d["reverse"], 1, 0),
+        n_turns=c["n_turns"] + jnp.where(crossed, 1, 0))
+
+
 def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adjoint: str):
     """Integrate one trajectory (all inputs scalars).
 
@@ -101,19 +144,7 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
         # branch under vmap; it is true in every iteration the loop runs.
         x1, v1, err = jax.lax.cond(eqxi.unvmap_any(running(c)), _step, _no_step,
                                    x, v, h, args)
-        # the step sizes are chosen, not differentiated: derivatives are those of the
-        # numerical solution for the steps it took (and the controller's power of a
-        # vanishing or infinite error would give NaN cotangents)
-        err = jax.lax.stop_gradient(err)
-        finite = jnp.isfinite(x1) & jnp.isfinite(v1) & jnp.isfinite(err)
-        accepted = finite & (err <= 1.0)
-        crossed = accepted & (s * v1 <= 0.0)
-        plain = accepted & ~crossed
-        last = plain & (h >= remaining)
-        h_next = jnp.minimum(h * step_factor(jnp.where(finite, err, jnp.inf)), dtmax)
-        h_next = jax.lax.stop_gradient(jnp.where(last, c["h"], h_next))
-        tiny = ~accepted & (h_next <= 1e-13 * jnp.maximum(t, 1.0 / w_hi))
-        failed = (~finite & (h <= 0.0)) | tiny
+        d = decide(c, h, remaining, x1, v1, err, dtmax, w_hi)
 
         # the stored row: the polynomial of the accepted step (`_sampling.hermite_row`, built
         # here once per step); after a crossing it holds up to the turning point, found on it
@@ -122,39 +153,19 @@ def integrate(osc, x0, v0, t_end, *, rtol, atol, max_swings: int, rows: int, adj
         live = eqxi.unvmap_any(running(c))
         row = jax.lax.cond(live, hermite_row, lambda *a: jnp.full(x.shape + (WIDTH,), jnp.inf),
                            t, t + h, x, v, x1, v1, args)
-        t_sw, x_sw = jax.lax.cond(live, turning_point, lambda *a: (t, x),
-                                  row, t, h, v, v1, crossed)
-        stick = crossed & osc.sticks(x_sw)  # |k x + k3 x^3| <= mu_s m g (mu_s = mu: None)
-        reverse = crossed & ~stick
-        store = accepted
+        d["t_sw"], d["x_sw"] = jax.lax.cond(live, turning_point, lambda *a: (t, x),
+                                            row, t, h, v, v1, d["crossed"])
+        d["stick"] = d["crossed"] & osc.sticks(d["x_sw"])  # |k x + k3 x^3| <= mu_s m g
+        d["reverse"] = d["crossed"] & ~d["stick"]
         n_rows = c["n_rows"]
-        full = store & (n_rows >= rows)
         new_rows = eqxi.buffer_at_set(c["rows"], jnp.minimum(n_rows, rows - 1), row,
-                                      pred=store & ~full)
+                                      pred=d["accepted"] & (n_rows < rows))
         # the turning point (the rest point last): at most max_swings of them
         n_turns = c["n_turns"]
         new_turns = eqxi.buffer_at_set(c["turns"], jnp.minimum(n_turns, max_swings - 1),
-                                       jnp.stack([t_sw, x_sw]),
-                                       pred=crossed & (n_turns < max_swings))
-        too_many = reverse & (c["n_swings"] >= max_swings)
-        return dict(
-            t=jnp.where(plain, jnp.where(last, t_end, t + h), jnp.where(crossed, t_sw, t)),
-            x=jnp.where(plain, x1, jnp.where(crossed, x_sw, x)),
-            v=jnp.where(plain, v1, jnp.where(crossed, 0.0, v)),
-            s=jnp.where(reverse, -jnp.sign(x_sw), s),
-            h=h_next,
-            halted=c["halted"] | stick,
-            t_halt=jnp.where(stick, t_sw, c["t_halt"]),
-            x_halt=jnp.where(stick, x_sw, c["x_halt"]),
-            finished=c["finished"] | last,
-            failed=c["failed"] | failed,
-            budget=c["budget"] | full | too_many,
-            n_rows=n_rows + jnp.where(store & ~full, 1, 0),
-            n_swings=c["n_swings"] + jnp.where(reverse, 1, 0),
-            n_turns=n_turns + jnp.where(crossed, 1, 0),
-            rows=new_rows,
-            turns=new_turns,
-        )
+                                       jnp.stack([d["t_sw"], d["x_sw"]]),
+                                       pred=d["crossed"] & (n_turns < max_swings))
+        return dict(next_state(c, d, t_end, rows, max_swings), rows=new_rows, turns=new_turns)
 
     # iterations: every stored row, the re-taken steps of every turning point, and rejections
     max_steps = 2 * rows + 64

@@ -63,11 +63,11 @@ except ImportError:  # pragma: no cover - engine="pallas" then says so
 
 from .._models._solution import RESULTS, first_failure
 from .._oscillator import Oscillator
-from ._engine import DT0_W0, DTMAX_W0, domain_input
+from ._engine import DT0_W0, DTMAX_W0, decide, domain_input, next_state
 from ._events import turning_point_of
 from ._sampling import WIDTH, hermite_columns, horner
 from ._solution import FIELDS, ReferenceSolution, from_engine, mask_samples, sample_single
-from ._stepping import error_norm, ode_args, rk_step, step_factor
+from ._stepping import error_norm, ode_args, rk_step
 
 #: trajectories per program (a power of two, as Triton's blocks must be): 4 warps of 32
 BLOCK = 128
@@ -140,49 +140,27 @@ def _running(c):
 
 def _step(c, p, rtol, atol):
     """One DOP853 step of every trajectory of the block and what it decides (the XLA engine's
-    arithmetic, `_engine.integrate`'s body, without its branches)."""
-    t, x, v, s = c["t"], c["x"], c["v"], c["s"]
-    args = (s, p["w2"], p["fric"], p["bm"], p["dm"], p["k3m"])
+    `_engine.decide`, with the step's polynomial and turning point computed directly: a
+    kernel has no use for the XLA engine's branches)."""
+    t, x, v = c["t"], c["x"], c["v"]
+    args = (c["s"], p["w2"], p["fric"], p["bm"], p["dm"], p["k3m"])
     remaining = p["t_end"] - t
     h = jnp.minimum(c["h"], remaining)
     x1, v1, err5, err3 = rk_step(x, v, h, args)
     err = error_norm(x, v, x1, v1, err5, err3, h, rtol, atol)
-    finite = jnp.isfinite(x1) & jnp.isfinite(v1) & jnp.isfinite(err)
-    accepted = finite & (err <= 1.0)
-    crossed = accepted & (s * v1 <= 0.0)
-    plain = accepted & ~crossed
-    last = plain & (h >= remaining)
-    h_next = jnp.minimum(h * step_factor(jnp.where(finite, err, jnp.inf)),
-                         DTMAX_W0 / p["w_hi"])
-    h_next = jnp.where(last, c["h"], h_next)
-    tiny = ~accepted & (h_next <= 1e-13 * jnp.maximum(t, 1.0 / p["w_hi"]))
-    cols = hermite_columns(t, t + h, x, v, x1, v1, args)
-    t_sw, x_sw = turning_point_of(cols[2:], t, h, v, v1, crossed)
-    stick = crossed & (jnp.abs(x_sw * (1.0 + p["k3k"] * (x_sw * x_sw))) <= p["xstat"])
-    return dict(h=h, x1=x1, v1=v1, accepted=accepted, crossed=crossed, plain=plain, last=last,
-                h_next=h_next, failed=(~finite & (h <= 0.0)) | tiny, cols=cols, t_sw=t_sw,
-                x_sw=x_sw, stick=stick, reverse=crossed & ~stick)
+    d = decide(c, h, remaining, x1, v1, err, DTMAX_W0 / p["w_hi"], p["w_hi"])
+    d["cols"] = hermite_columns(t, t + h, x, v, x1, v1, args)
+    d["t_sw"], d["x_sw"] = turning_point_of(d["cols"][2:], t, h, v, v1, d["crossed"])
+    x_sw = d["x_sw"]
+    d["stick"] = d["crossed"] & (jnp.abs(x_sw * (1.0 + p["k3k"] * (x_sw * x_sw)))
+                                 <= p["xstat"])
+    d["reverse"] = d["crossed"] & ~d["stick"]
+    return d
 
 
 def _next_state(c, d, run, p, rows, max_swings):
-    """The state after the step ``d`` (lanes not running keep theirs)."""
-    t, x, v, s = c["t"], c["x"], c["v"], c["s"]
-    plain, crossed, last = d["plain"], d["crossed"], d["last"]
-    full = d["accepted"] & (c["n_rows"] >= rows)
-    new = dict(
-        t=jnp.where(plain, jnp.where(last, p["t_end"], t + d["h"]),
-                    jnp.where(crossed, d["t_sw"], t)),
-        x=jnp.where(plain, d["x1"], jnp.where(crossed, d["x_sw"], x)),
-        v=jnp.where(plain, d["v1"], jnp.where(crossed, 0.0, v)),
-        s=jnp.where(d["reverse"], -jnp.sign(d["x_sw"]), s), h=d["h_next"],
-        halted=c["halted"] | d["stick"],
-        t_halt=jnp.where(d["stick"], d["t_sw"], c["t_halt"]),
-        x_halt=jnp.where(d["stick"], d["x_sw"], c["x_halt"]),
-        finished=c["finished"] | last, failed=c["failed"] | d["failed"],
-        budget=c["budget"] | full | (d["reverse"] & (c["n_swings"] >= max_swings)),
-        n_rows=c["n_rows"] + jnp.where(d["accepted"] & ~full, 1, 0),
-        n_swings=c["n_swings"] + jnp.where(d["reverse"], 1, 0),
-        n_turns=c["n_turns"] + jnp.where(crossed, 1, 0))
+    """The state after the step ``d`` (`_engine.next_state`; lanes not running keep theirs)."""
+    new = next_state(c, d, p["t_end"], rows, max_swings)
     out = {k: jnp.where(run, new[k], c[k]).astype(c[k].dtype) for k in new}
     return dict(out, k=c["k"] + 1, ptr=c["ptr"])
 
