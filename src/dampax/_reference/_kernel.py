@@ -40,6 +40,10 @@ reverse-mode adjoint after a one-time self-check against the XLA engine in the p
 (:func:`self_check`), and the XLA engine everywhere else. ``engine="pallas"`` forces it; off a
 GPU it runs in Pallas's interpreter (``interpret=True``: correct, slow; the tests use it).
 
+Under ``jax.vmap`` (an error map's points, each a scalar solve) the mapped trajectories join
+the kernel's batch (:func:`packed`, a custom vmap rule): one launch with every lane at work,
+where Pallas's own batching would give each point a program of 128 lanes with one at work.
+
 Gradients: a custom VJP whose backward pass is the XLA engine's reverse mode at the same inputs
 (the same steps, the same results to rounding), so ``jax.grad`` works; forward mode
 (``adjoint="forward"``/``"direct"``) always runs the XLA engine.
@@ -429,3 +433,36 @@ def self_check(solve_jit) -> bool:
             warnings.warn(f"dampax: the fused GPU kernel of the reference is not used: {why}; "
                           "the XLA engine runs instead", RuntimeWarning, stacklevel=3)
     return _CHECK["ok"]
+
+
+def packed(**opts):
+    """:func:`solve_flat` with ``opts``, such that under ``jax.vmap`` the mapped trajectories
+    join the kernel's batch (one launch, every lane a trajectory) instead of Pallas's own
+    batching, which would give each mapped element a program of its own (a vmapped scalar
+    solve, as in an error map's points: 1 lane of 128 at work). Where the sample times are
+    themselves mapped, Pallas's batching runs (the kernel shares one ts per launch)."""
+
+    @jax.custom_batching.custom_vmap
+    def run(osc, x0, v0, t_end, ts):
+        return solve_flat(osc, x0, v0, t_end, ts, **opts)
+
+    @run.def_vmap
+    def _joined(axis_size, in_batched, osc, x0, v0, t_end, ts):
+        *batched, ts_batched = in_batched
+        if ts is not None and ts_batched:
+            axes = jax.tree_util.tree_map(lambda b: 0 if b else None, tuple(in_batched))
+            out = jax.vmap(lambda *a: solve_flat(*a, **opts), in_axes=axes)(
+                osc, x0, v0, t_end, ts)
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+        size = x0.shape[-1]
+
+        def join(a, b):
+            a = a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))
+            return jnp.broadcast_to(a, (axis_size, size)).reshape(axis_size * size)
+
+        args = jax.tree_util.tree_map(join, (osc, x0, v0, t_end), tuple(batched))
+        out = jax.tree_util.tree_map(lambda a: a.reshape((axis_size, size) + a.shape[1:]),
+                                     run(*args, ts))
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return run

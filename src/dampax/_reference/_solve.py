@@ -15,7 +15,7 @@ from . import _kernel as kernel_module
 from ._diffrax import integrate as integrate_diffrax
 from ._engine import _KINDS, integrate
 from ._kernel import available as kernel_native
-from ._kernel import self_check, solve_flat
+from ._kernel import packed, self_check
 from ._solution import FIELDS, ReferenceSolution, from_engine, sample_single
 
 # Default t_end in undamped periods: 25 periods are about 50 swings.
@@ -171,7 +171,7 @@ def _kernel_solve(kw: tuple):
 
     @jax.custom_vjp
     def solve(osc, x0, v0, t_end, ts):
-        return solve_flat(osc, x0, v0, t_end, ts, interpret=not kernel_native(), **opts)
+        return packed(interpret=not kernel_native(), **opts)(osc, x0, v0, t_end, ts)
 
     def forward(*args):
         return solve(*args), args
