@@ -137,7 +137,7 @@ def check_options(osc, x0, v0, *, method, phase="matched", tail=None, back=0, ka
             "this piecewise model; map over them with jax.vmap(lambda ...: dp.solve(...)) "
             "(the plain ansatz and the reference accept arrays directly)")
     if method == "reference":
-        options = check_reference_options(x0, v0, **options)
+        options = check_reference_options(x0, v0, osc=osc, **options)
     else:
         check_finite("x0", x0)
         check_finite("v0", v0)

@@ -244,3 +244,30 @@ def test_error_map_with_the_kernel_as_its_reference():
     assert "fused kernel" in fused.attrs["reference_description"]
     for name in ("max_error", "rms_error", "reference_halt_time"):
         _same(ours[name].values, fused[name].values, 1e-12, name)
+
+
+def test_auto_leaves_every_derivative_to_the_xla_engine(monkeypatch):
+    """Where the kernel would run ("auto" on a CUDA GPU, taken so here), a solve that is
+    differentiated, in any mode and under any other transformation, runs the XLA engine (as
+    before the kernel: forward-over-reverse included), a plain one (jit, vmap) the kernel."""
+    monkeypatch.setattr(_solve, "kernel_native", lambda: True)
+    monkeypatch.setattr(_solve, "self_check", lambda solve_jit: True)
+    chosen = []
+
+    def f(mu):
+        osc = Oscillator(m=1.0, k=25.0, mu=mu)
+        chosen.append(_solve.check_reference_options(0.3, 0.0, osc=osc)["engine"])
+        return mu * mu
+
+    mus = jnp.asarray([0.01, 0.02])
+    cases = {"eager": lambda: f(0.02), "jit": lambda: jax.jit(f)(0.02),
+             "vmap": lambda: jax.vmap(f)(mus), "grad": lambda: jax.grad(f)(0.02),
+             "jit(grad)": lambda: jax.jit(jax.grad(f))(0.02),
+             "vmap(grad)": lambda: jax.vmap(jax.grad(f))(mus),
+             "grad(sum(vmap))": lambda: jax.grad(lambda m: jax.vmap(f)(m).sum())(mus),
+             "jacfwd": lambda: jax.jacfwd(f)(0.02), "hessian": lambda: jax.hessian(f)(0.02)}
+    for name, call in cases.items():
+        chosen.clear()
+        call()
+        want = "pallas" if name in ("eager", "jit", "vmap") else "dampax"
+        assert set(chosen) == {want}, name

@@ -35,8 +35,9 @@ of 4. Nothing is permuted: the lanes read their trajectory's index from the orde
 its results at that index.
 
 Selection: :func:`available` says whether the kernel runs natively (a CUDA GPU, where Triton
-lowers it); ``engine="auto"`` (the default of ``solve_reference``) takes it there for the
-reverse-mode adjoint after a one-time self-check against the XLA engine in the process
+lowers it); ``engine="auto"`` (the default of ``solve_reference``) takes it there for a solve that
+is not differentiated (derivatives of every mode stay with the XLA engine), after a one-time
+self-check against the XLA engine in the process
 (:func:`self_check`), and the XLA engine everywhere else. ``engine="pallas"`` forces it; off a
 GPU it runs in Pallas's interpreter (``interpret=True``: correct, slow; the tests use it).
 

@@ -228,7 +228,7 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         adjoint: "recursive" (default; reverse mode, jax.grad), "forward" (jax.jacfwd) or
             "direct" (both; slower).
         solver: "dop853" (the only one; kept as an option for clarity).
-        engine: "auto" (default: the fused kernel on a CUDA GPU for reverse mode, else
+        engine: "auto" (default: the fused kernel on a CUDA GPU where not differentiated, else
             "dampax"; :func:`resolve_engine`), "dampax" (its own DOP853 loop in XLA,
             ``_engine``), "pallas" (the same loop as one fused kernel, ``_kernel``: the same
             results to rounding; off a GPU it runs interpreted, slowly) or "diffrax" (diffrax's
@@ -240,7 +240,7 @@ def solve_reference(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
         finite, t_end is not positive, or the budget ran out before t_end or the halt (naming
         max_swings); under jit it returns valid = False instead.
     """
-    options = check_reference_options(x0, v0, t_end=t_end, rtol=rtol, atol=atol,
+    options = check_reference_options(x0, v0, osc=osc, t_end=t_end, rtol=rtol, atol=atol,
                                       max_swings=max_swings,
                                       max_steps_per_swing=max_steps_per_swing, ts=ts,
                                       adjoint=adjoint, solver=solver, engine=engine)
@@ -259,7 +259,7 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
                             max_swings: int | None = None,
                             max_steps_per_swing: int | None = None, ts=None,
                             adjoint: str = "recursive", solver: str = "dop853",
-                            engine: str = "auto") -> dict:
+                            engine: str = "auto", osc=None) -> dict:
     """The checks of :func:`solve_reference` (at the edge: ``dp.solve``, ``solve_reference``):
     ValueError naming the option; x0, v0, t_end and ts finite where concrete.
 
@@ -306,19 +306,35 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
             raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}")
     return dict(t_end=t_end, rtol=rtol, atol=atol, max_swings=max_swings,
                 max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint,
-                engine=resolve_engine(engine, adjoint))
+                engine=resolve_engine(engine, adjoint, (osc, x0, v0, t_end, ts)))
 
 
-def resolve_engine(engine: str, adjoint: str = "recursive") -> str:
+def resolve_engine(engine: str, adjoint: str = "recursive", inputs=()) -> str:
     """The engine that runs for ``engine`` (a name of :data:`ENGINE_NAMES`): "auto" is the
-    fused kernel ("pallas") on a CUDA GPU, for the reverse-mode adjoint, once it has passed
-    its self-check in this process (`_kernel.self_check`); "dampax" (the XLA engine)
-    otherwise. Other names are returned as they are."""
+    fused kernel ("pallas") on a CUDA GPU for a solve that is not differentiated (no input is
+    an autodiff tracer: derivatives of every order and mode stay with the XLA engine, as
+    before) with the reverse-mode adjoint, once the kernel has passed its self-check in this
+    process (`_kernel.self_check`); "dampax" (the XLA engine) otherwise. Other names are
+    returned as they are."""
     if engine != "auto":
         return engine
-    if adjoint == "recursive" and kernel_native() and self_check(_solve_jit):
+    if adjoint == "recursive" and not differentiated(inputs) and kernel_native() and \
+            self_check(_solve_jit):
         return "pallas"
     return "dampax"
+
+
+def differentiated(tree) -> bool:
+    """Whether a leaf of ``tree`` is, or wraps (under vmap or jit), an autodiff tracer."""
+    for leaf in jax.tree_util.tree_leaves(tree):
+        for _ in range(32):  # the transformations stacked on the value, outermost first
+            if not isinstance(leaf, jax.core.Tracer):
+                break
+            kind = type(leaf).__name__
+            if "JVP" in kind or "Linearize" in kind:
+                return True
+            leaf = getattr(leaf, "primal", getattr(leaf, "val", None))
+    return False
 
 
 def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float = 1e-10,
