@@ -109,6 +109,9 @@ def test_the_kernel_under_vmap_and_with_unsorted_times(both):
     _same(np.asarray(xla.xs)[:3], _THREE(*cols, jnp.asarray(TS)), 1e-12, "vmapped")
     _same(np.asarray(xla.xs)[:3, ::-1], _THREE(*cols, jnp.asarray(TS[::-1])), 1e-12,
           "reversed")
+    # new values (other oscillators, other times of the same shape): the same program
+    _THREE(*[c * 1.01 for c in cols], jnp.asarray(TS * 0.9))
+    assert _THREE._cache_size() == 1
 
 
 def test_gradient_through_the_kernel():
