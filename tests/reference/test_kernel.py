@@ -136,6 +136,11 @@ def test_gradient_through_the_kernel():
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
 
 
+OFF_GPU = pytest.mark.skipif(_kernel.available(), reason="on a CUDA GPU the kernel runs "
+                             "natively: see test_on_a_cuda_gpu_the_kernel_runs_natively...")
+
+
+@OFF_GPU
 def test_auto_takes_the_xla_engine_off_a_gpu():
     """engine="auto" (the default) is the XLA engine on a CPU and for forward mode; an engine
     that is not known is named."""
@@ -147,6 +152,7 @@ def test_auto_takes_the_xla_engine_off_a_gpu():
         dp.solve(Oscillator(m=1, k=1, mu=0.1), 1.0, 0.0, method="reference", engine="triton")
 
 
+@OFF_GPU
 def test_auto_keeps_the_xla_engine_where_the_kernel_fails_its_check(monkeypatch):
     """Where the kernel is taken to run natively but does not (here: Triton's lowering on a
     CPU), the one-time self-check warns with the reason and "auto" stays with XLA."""
