@@ -19,6 +19,7 @@ from scipy.integrate import solve_ivp  # noqa: E402
 
 from dampax._oscillator import Oscillator  # noqa: E402
 from dampax._reference import ReferenceSolution, solve_reference  # noqa: E402
+from dampax._reference._solve import resolve_engine  # noqa: E402
 
 G = 9.81
 TIGHT = dict(rtol=1e-12, atol=1e-14, max_swings=64, max_steps_per_swing=64)
@@ -568,7 +569,10 @@ def test_filled_samples_equal_the_dense_output_on_any_times(batch_c):
     filled = np.asarray(sol.x(TS_C))
     shuffled = np.random.default_rng(0).permutation(TS_C.size)
     again = np.asarray(sol.x(TS_C[shuffled]))[:, np.argsort(shuffled)]
-    np.testing.assert_array_equal(filled, again)
+    if resolve_engine("auto") == "dampax":
+        np.testing.assert_array_equal(filled, again)
+    else:  # on a CUDA GPU the fused kernel filled them: its own rounding of the same sums
+        np.testing.assert_allclose(filled, again, rtol=1e-14, atol=1e-15)
     sub = TS_C[::7] + 1e-3  # sorted, not a uniform grid
     np.testing.assert_array_equal(np.asarray(sol.x(sub)), np.asarray(sol.x(sub[::-1]))[:, ::-1])
 
