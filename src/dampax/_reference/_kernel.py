@@ -74,7 +74,7 @@ from ._sampling import WIDTH, hermite_columns, horner
 from ._solution import FIELDS, ReferenceSolution, from_engine, mask_samples, sample_single
 from ._stepping import error_norm, ode_args, rk_step
 
-#: trajectories per program (a power of two, as Triton's blocks must be): 4 warps of 32
+#: lanes per program (a power of two, as Triton's blocks must be): 4 warps of 32
 BLOCK = 128
 #: lanes a GPU holds at once with this kernel's registers (an estimate for an H100: about 256
 #: threads per SM of 132 at ~250 float64 registers each); a batch beyond it is queued
