@@ -267,7 +267,7 @@ class Oscillator(eqx.Module):
         Written |x (1 + (k3/k) x^2)| <= x_static, which is exactly |x| <= xc when k3 = 0 and
         mu_s is None.
         """
-        return jnp.abs(x * (1.0 + (self.k3 / self.k) * (x * x))) <= self.x_static
+        return held(x, self.k3 / self.k, self.x_static)
 
     @property
     def damping_coefficients(self) -> tuple[Array, Array, Array]:
@@ -429,3 +429,9 @@ def ratio_constants(d0_ratio, d1_ratio, d2_ratio, *, m=1.0, k=30.0, A0=0.2, g=9.
     d1 = jnp.asarray(d1_ratio, dtype=float) * w0
     d2 = jnp.asarray(d2_ratio, dtype=float) * w0 / A0
     return constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)
+
+
+def held(x, k3_over_k, x_static) -> Array:
+    """:meth:`Oscillator.sticks` from its two constants, k3/k and the static band's half-width
+    (the fused reference kernel holds only these): |x (1 + (k3/k) x^2)| <= x_static."""
+    return jnp.abs(x * (1.0 + k3_over_k * (x * x))) <= x_static

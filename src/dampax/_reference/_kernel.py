@@ -67,11 +67,11 @@ except Exception:  # noqa: BLE001  # pragma: no cover - engine="pallas" then say
     pl = plt = None
 
 from .._models._solution import RESULTS, first_failure
-from .._oscillator import Oscillator
+from .._oscillator import Oscillator, held
 from ._engine import DT0_W0, DTMAX_W0, decide, domain_input, next_state
 from ._events import turning_point_of
 from ._sampling import WIDTH, hermite_columns, horner
-from ._solution import FIELDS, ReferenceSolution, from_engine, mask_samples, sample_single
+from ._solution import ReferenceSolution, from_engine, mask_samples, sample_single, with_samples
 from ._stepping import error_norm, ode_args, rk_step
 
 #: lanes per program (a power of two, as Triton's blocks must be): 4 warps of 32
@@ -125,7 +125,7 @@ def _initial(p):
     """The loop's state of a block of trajectories at t = 0 (as `_engine.integrate`'s)."""
     zero = jnp.zeros_like(p["x0"])
     rest0 = p["rest0"] > 0.5
-    return dict(k=jnp.int32(0), t=zero, x=p["x0"], v=p["v0"], s=p["s0"],
+    return dict(k=jnp.zeros(rest0.shape, jnp.int32), t=zero, x=p["x0"], v=p["v0"], s=p["s0"],
                 h=DT0_W0 / p["w_hi"], halted=rest0, t_halt=zero, x_halt=p["x0"],
                 finished=jnp.zeros_like(rest0), failed=jnp.zeros_like(rest0),
                 budget=jnp.zeros_like(rest0), n_rows=jnp.zeros(rest0.shape, jnp.int32),
@@ -156,18 +156,17 @@ def _step(c, p, rtol, atol):
     d = decide(c, h, remaining, x1, v1, err, DTMAX_W0 / p["w_hi"], p["w_hi"])
     d["cols"] = hermite_columns(t, t + h, x, v, x1, v1, args)
     d["t_sw"], d["x_sw"] = turning_point_of(d["cols"][2:], t, h, v, v1, d["crossed"])
-    x_sw = d["x_sw"]
-    d["stick"] = d["crossed"] & (jnp.abs(x_sw * (1.0 + p["k3k"] * (x_sw * x_sw)))
-                                 <= p["xstat"])
+    d["stick"] = d["crossed"] & held(d["x_sw"], p["k3k"], p["xstat"])
     d["reverse"] = d["crossed"] & ~d["stick"]
     return d
 
 
 def _next_state(c, d, run, p, rows, max_swings):
-    """The state after the step ``d`` (`_engine.next_state`; lanes not running keep theirs)."""
+    """The state after the step ``d`` (`_engine.next_state`; lanes not running keep theirs,
+    and their count of steps ``k``)."""
     new = next_state(c, d, p["t_end"], rows, max_swings)
     out = {k: jnp.where(run, new[k], c[k]).astype(c[k].dtype) for k in new}
-    return dict(out, k=c["k"] + 1, ptr=c["ptr"])
+    return dict(out, k=c["k"] + jnp.where(run, 1, 0).astype(jnp.int32), ptr=c["ptr"])
 
 
 def _write_step(refs, cur, c, d, run, rows, max_swings):
@@ -239,7 +238,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth)
 
     def start(cur):
         p = {k: _load(refs[k].at[cur]) for k in _INPUTS}
-        return p, dict(_initial(p), k=jnp.zeros(cur.shape, jnp.int32))
+        return p, _initial(p)
 
     def live(c):
         return _running(c) & (c["k"] < max_steps)
@@ -252,8 +251,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth)
         run = live(c) & (q < depth)
         d = _step(c, p, rtol, atol)
         store = _write_step(refs, cur, c, d, run, rows, max_swings)
-        new = dict(_next_state(c, d, run, p, rows, max_swings),
-                   k=c["k"] + jnp.where(run, 1, 0).astype(jnp.int32))
+        new = _next_state(c, d, run, p, rows, max_swings)
         if "ts" in refs:
             new["ptr"] = _write_samples(refs, cur, c, d, p, store)
         ended = (q < depth) & ~live(new)
@@ -401,7 +399,7 @@ def solve_flat(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings: int, rows: int
     ordered = jnp.all(ts[1:] >= ts[:-1]) if ts.shape[0] > 1 else jnp.array(True)
     xs, vs = jax.lax.cond(ordered, in_loop, from_rows)
     # ts itself (shared by the batch) is attached by the caller, as after the XLA engine's vmap
-    return ReferenceSolution(**{f: getattr(sol, f) for f in FIELDS}, xs=xs, vs=vs)
+    return with_samples(sol, None, xs, vs)
 
 
 _CHECK: dict[str, bool] = {}

@@ -54,6 +54,11 @@ def from_engine(out, osc, x0, v0, t_end):
     )
 
 
+def with_samples(sol, ts=None, xs=None, vs=None):
+    """``sol`` with its samples replaced: sample times ts and x, v there (None: none)."""
+    return ReferenceSolution(**{f: getattr(sol, f) for f in FIELDS}, ts=ts, xs=xs, vs=vs)
+
+
 def sample_single(sol, t, grid=None):
     """(x, v) of one (unbatched) trajectory at the times t (any shape)."""
     u = t.reshape(-1)
@@ -183,7 +188,7 @@ class ReferenceSolution(AbstractSolution):
             if t.ndim != 1:
                 raise ValueError(f"grid needs 1-D times, got t of shape {t.shape}")
             grid = tuple(jnp.asarray(g, dtype=float) for g in grid)
-        bare = ReferenceSolution(**{f: getattr(self, f) for f in FIELDS})  # no samples
+        bare = with_samples(self)  # no samples
         if stored is False:
             return _evaluate(bare, t, grid)
         return jax.lax.cond(stored, lambda: (self.xs, self.vs),

@@ -16,7 +16,7 @@ from ._diffrax import integrate as integrate_diffrax
 from ._engine import _KINDS, integrate
 from ._kernel import available as kernel_native
 from ._kernel import packed, self_check
-from ._solution import FIELDS, ReferenceSolution, from_engine, sample_single
+from ._solution import ReferenceSolution, from_engine, sample_single, with_samples
 
 # Default t_end in undamped periods: 25 periods are about 50 swings.
 DEFAULT_PERIODS = 25.0
@@ -127,8 +127,7 @@ def _solve_single(osc, x0, v0, t_end, ts, *, rtol, atol, max_swings, rows, adjoi
     if ts is None:
         return sol
     xs, vs = sample_single(sol, ts)
-    return ReferenceSolution(**{**{f: getattr(sol, f) for f in FIELDS}, "ts": ts, "xs": xs,
-                                "vs": vs})
+    return with_samples(sol, ts, xs, vs)
 
 
 def _solve_batched(osc, x0, v0, t_end, ts, **kw):
@@ -151,14 +150,8 @@ def _solve_batched(osc, x0, v0, t_end, ts, **kw):
         sol = jax.vmap(lambda o, a, b, c: _solve_single(o, a, b, c, ts, **kw))(*args)
     out = jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), sol)
     if ts is not None:  # the sample times are shared, not batched
-        out = ReferenceSolution(**{**{f: getattr(out, f) for f in FIELDS}, "ts": ts,
-                                   "xs": out.xs, "vs": out.vs})
+        out = with_samples(out, ts, out.xs, out.vs)
     return out
-
-
-def _no_ts(sol):
-    """``sol`` without its sample times (kept: the samples)."""
-    return ReferenceSolution(**{f: getattr(sol, f) for f in FIELDS}, xs=sol.xs, vs=sol.vs)
 
 
 @functools.cache
@@ -177,8 +170,12 @@ def _kernel_solve(kw: tuple):
         return solve(*args), args
 
     def backward(args, cotangent):
-        return jax.vjp(lambda *a: _no_ts(_solve_batched(*a, **xla)), *args)[1](
-            cotangent)
+        # the XLA engine's solution as the kernel's leaves it: without the shared ts
+        def xla_solve(*a):
+            sol = _solve_batched(*a, **xla)
+            return with_samples(sol, None, sol.xs, sol.vs)
+
+        return jax.vjp(xla_solve, *args)[1](cotangent)
 
     solve.defvjp(forward, backward)
     return solve
