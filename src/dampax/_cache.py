@@ -101,6 +101,26 @@ from ._cachefiles import secure_folder as secure_folder
 
 _OFF = ("0", "off", "false", "no")
 _MIN_COMPILE_S = 0.5
+
+#: XLA options of every program compiled here on a CPU (:func:`compiler_options`): XLA's
+#: loop-fusion emitter instead of the MLIR fusion emitters that jaxlib 0.10 uses by default,
+#: which run an MLIR pass pipeline of their own for every fusion of a program. A cold default
+#: fit compiled its programs in 20 s of CPU with those and 12 s with this (11.2 -> 7.2 s on 2
+#: cores, issue 36); the programs run about as fast (benchmarks/README.md, eighth session).
+CPU_COMPILER_OPTIONS = (("xla_cpu_use_fusion_emitters", False),)
+
+
+def compiler_options() -> dict | None:
+    """The XLA options dampax compiles its programs with: :data:`CPU_COMPILER_OPTIONS` on a
+    CPU, XLA's defaults elsewhere (None)."""
+    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+
+
+def _compile(lowered):
+    """``lowered.compile()`` with :func:`compiler_options`."""
+    return lowered.compile(compiler_options())
+
+
 def enable_compilation_cache() -> Path | None:
     """Turn JAX's persistent compilation cache on (see the module docstring).
 
@@ -177,11 +197,12 @@ def _program_text(key, specs) -> str:
     devices = jax.devices()
     return repr((key, [(s.shape, str(s.dtype), str(getattr(s, "sharding", None)),
                         bool(getattr(s, "weak_type", False))) for s in specs],
-                 len(devices), devices[0].platform, devices[0].device_kind))
+                 len(devices), devices[0].platform, devices[0].device_kind,
+                 compiler_options()))
 
 
 def compile_cached(name: str, key, fn, *specs):
-    """``fn.lower(*specs).compile()``, tracing ``fn`` only when no serialized program exists.
+    """``_compile(fn.lower(*specs))``, tracing ``fn`` only when no serialized program exists.
 
     The first call traces ``fn`` with ``jax.export`` and writes the program, keyed by
     ``key``, the argument specs, the devices, dampax's source and the versions it runs on; a
@@ -202,7 +223,7 @@ def compile_cached(name: str, key, fn, *specs):
     """
     folder = exported_dir()
     if folder is None:
-        return fn.lower(*specs).compile()
+        return _compile(fn.lower(*specs))
     digest = _digest(_program_text(key, specs))
     path = folder / f"{name}-{digest[:32]}.jaxexport"
     mesh = getattr(getattr(specs[0], "sharding", None), "mesh", None) if specs else None
@@ -220,11 +241,11 @@ def compile_cached(name: str, key, fn, *specs):
             exported = jax.export.export(fn)(*specs)
             payload = exported.serialize()
         except Exception:  # noqa: BLE001 - not exportable: the plain route
-            return fn.lower(*specs).compile()
+            return _compile(fn.lower(*specs))
         _write_entry(path, digest, {"kind": "jaxexport"}, bytes(payload))
     lowered = jax.jit(exported.call).lower(*specs)
     with _fresh_compilation() as fresh:
-        compiled = lowered.compile()
+        compiled = _compile(lowered)
     _keep_executable(exe_path if fresh() and _keepable(lowered) else None, compiled)
     return compiled
 
@@ -404,7 +425,7 @@ def _compile_kept(name: str, fn, specs, exe_path):
     if not _keepable(lowered):
         return None
     with _fresh_compilation() as fresh:
-        executable = lowered.compile()
+        executable = _compile(lowered)
     if not fresh():
         return None
     _keep_executable(exe_path, executable, (treedef, static))
@@ -423,7 +444,7 @@ def _compile_tree(name: str, key, fn, specs):
     folder = exported_dir()
     plain = jax.jit(fn)
     if folder is None:
-        return plain.lower(*specs).compile(), None, None
+        return _compile(plain.lower(*specs)), None, None
     digest = _digest(_program_text(key, specs))
     path = folder / f"{name}-{digest[:32]}.jaxcall"
     exe_path = _executable_path(folder, name, digest)
@@ -448,7 +469,7 @@ def _compile_tree(name: str, key, fn, specs):
             payload = exported.serialize()
             exported = jax.export.deserialize(payload)  # the program a later process reads
         except Exception:  # noqa: BLE001 - not exportable: the plain route
-            return plain.lower(*specs).compile(), None, None
+            return _compile(plain.lower(*specs)), None, None
         _write_entry(path, digest, {"kind": "jaxcall", "trees": _dump_tree(
             (treedef, static, weak)).decode()}, bytes(payload))
 
@@ -457,7 +478,7 @@ def _compile_tree(name: str, key, fn, specs):
 
     lowered = jax.jit(call).lower(*specs)
     with _fresh_compilation() as fresh:
-        executable = lowered.compile()
+        executable = _compile(lowered)
     _keep_executable(exe_path if fresh() and _keepable(lowered) else None, executable,
                      (treedef, static))
     return executable, treedef, static

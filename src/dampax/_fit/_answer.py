@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._checks import interval_sd
-from ._params import PARAMS, flat
+from ._params import PARAMS
 
 #: largest shift of a parameter, in interval sd, that the ansatz may leave (module docstring)
 BIAS_SD = 0.1
@@ -85,7 +85,7 @@ def approximation_bias(problem, out) -> Bias:
         A :class:`Bias`; not negligible where anything is not finite.
     """
     n = problem.n
-    names = [k for k, v in zip(PARAMS, flat(problem.vary), strict=True) if bool(v)]
+    names = [k for k, v in zip(PARAMS, problem.vary, strict=True) if bool(v)]
     params = {k: float(getattr(out.params, k)) for k in PARAMS}
     # the exact model's curve at the ansatz optimum: its fit with a budget of one step
     # returns the start (the step is proposed, not taken), by the exact fit's own program

@@ -54,6 +54,13 @@ MAX_SWINGS = 100_000
 MIN_RTOL = 1e-14
 
 
+def _host_energy(osc, x0, v0) -> np.ndarray:
+    """``osc.energy(x0, v0)`` in numpy, for concrete values: no small eager programs for a
+    first call to compile (issue 36: a cold fit's first steps)."""
+    host = jax.tree_util.tree_map(lambda a: np.asarray(a, dtype=float), osc)
+    return host.energy(np.asarray(x0, dtype=float), np.asarray(v0, dtype=float))
+
+
 def halt_swings(osc, x0, v0) -> np.ndarray:
     """An upper bound on the half-swings before the halt (inf where the motion need not halt).
 
@@ -74,7 +81,7 @@ def halt_swings(osc, x0, v0) -> np.ndarray:
         k3 = np.asarray(osc.k3, dtype=float)
         friction = (np.asarray(osc.mu, dtype=float) * np.asarray(osc.m, dtype=float)
                     * np.asarray(osc.g, dtype=float))
-        energy = np.asarray(osc.energy(jnp.asarray(x0), jnp.asarray(v0)), dtype=float)
+        energy = _host_energy(osc, x0, v0)
         # the turning amplitude of this energy: k A^2/2 + k3 A^4/4 = E
         disc = k * k / 4.0 + k3 * energy
         soft = np.where(disc > 0, (k / 2.0 - np.sqrt(np.maximum(disc, 0.0)))
@@ -97,7 +104,7 @@ def default_swings(osc, x0, v0, t_end) -> int:
     w0 = np.sqrt(np.asarray(osc.k, dtype=float) / np.asarray(osc.m, dtype=float))
     k3 = np.maximum(np.asarray(osc.k3, dtype=float), 0.0)
     k = np.asarray(osc.k, dtype=float)
-    energy = np.asarray(osc.energy(jnp.asarray(x0), jnp.asarray(v0)), dtype=float)
+    energy = _host_energy(osc, x0, v0)
     with np.errstate(all="ignore"):
         w_hi = w0 * np.sqrt(1.0 + 6.0 * k3 * energy / (k * k))
         swings = np.asarray(t_end, dtype=float) * w_hi / math.pi
