@@ -60,6 +60,7 @@ import contextlib
 import functools
 import hashlib
 import os
+import threading
 from pathlib import Path
 
 import jax
@@ -116,8 +117,39 @@ def compiler_options() -> dict | None:
     return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
 
 
+#: the tracing turn (:func:`_turn`): one thread traces and lowers a program at a time
+_TRACING = threading.Lock()
+_HOLDS = threading.local()
+
+
+@contextlib.contextmanager
+def _turn():
+    """Hold the tracing turn for the block (re-entrant; :func:`_compile` ends it early).
+
+    Tracing is Python, so threads that trace at once share one core and all finish late
+    (a cold fit traced three programs side by side, each 3-4 s instead of 1); in turns, in
+    the order asked, the program wanted first is ready first, and each compiles (with
+    Python's lock released) while the next one traces (issue 36)."""
+    if getattr(_HOLDS, "turn", False):
+        yield
+        return
+    _TRACING.acquire()
+    _HOLDS.turn = True
+    try:
+        yield
+    finally:
+        _end_turn()
+
+
+def _end_turn() -> None:
+    if getattr(_HOLDS, "turn", False):
+        _HOLDS.turn = False
+        _TRACING.release()
+
+
 def _compile(lowered):
-    """``lowered.compile()`` with :func:`compiler_options`."""
+    """``lowered.compile()`` with :func:`compiler_options`; the tracing turn passes on."""
+    _end_turn()
     return lowered.compile(compiler_options())
 
 
@@ -202,6 +234,13 @@ def _program_text(key, specs) -> str:
 
 
 def compile_cached(name: str, key, fn, *specs):
+    """``fn.lower(*specs).compile()``, tracing ``fn`` only when no serialized program exists
+    (:func:`_compile_cached_turn`, in its tracing turn: :func:`_turn`)."""
+    with _turn():
+        return _compile_cached_turn(name, key, fn, *specs)
+
+
+def _compile_cached_turn(name: str, key, fn, *specs):
     """``_compile(fn.lower(*specs))``, tracing ``fn`` only when no serialized program exists.
 
     The first call traces ``fn`` with ``jax.export`` and writes the program, keyed by
@@ -433,6 +472,13 @@ def _compile_kept(name: str, fn, specs, exe_path):
 
 
 def _compile_tree(name: str, key, fn, specs):
+    """(executable, treedef, static) of ``fn`` for ``specs`` (:func:`_compile_tree_turn`, in
+    its tracing turn: :func:`_turn`)."""
+    with _turn():
+        return _compile_tree_turn(name, key, fn, specs)
+
+
+def _compile_tree_turn(name: str, key, fn, specs):
     """(executable, treedef, static): ``fn`` compiled for ``specs``, kept as a file.
 
     The kept program returns the array leaves of ``fn``'s output; its treedef and its other
@@ -504,7 +550,8 @@ def _pool():
     """The threads that compile programs ahead of their first call (:func:`prepare_cached`)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    return ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1)),
+    # three: one traces (in turns, :func:`_turn`) while two compile
+    return ThreadPoolExecutor(max_workers=3,
                               thread_name_prefix="dampax-compile")
 
 

@@ -40,6 +40,7 @@ from ._answer import approximation_bias
 from ._checks import looks_stuck
 from ._context import prepare_envelope
 from ._core import FIT_MODELS, FIT_RESULTS
+from ._curves import prepare_amplitude_phase
 from ._halts import (
     above_mu_s,
     other_halt_check,
@@ -51,7 +52,7 @@ from ._measures import k3_hint
 from ._params import varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
 from ._result import FitContext, FitResult, build_result
-from ._starts import run_starts
+from ._starts import prepare_starts, run_starts
 from ._text import lower_cost
 
 
@@ -99,11 +100,17 @@ def first_model(problem: Problem, plan: Plan) -> str:
     return (spec.start_from or spec.name) if plan.approximate_first else spec.name
 
 
+def batch_of_starts(problem: Problem, plan: Plan) -> bool:
+    """Whether stage 1 runs a batch of starts (a closed-form first model, several starts)."""
+    return problem.settings.starts > 1 and \
+        not FIT_MODELS[first_model(problem, plan)].integrates
+
+
 def global_starts(problem: Problem, plan: Plan) -> Fit:
     """Stage 1: the batch of starts (closed-form first models), then a solve from the best."""
     first, s = first_model(problem, plan), problem.settings
     found, start = None, problem.guess
-    if s.starts > 1 and not FIT_MODELS[first].integrates:
+    if batch_of_starts(problem, plan):
         found = run_starts(problem, problem.guess, first, math.inf, seed=int(s.seed))
         start = found.params
     last = problem.solve(start, first, math.inf)
@@ -275,22 +282,28 @@ def _with_k3_hint(res: FitResult, problem: Problem) -> FitResult:
 
 
 def prepare_programs(problem: Problem, plan: Plan) -> None:
-    """Start compiling, in the background, the programs that follow the batch of starts: the
-    first model's fit and, where it starts the exact model, the exact model's (for the
-    guess's frequency: the approximate optimum's nearly always shares its swing budget), the
-    motion of the neighbouring-halt search and the report's envelope. A warm process finds
-    them built; a cold one compiles them beside the batch (issue 36)."""
+    """Start compiling, in the background, the programs of the fit, traced one after another
+    (``_cache._turn``) and compiled side by side: where the fit starts from the approximate
+    model, the exact model's fit first (for the guess's frequency: the approximate optimum's
+    nearly always shares its swing budget; the longest to build and the last to run, it sets
+    a cold fit's time), then the batch of starts, the first model's fit, the motion of the
+    neighbouring-halt search, the report's envelope and matched amplitude. A warm process
+    finds them built (issue 36)."""
     s, c = problem.settings, problem.consts
     if s.optimizer != "lm":
         return
     first = first_model(problem, plan)
-    problem.solve(problem.guess, first, math.inf, prepare=True)
-    if first != s.model:
+    if first != s.model:  # the longest to build first (it is on the longest path)
         problem.solve(problem.guess, s.model, math.inf, prepare=True)
+    if batch_of_starts(problem, plan):
+        prepare_starts(problem, problem.guess, first)
+    problem.solve(problem.guess, first, math.inf, prepare=True)
     if plan.neighbouring_halts and FIT_MODELS[s.model].integrates and problem.vary.mu and \
             c.mu_s is None and s.loss == "linear":
         prepare_motion(problem.guess, problem.data.t, c.m, c.g, 0.0 if c.k3 is None else c.k3)
     prepare_envelope(problem.data.t)
+    if FIT_MODELS[s.model].integrates:  # the report's matched amplitude and phase
+        prepare_amplitude_phase(problem.guess._asdict(), c.m, c.g)
 
 
 def run(problem: Problem, plan: Plan = FULL) -> FitResult:

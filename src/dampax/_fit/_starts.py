@@ -18,13 +18,15 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import call_cached_tree
+from .._cache import call_cached_tree, prepare_cached_tree
 from ._core import FIT_RESULTS, CoreOptions, Tuning, core
 from ._params import PARAMS, TraceParams, as_arrays
 
@@ -138,6 +140,47 @@ def thin(t: np.ndarray, x: np.ndarray, omega: float):
     return tp, xp, wt, stride
 
 
+class _Program(NamedTuple):
+    """The batch's kept program for a problem: ``call(key, fn, *head, p0s, *tail)``."""
+
+    key: list
+    fn: Callable
+    head: tuple
+    tail: tuple
+    stride: int
+
+
+def _program(problem, model: str, f_scale: float, vary, opts) -> _Program:
+    """The batch's program and its fixed arguments: the thinned trace, the mask, the
+    constants and the soft_l1 scale."""
+    s = problem.settings
+    tp, xp, wt, stride = thin(np.asarray(problem.data.t), np.asarray(problem.data.x),
+                              problem.data.analysis.omega)
+    static = dict(model=model, optimizer=s.optimizer,
+                  max_steps=min(problem.steps, BATCH_STEPS), rtol=float(s.rtol),
+                  atol=float(s.atol), opts=opts)
+    return _Program(sorted(static.items()),
+                    functools.partial(_batch, options=CoreOptions(**static)),
+                    (jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt)),
+                    (as_arrays(vary, bool), as_arrays(problem.consts),
+                     jnp.asarray(f_scale, dtype=float)), stride)
+
+
+def _lanes(P: np.ndarray):
+    """The batch's parameter arrays of a block of at most BATCH_LANES starts (the spare lanes
+    repeat its first start)."""
+    block = np.concatenate([P, np.tile(P[:1], (max(BATCH_LANES - len(P), 0), 1))])
+    return as_arrays(TraceParams(*(jnp.asarray(block[:, i]) for i in range(P.shape[1]))))
+
+
+def prepare_starts(problem, guess: TraceParams, model: str) -> None:
+    """Start compiling :func:`run_starts`' program for ``problem`` (the linear loss, nothing
+    held) in the background (``_cache.prepare_cached_tree``)."""
+    prog = _program(problem, model, math.inf, problem.vary, None)
+    P = np.asarray(guess, dtype=float)[None, :]
+    prepare_cached_tree("fit-starts", prog.key, prog.fn, *prog.head, _lanes(P), *prog.tail)
+
+
 def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed: int,
                held: str | None = None, extra=(), opts=None) -> Starts:
     """Optimise ``problem``'s global starts (``settings.starts`` of them) jittered around
@@ -158,26 +201,18 @@ def run_starts(problem, guess: TraceParams, model: str, f_scale: float, *, seed:
     s, an = problem.settings, problem.data.analysis
     free = tuple(f for f in s.free if f != held)
     vary = problem.vary if held is None else problem.vary._replace(**{held: False})
-    n, t, x, consts = int(s.starts), problem.data.t, problem.data.x, problem.consts
-    optimizer, rtol, atol, max_steps = s.optimizer, float(s.rtol), float(s.atol), problem.steps
-    fit_omega0, omega, w0_spread = problem.fit_omega0, an.omega, an.omega_spread
-    P = jittered(guess, free, n, seed=seed, fit_omega0=fit_omega0, w0_spread=w0_spread)
+    n = int(s.starts)
+    P = jittered(guess, free, n, seed=seed, fit_omega0=problem.fit_omega0,
+                 w0_spread=an.omega_spread)
     for j, p in enumerate(extra):
         P[n - 1 - j] = np.asarray(p, dtype=float)
-    tp, xp, wt, stride = thin(np.asarray(t), np.asarray(x), omega)
-    static = dict(model=model, optimizer=optimizer, max_steps=min(max_steps, BATCH_STEPS),
-                  rtol=rtol, atol=atol, opts=opts)
-    args = (jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt))
-    fixed = (as_arrays(vary, bool), as_arrays(consts), jnp.asarray(f_scale, dtype=float))
+    prog = _program(problem, model, f_scale, vary, opts)
+    stride = prog.stride
     chisqr, codes, rows = [], [], []
-    for lo in range(0, n, BATCH_LANES):  # the last call's spare lanes repeat the first start
-        block = np.concatenate([P[lo:lo + BATCH_LANES],
-                                np.tile(P[:1], (max(lo + BATCH_LANES - n, 0), 1))])
-        p0s = as_arrays(TraceParams(*(jnp.asarray(block[:, i]) for i in range(P.shape[1]))))
+    for lo in range(0, n, BATCH_LANES):
         # the compiled batch is kept: a repeated fit, also in a new process, does not trace it
-        out = call_cached_tree("fit-starts", sorted(static.items()),
-                               functools.partial(_batch, options=CoreOptions(**static)),
-                               *args, p0s, *fixed)
+        out = call_cached_tree("fit-starts", prog.key, prog.fn, *prog.head,
+                               _lanes(P[lo:lo + BATCH_LANES]), *prog.tail)
         chisqr.append(np.asarray(out[0], dtype=float))
         codes.append(np.asarray(out[1]._value))
         rows.append(np.stack([np.asarray(v, dtype=float) for v in out[2]], axis=1))
