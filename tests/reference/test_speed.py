@@ -211,6 +211,41 @@ def _leaves_equal(a, b) -> bool:
         for x, y in zip(la, lb, strict=True))
 
 
+def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
+    """Every program dampax compiles itself gets ``_cache.compiler_options`` (on a CPU, XLA's
+    loop-fusion emitter), is traced in its turn and passes the turn on while it compiles:
+    programs prepared in the background are all built, the turn is free afterwards and after
+    a program whose trace fails, and the results equal numpy's."""
+    from dampax import _cache
+
+    seen = []
+    real = jax.stages.Lowered.compile
+
+    def spy(self, compiler_options=None, **kw):
+        seen.append(compiler_options)
+        return real(self, compiler_options, **kw)
+
+    monkeypatch.setattr(jax.stages.Lowered, "compile", spy)
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})
+    x = jnp.linspace(0.0, 1.0, 5)
+    for k in range(3):  # three programs started at once, then called
+        _cache.prepare_cached("test-turns", k, lambda a, k=k: jnp.sin(a) + k, x)
+    outs = [_cache.call_cached("test-turns", k, lambda a, k=k: jnp.sin(a) + k, x)
+            for k in range(3)]
+    for k, out in enumerate(outs):
+        np.testing.assert_allclose(out, np.sin(np.asarray(x)) + k, rtol=1e-15)
+    want = {"xla_cpu_use_fusion_emitters": False} if jax.default_backend() == "cpu" else None
+    assert seen == [want] * 3
+    assert not _cache._TRACING.locked()
+
+    def broken(a):
+        raise RuntimeError("no trace")
+
+    with pytest.raises(RuntimeError, match="no trace"):
+        _cache.call_cached("test-turns", "broken", broken, x)
+    assert not _cache._TRACING.locked()
+
+
 def test_kept_program_returns_equinox_modules_whole():
     """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
     comes back with the traced path's treedef and bits; the file holds the program (an
