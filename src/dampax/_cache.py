@@ -577,10 +577,16 @@ def _entry(name: str, key, fn, specs, memo):
     :func:`prepare_cached`'s thread."""
     entry = _EXECUTABLES.get(memo)
     if hasattr(entry, "result"):  # being built in the background
+        held = getattr(_HOLDS, "turn", False)
+        if held:  # (a trace that calls a kept program) the builder may need the turn
+            _end_turn()
         try:
             entry = entry.result()
         except Exception:  # noqa: BLE001 - built again here, where an error is raised
             entry = None
+        if held:
+            _TRACING.acquire()
+            _HOLDS.turn = True
     if entry is None:
         entry = _compile_tree(name, key, fn, specs)
     _EXECUTABLES[memo] = entry

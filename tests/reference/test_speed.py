@@ -245,6 +245,23 @@ def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
         _cache.call_cached("test-turns", "broken", broken, x)
     assert not _cache._TRACING.locked()
 
+    # a thread that holds the turn (a trace calling a kept program) and waits for a program
+    # being built in the background lets the builder trace: no deadlock
+    import threading
+
+    got = []
+
+    def holder():
+        with _cache._turn():
+            _cache.prepare_cached("test-turns", "inner", jnp.cos, x)
+            got.append(_cache.call_cached("test-turns", "inner", jnp.cos, x))
+
+    worker = threading.Thread(target=holder, daemon=True)
+    worker.start()
+    worker.join(timeout=120)
+    assert not worker.is_alive() and not _cache._TRACING.locked()
+    np.testing.assert_allclose(got[0], np.cos(np.asarray(x)), rtol=1e-15)
+
 
 def test_kept_program_returns_equinox_modules_whole():
     """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
