@@ -107,13 +107,18 @@ _MIN_COMPILE_S = 0.5
 #: loop-fusion emitter instead of the MLIR fusion emitters that jaxlib 0.10 uses by default,
 #: which run an MLIR pass pipeline of their own for every fusion of a program. A cold default
 #: fit compiled its programs in 20 s of CPU with those and 12 s with this (11.2 -> 7.2 s on 2
-#: cores, issue 36); the programs run about as fast (benchmarks/README.md, eighth session).
+#: cores, issue 36). Most programs run as fast; the exact model's fit runs 1.6x longer (about
+#: 0.1 s of a warm fit): ``DAMPAX_FAST_COMPILE=0`` keeps XLA's defaults for many warm fits
+#: (benchmarks/README.md, issue 36, eighth session).
 CPU_COMPILER_OPTIONS = (("xla_cpu_use_fusion_emitters", False),)
 
 
 def compiler_options() -> dict | None:
     """The XLA options dampax compiles its programs with: :data:`CPU_COMPILER_OPTIONS` on a
-    CPU, XLA's defaults elsewhere (None)."""
+    CPU unless ``DAMPAX_FAST_COMPILE`` is 0 (or off/false/no), XLA's defaults otherwise
+    (None)."""
+    if os.environ.get("DAMPAX_FAST_COMPILE", "1").strip().lower() in _OFF:
+        return None
     return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
 
 

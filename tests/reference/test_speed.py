@@ -236,6 +236,12 @@ def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
         np.testing.assert_allclose(out, np.sin(np.asarray(x)) + k, rtol=1e-15)
     want = {"xla_cpu_use_fusion_emitters": False} if jax.default_backend() == "cpu" else None
     assert seen == [want] * 3
+    monkeypatch.setenv("DAMPAX_FAST_COMPILE", "0")  # XLA's defaults, another program
+    assert _cache.compiler_options() is None
+    np.testing.assert_allclose(_cache.call_cached("test-turns", "defaults", jnp.tan, x),
+                               np.tan(np.asarray(x)), rtol=1e-15)
+    assert seen[-1] is None and len(seen) == 4
+    monkeypatch.delenv("DAMPAX_FAST_COMPILE")
     assert not _cache._TRACING.locked()
 
     def broken(a):
