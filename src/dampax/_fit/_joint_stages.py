@@ -292,7 +292,10 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
                     params=None)
     if best == 0:
         return out, arrays, search
-    return jax.tree_util.tree_map(lambda v: v[best], both), batch[best - 1], search
+    # arrays, not numpy scalars: an enumeration item (the code) reads its message only from
+    # an array (equinox's Enumeration: a numpy scalar's message is "unknown")
+    return jax.tree_util.tree_map(lambda v: np.asarray(v[best]), both), batch[best - 1], \
+        search
 
 
 def _noise_level(single) -> float:
