@@ -473,6 +473,7 @@ def test_named_failures_undamped_and_max_steps(synthetic):
     # no decay to measure: a right answer (intervals from 0), named in a note, not a failure
     assert res.success, res.reason
     assert "[[Note]] no measurable decay" in res.report()
+    assert res.diagnostics["decay_wald"] >= 0.0  # a quadratic form (rounding gave -7e-21)
     ci = res.conf_interval(0.99)
     assert ci["mu"][0] == 0.0 and ci["D"][0] == 0.0
     t, x, _ = synthetic

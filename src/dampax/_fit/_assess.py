@@ -283,7 +283,8 @@ def decay(a: Inputs, m: Measures, v: Verdict) -> Finding:
     idx = [names.index(n) for n in damping]
     x = np.array([a.params[n] for n in damping])
     if m.cov is not None and np.all(np.isfinite(m.cov[np.ix_(idx, idx)])):
-        wald = float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x)
+        # a quadratic form of a covariance: >= 0 (rounding made it -7e-21 at x = 0)
+        wald = max(float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x), 0.0)
     else:
         se = np.array([a.stderr.get(n, math.nan) for n in damping])
         wald = float(np.sum((x / se) ** 2)) if np.all(se > 0) else math.nan
@@ -309,7 +310,7 @@ def split(a: Inputs, m: Measures, v: Verdict) -> Finding:
     names = _names(a)
     idx = [names.index(n) for n in weak]
     x = np.array([a.params[n] for n in weak])
-    wald = float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x)
+    wald = max(float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x), 0.0)
     diag = {"split_wald": wald}
     if wald > chi2_isf(0.01, len(weak)):
         turns = a.an.n_turns
