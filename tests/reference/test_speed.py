@@ -244,12 +244,23 @@ def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
     monkeypatch.delenv("DAMPAX_FAST_COMPILE")
     assert not _cache._TRACING.locked()
 
+    import gc
+
+    collecting = []
+
+    def probe(a):  # traced in its turn: Python's cyclic collector paused, back on after
+        collecting.append(gc.isenabled())
+        return 2.0 * a
+
+    _cache.call_cached("test-turns", "gc", probe, x)
+    assert collecting == [False] and gc.isenabled()
+
     def broken(a):
         raise RuntimeError("no trace")
 
     with pytest.raises(RuntimeError, match="no trace"):
         _cache.call_cached("test-turns", "broken", broken, x)
-    assert not _cache._TRACING.locked()
+    assert not _cache._TRACING.locked() and gc.isenabled()
 
     # a thread that holds the turn (a trace calling a kept program) and waits for a program
     # being built in the background lets the builder trace: no deadlock
@@ -265,7 +276,7 @@ def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
     worker = threading.Thread(target=holder, daemon=True)
     worker.start()
     worker.join(timeout=120)
-    assert not worker.is_alive() and not _cache._TRACING.locked()
+    assert not worker.is_alive() and not _cache._TRACING.locked() and gc.isenabled()
     np.testing.assert_allclose(got[0], np.cos(np.asarray(x)), rtol=1e-15)
 
 
