@@ -273,20 +273,24 @@ def residual_size(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
+def _wald(a: Inputs, m: Measures, group: list) -> float:
+    """Wald chi2 of ``group`` against 0, x^T pinv(C) x >= 0; NaN without a finite C."""
+    idx = [_names(a).index(n) for n in group]
+    if m.cov is None or not np.all(np.isfinite(cov := m.cov[np.ix_(idx, idx)])):
+        return math.nan
+    x = np.array([a.params[n] for n in group])
+    return max(float(x @ np.linalg.pinv(cov) @ x), 0.0)
+
+
 def decay(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """No measurable decay: the fitted damping constants together consistent with zero (the
     Wald test with the intervals' covariance does not reject at 5 %): a note."""
     damping, held = _damping(a)
     if not damping or held:
         return Finding()
-    names = _names(a)
-    idx = [names.index(n) for n in damping]
-    x = np.array([a.params[n] for n in damping])
-    if m.cov is not None and np.all(np.isfinite(m.cov[np.ix_(idx, idx)])):
-        # a quadratic form of a covariance: >= 0 (rounding made it -7e-21 at x = 0)
-        wald = max(float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x), 0.0)
-    else:
-        se = np.array([a.stderr.get(n, math.nan) for n in damping])
+    wald = _wald(a, m, damping)
+    if math.isnan(wald):  # no covariance: the standard errors alone
+        x, se = (np.array([d.get(n, math.nan) for n in damping]) for d in (a.params, a.stderr))
         wald = float(np.sum((x / se) ** 2)) if np.all(se > 0) else math.nan
     diag = {"decay_wald": wald}
     if not wald > chi2_isf(0.05, len(damping)):
@@ -307,11 +311,7 @@ def split(a: Inputs, m: Measures, v: Verdict) -> Finding:
     weak = [n for n in damping if m.sd.get(n, 0.0) > 0 and abs(a.params[n] / m.sd[n]) < 1.96]
     if len(weak) < 2:
         return Finding()
-    names = _names(a)
-    idx = [names.index(n) for n in weak]
-    x = np.array([a.params[n] for n in weak])
-    wald = max(float(x @ np.linalg.pinv(m.cov[np.ix_(idx, idx)]) @ x), 0.0)
-    diag = {"split_wald": wald}
+    diag = {"split_wald": (wald := _wald(a, m, weak))}
     if wald > chi2_isf(0.01, len(weak)):
         turns = a.an.n_turns
         diag["unidentifiable"] = (
