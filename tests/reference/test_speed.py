@@ -280,6 +280,35 @@ def test_kept_programs_compile_with_dampax_options_in_turns(monkeypatch):
     np.testing.assert_allclose(got[0], np.cos(np.asarray(x)), rtol=1e-15)
 
 
+def test_kept_executables_load_without_the_turn(monkeypatch):
+    """A kept executable is loaded without the tracing turn (loading traces nothing): with
+    the turn held by a thread that traces, another thread loads its program (a repeated
+    command's programs load side by side) and gets the same result."""
+    import threading
+    import time
+
+    from dampax import _cache
+
+    x = jnp.linspace(0.0, 1.0, 5)
+    shift = float(time.time_ns() % 1000003)  # a program no cache of this session holds
+
+    def fn(a):
+        return jnp.sin(a) + shift
+
+    first = _cache.call_cached("test-load", shift, fn, x)  # compiled here, kept as a file
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})  # a new process: only the file is left
+    got = []
+    with _cache._turn():
+        worker = threading.Thread(
+            target=lambda: got.append(_cache.call_cached("test-load", shift, fn, x)),
+            daemon=True)
+        worker.start()
+        worker.join(timeout=60)
+        assert not worker.is_alive()  # it did not wait for the turn
+    np.testing.assert_array_equal(got[0], first)
+    assert not _cache._TRACING.locked()
+
+
 def test_kept_program_returns_equinox_modules_whole():
     """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
     comes back with the traced path's treedef and bits; the file holds the program (an
