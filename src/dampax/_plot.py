@@ -19,30 +19,6 @@ from ._studies._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._studies._summary import ModelRun, damping_ratios
 
 
-def import_in_background() -> None:
-    """Start importing matplotlib's figure modules (the Agg canvas, the figure, lines and
-    patches, the font list) in a daemon thread, for a command that draws once its numbers
-    are computed: the imports (0.4 s of a fresh process) run while the computation holds no
-    Python lock (XLA releases it), and the first figure finds them loaded. Python's import
-    locks make a figure drawn before they finish wait for them; an error here is left to
-    that figure's own import."""
-    import threading
-
-    def load():
-        try:
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-            import matplotlib.lines  # noqa: F401
-            import matplotlib.patches  # noqa: F401
-            from matplotlib import font_manager
-
-            font_manager.findfont("DejaVu Sans")
-        except Exception:  # noqa: BLE001, S110 - the figure's own import reports it
-            pass
-
-    threading.Thread(target=load, name="dampax-matplotlib", daemon=True).start()
-
-
 def _legend_rows(n_labels: int, ncols: int = 4) -> int:
     """Rows of a figure legend of ``n_labels`` entries in ``ncols`` columns."""
     return max(1, math.ceil(n_labels / ncols))

@@ -35,7 +35,7 @@ from .._fit import (
 )
 from .._io import write_text
 from .._oscillator import Oscillator
-from .._plot import import_in_background, plot_fit, plot_joint_fit
+from .._plot import plot_fit, plot_joint_fit
 from .._trace import load_trace
 from ._common import PROG, compile_clock, error, fmt, prepare_out_dir, split_names
 
@@ -141,7 +141,6 @@ def run_fit(args: argparse.Namespace) -> int:
                          "mu_s = mu)")
     start = _parse_start(args.start)
     truth = None
-    import_in_background()  # fit.png is drawn at the end
     units = args.units
     try:  # the flags map onto dp.fit's option objects, checked when made
         window = Window(start=start, end=args.end, units=units).checked()
@@ -255,7 +254,6 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     if args.loss != "linear" or args.optimizer != "lm":
         raise ValueError("a joint fit is least squares: --loss linear, --optimizer lm")
     out_dir = prepare_out_dir(args.out)
-    import_in_background()  # fit.png is drawn at the end
     traces = [load_trace(p, time=args.time, position=args.position, rate=_parse_rate(args.rate),
                          delimiter=args.delimiter, scale=args.scale) for p in paths]
     osc, fit_omega0 = _oscillator(args)
