@@ -614,6 +614,18 @@ def prepare_cached(name: str, key, fn, *args) -> None:
         _EXECUTABLES[memo] = _pool().submit(_compile_tree, name, key, fn, specs)
 
 
+def finish_background() -> None:
+    """Wait for every program still being built in the background (:func:`prepare_cached`),
+    so that each is compiled and kept for the next process; an error is left to the call
+    that would have needed the program. A process that ends with ``os._exit`` (the console
+    script, ``dampax_cli.console``) calls this first: a normal exit joins the compile
+    threads, which finish their queue."""
+    for entry in list(_EXECUTABLES.values()):
+        if hasattr(entry, "result"):
+            with contextlib.suppress(Exception):
+                entry.result()
+
+
 def _entry(name: str, key, fn, specs, memo):
     """The memo's (executable, treedef, static), built now or awaited from
     :func:`prepare_cached`'s thread."""

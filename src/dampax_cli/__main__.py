@@ -1,7 +1,5 @@
 """``python -m dampax_cli``: the ``dampax`` console script."""
 
-import sys
+from . import console
 
-from . import main
-
-sys.exit(main())
+console()

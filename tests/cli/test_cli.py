@@ -183,6 +183,23 @@ def test_console_script(console_script):
         assert [float(v) for v in ref] == pytest.approx(exact, abs=1e-4), out
 
 
+def test_console_script_leaves_with_the_status_and_every_line():
+    """The console script ends the process with ``os._exit`` after a command
+    (``dampax_cli.leave``): the command's status and its last line still arrive through a
+    pipe (the streams are flushed first), and atexit handlers run."""
+    code = ("import atexit, sys; from dampax_cli import leave; "
+            "atexit.register(lambda: print('atexit ran', file=sys.stderr)); "
+            "print('last line', end=''); leave(3)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 3 and proc.stdout == "last line"
+    assert proc.stderr.strip() == "atexit ran"
+    proc = subprocess.run([sys.executable, "-m", "dampax_cli", "solve", "--m", "-1"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.startswith("dampax: error: ")
+    assert proc.stderr.count("\n") == 1
+
+
 @pytest.mark.parametrize("argv, flag", [
     (["solve", "--plot", "/proc/dampax-test.png"], "--plot"),
     (["sensitivity", "--plot", "/proc/dampax-test.png"], "--plot"),
@@ -288,7 +305,7 @@ def test_help_and_version_do_not_import_jax():
 
     pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
     scripts = tomllib.loads(pyproject.read_text())["project"]["scripts"]
-    assert scripts == {"dampax": "dampax_cli:main"}
+    assert scripts == {"dampax": "dampax_cli:console"}
     for argv in LIGHT:
         proc = subprocess.run([sys.executable, "-X", "importtime", "-m", "dampax_cli", *argv],
                               capture_output=True, text=True, timeout=60)

@@ -309,6 +309,25 @@ def test_kept_executables_load_without_the_turn(monkeypatch):
     assert not _cache._TRACING.locked()
 
 
+def test_background_programs_finish_before_a_fast_exit(monkeypatch):
+    """``_cache.finish_background`` (called by the console script before ``os._exit``) waits
+    for a program prepared in the background: afterwards it is built and kept as a file, as a
+    normal exit (which joins the compile threads) leaves it."""
+    import time
+
+    from dampax import _cache
+
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})
+    x = jnp.linspace(0.0, 1.0, 7)
+    shift = float(time.time_ns() % 1000033)
+    _cache.prepare_cached("test-finish", shift, lambda a: jnp.cos(a) - shift, x)
+    _cache.finish_background()
+    (entry,) = _cache._EXECUTABLES.values()
+    assert not hasattr(entry.result() if hasattr(entry, "result") else entry, "result")
+    assert not any(hasattr(e, "result") and not e.done() for e in _cache._EXECUTABLES.values())
+    assert list(_cache.exported_dir().glob("test-finish-*.jaxexe"))
+
+
 def test_kept_program_returns_equinox_modules_whole():
     """call_cached_tree: an output holding equinox modules (a solution, its RESULTS member)
     comes back with the traced path's treedef and bits; the file holds the program (an
