@@ -500,31 +500,32 @@ def _compile_tree(name: str, key, fn, specs):
     """(executable, treedef, static) of ``fn`` for ``specs``: a kept executable loaded
     without the tracing turn (:func:`_kept_executable_tree`), else :func:`_compile_tree_turn`
     in its turn (:func:`_turn`)."""
-    kept = _kept_executable_tree(name, key, specs)
+    folder = exported_dir()
+    digest = None if folder is None else _digest(_program_text(key, specs))
+    kept = _kept_executable_tree(folder, name, digest)
     if kept is not None:
         return kept
     with _turn():
-        return _compile_tree_turn(name, key, fn, specs)
+        return _compile_tree_turn(name, fn, specs, folder, digest)
 
 
-def _kept_executable_tree(name: str, key, specs):
+def _kept_executable_tree(folder, name: str, digest):
     """(executable, treedef, static) of a kept executable of the program, or None.
 
     Loading traces nothing, so it does not wait for the tracing turn: a repeated command's
     programs load side by side in the compile threads, each ready as soon as its own file is
     read, where in turns the first one the fit calls waited for those asked before it (the
     exact model's fit, the longest to load: 0.35 s of ``dampax fit --example``)."""
-    folder = exported_dir()
     if folder is None:
         return None
-    loaded = _load_executable(_executable_path(folder, name, _digest(_program_text(key, specs))))
+    loaded = _load_executable(_executable_path(folder, name, digest))
     if loaded is None or loaded[1] is None:
         return None
     executable, (treedef, static) = loaded
     return executable, treedef, static
 
 
-def _compile_tree_turn(name: str, key, fn, specs):
+def _compile_tree_turn(name: str, fn, specs, folder, digest):
     """(executable, treedef, static): ``fn`` compiled for ``specs``, kept as a file.
 
     The kept program returns the array leaves of ``fn``'s output; its treedef and its other
@@ -532,12 +533,14 @@ def _compile_tree_turn(name: str, key, fn, specs):
     modules, named tuples) comes back whole. Without a cache folder, or when the program or
     its treedef cannot be kept, the executable is compiled in-process (treedef None: it
     returns the pytree itself).
+
+    Arguments:
+        folder: the cache folder (``exported_dir()``), or None.
+        digest: the digest of the program's text (``_program_text``), or None without one.
     """
-    folder = exported_dir()
     plain = jax.jit(fn)
     if folder is None:
         return _compile(plain.lower(*specs)), None, None
-    digest = _digest(_program_text(key, specs))
     path = folder / f"{name}-{digest[:32]}.jaxcall"
     exe_path = _executable_path(folder, name, digest)
     exported = None
