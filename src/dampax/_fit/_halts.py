@@ -186,9 +186,14 @@ def search_other_halts(problem, best, last):
     return best, last, others, notes
 
 
-def _noise_variance(full, best) -> float:
+def _noise_variance(problem, best) -> float:
     """The noise variance of the optimum's residuals (its chi-square per degree of freedom)."""
-    return float(best.chisqr) / max(full.n - int(sum(bool(v) for v in full.vary)), 1)
+    return float(best.chisqr) / max(problem.n - int(sum(bool(v) for v in problem.vary)), 1)
+
+
+def _near(out, best, problem) -> bool:
+    """Whether a fit's cost is within :data:`NEAR_RISE` noise variances of the optimum's."""
+    return float(out.chisqr) - float(best.chisqr) < NEAR_RISE * _noise_variance(problem, best)
 
 
 def _unfinished(out) -> bool:
@@ -207,9 +212,7 @@ def _free_fit(problem, best, start, name: str, fs: float):
         The last solve (``_problem.Solved``).
     """
     last = problem.solve(start, name, fs, budget=min(problem.steps, HALT_STEPS))
-    if _unfinished(last.out) and \
-            float(last.out.chisqr) - float(best.chisqr) < NEAR_RISE * _noise_variance(
-                problem, best):
+    if _unfinished(last.out) and _near(last.out, best, problem):
         last = problem.solve(last.out.params, name, fs, like=last)
     return last
 
@@ -229,7 +232,7 @@ def _held_fit(held, full, best, mu_alt: float, last):
     name, fs = last.model, last.fs
     last = held.solve(predicted_start(best, "mu", mu_alt), name, fs, like=last)
     out = last.out
-    if not float(out.chisqr) - float(best.chisqr) < NEAR_RISE * _noise_variance(full, best):
+    if not _near(out, best, full):
         return last
     if _unfinished(out):
         last = full.solve(out.params, name, fs, like=last)

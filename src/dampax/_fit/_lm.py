@@ -67,15 +67,15 @@ def rows_and_jacobian(fn, y):
     return r, J
 
 
-def _damped_step(r, J, step_size):
+def _damped_step(A, g, step_size):
     """(J^T J + lambda I)^-1 J^T r with lambda = 1 / step_size (optimistix's damped Newton
-    step: lambda the largest float where the step size is below eps)."""
-    eps = jnp.finfo(r.dtype).eps
+    step: lambda the largest float where the step size is below eps), from A = J^T J and
+    g = J^T r."""
+    eps = jnp.finfo(g.dtype).eps
     pred = step_size > eps
-    lam = jnp.where(pred, 1.0 / jnp.where(pred, step_size, 1.0), jnp.finfo(r.dtype).max)
-    A = J.T @ J + lam * jnp.eye(J.shape[1], dtype=J.dtype)
-    L = jnp.linalg.cholesky(A)
-    return jax.scipy.linalg.cho_solve((L, True), J.T @ r)
+    lam = jnp.where(pred, 1.0 / jnp.where(pred, step_size, 1.0), jnp.finfo(g.dtype).max)
+    L = jnp.linalg.cholesky(A + lam * jnp.eye(A.shape[0], dtype=A.dtype))
+    return jax.scipy.linalg.cho_solve((L, True), g)
 
 
 #: the accepted point is the optimum when the undamped Gauss-Newton step would lower the cost
@@ -83,7 +83,7 @@ def _damped_step(r, J, step_size):
 GN_DECREMENT = 1e-10
 
 
-def resolved(r, J):
+def resolved(r, A, g):
     """Whether no step can lower the cost 0.5 |r|^2 by more than it can be resolved: the
     undamped Gauss-Newton decrement 0.5 g^T (J^T J)^-1 g (g = J^T r: the most the local
     quadratic model can gain) is below :data:`GN_DECREMENT` times the noise variance per
@@ -94,10 +94,12 @@ def resolved(r, J):
     ~1e-13 of itself as its step sizes change), so optimistix's rule rejected step after
     step and shrank the step size 4x each time until it met the step tolerance: 10-20 wasted
     Jacobians of the exact model per fit (issue 36: 28 steps of which 22 rejected at the
-    optimum, on the example trace). NaN (a singular J^T J) resolves nothing."""
-    p = J.shape[1]
-    g = J.T @ r
-    A = J.T @ J
+    optimum, on the example trace). NaN (a singular J^T J) resolves nothing.
+
+    Arguments:
+        r: the residuals at the point; A = J^T J and g = J^T r there.
+    """
+    p = A.shape[0]
     ridge = 1e3 * jnp.finfo(r.dtype).eps * jnp.max(jnp.abs(jnp.diag(A)))
     L = jnp.linalg.cholesky(A + ridge * jnp.eye(p, dtype=A.dtype))
     decrement = 0.5 * g @ jax.scipy.linalg.cho_solve((L, True), g)
@@ -156,8 +158,9 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
         r = jnp.where(accept, r_eval, s.r)
         J = jnp.where(accept, J_eval, s.J)
         step_size = mul * s.step_size
-        y_eval = y - _damped_step(r, J, step_size)
-        done = accept & small | resolved(r, J) | ~jnp.all(jnp.isfinite(y))
+        A, g = J.T @ J, J.T @ r  # the normal equations of the step and of the stop
+        y_eval = y - _damped_step(A, g, step_size)
+        done = accept & small | resolved(r, A, g) | ~jnp.all(jnp.isfinite(y))
         return _State(s.k + 1, y, r, J, y_eval, step_size, jnp.array(False), done)
 
     s = jax.lax.while_loop(cond, body, init)
