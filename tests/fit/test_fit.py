@@ -167,6 +167,10 @@ def test_soft_l1_resists_outliers(synthetic):
 
 
 def test_constant_not_in_the_data_goes_to_zero_gracefully(synthetic):
+    """b (absent from the data) goes to its bound; the cost is scipy's least_squares optimum
+    with the constants bounded at 0 (an independent optimizer on the same residuals)."""
+    from scipy.optimize import least_squares
+
     t, x, _ = synthetic
     res = fit(t, x, oscillator=KNOWN, free=("mu", "b", "D"), fit_omega0=True,
               window=dp.Window(start="data"), model="ansatz")
@@ -174,6 +178,14 @@ def test_constant_not_in_the_data_goes_to_zero_gracefully(synthetic):
     assert res.params["b"] < 3 * res.stderr["b"] and math.isfinite(res.stderr["b"])
     for name in ("mu", "D"):
         assert abs(res.params[name] - TRUTH[name]) < 3 * res.stderr[name]
+    fun, jac, names = residual_function(t, x, free=("mu", "b", "D"), oscillator=KNOWN,
+                                        fit_omega0=True)
+    lower = [0.0 if n in ("mu", "b", "D") else -np.inf for n in names]
+    start = np.array([max(res.init[n], 1e-6) if n in ("mu", "b", "D") else res.init[n]
+                      for n in names])
+    ref = least_squares(fun, start, jac=jac, bounds=(lower, np.inf), x_scale="jac",
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=500)
+    assert 0.5 * res.chisqr <= ref.cost * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("optimizer, tol", [("lbfgs", 1e-4), ("adam", 0.02)])

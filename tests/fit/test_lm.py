@@ -11,7 +11,7 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from dampax._fit._lm import levenberg_marquardt
+from dampax._fit._lm import GIVE_UP_AFTER, levenberg_marquardt
 
 T = np.linspace(0.0, 4.0, 60)
 DATA = 2.0 * np.exp(-0.7 * T) * np.cos(3.0 * T + 0.4) + 0.01 * np.random.default_rng(
@@ -95,3 +95,58 @@ def test_budget_under_vmap_and_a_start_that_is_not_finite():
     assert list(np.asarray(out.steps)) == [3, 1]  # the NaN start: accepted once, not finite
     assert not bool(out.converged[0]) and bool(out.finite[0])
     assert not bool(out.converged[1]) and not bool(out.finite[1])
+
+
+def test_give_up_stops_a_fit_far_above_and_leaves_the_others_unchanged():
+    """``give_up``: Rosenbrock from (-1.2, 1) takes more than GIVE_UP_AFTER steps; with a
+    bound below its cost at that step it stops there (finite, not converged); with a bound
+    above (or inf) it follows the same iterates to the same optimum (scipy's) as without."""
+    y0 = jnp.asarray([-1.2, 1.0])
+
+    def run(give_up):
+        return jax.jit(lambda y, g: levenberg_marquardt(
+            _rosenbrock, y, rtol=1e-10, atol=1e-12, max_steps=200, give_up=g))(y0, give_up)
+
+    plain = jax.jit(lambda y: levenberg_marquardt(_rosenbrock, y, rtol=1e-10, atol=1e-12,
+                                                  max_steps=200))(y0)
+    assert int(plain.steps) > GIVE_UP_AFTER and bool(plain.converged)
+    at16 = jax.jit(lambda y: levenberg_marquardt(_rosenbrock, y, rtol=1e-10, atol=1e-12,
+                                                 max_steps=200, budget=GIVE_UP_AFTER))(y0)
+    cost16 = float(jnp.sum(at16.residual ** 2))
+    assert cost16 > 1e-6  # still far from the optimum (cost 0) after 16 steps
+    stopped = run(0.5 * cost16)
+    assert int(stopped.steps) == GIVE_UP_AFTER
+    assert not bool(stopped.converged) and bool(stopped.finite)
+    np.testing.assert_array_equal(stopped.value, at16.value)
+    for bound in (2.0 * cost16, jnp.inf):
+        went_on = run(bound)
+        assert int(went_on.steps) == int(plain.steps) and bool(went_on.converged)
+        np.testing.assert_array_equal(went_on.value, plain.value)
+    np.testing.assert_allclose(plain.value, [1.0, 1.0], rtol=1e-8)
+
+
+def _towards_zero(y):
+    """A decay whose rate the data want below 0 (they grow slowly): the rate p = exp(y[1])
+    (log coordinates, as the fits' damping constants) creeps towards 0 by damped steps."""
+    return y[0] * jnp.exp(-jnp.exp(y[1]) * T) - (1.0 + 0.02 * T)
+
+
+def test_leave_stops_where_the_newton_step_crosses_the_bound():
+    """``leave``: where the undamped Gauss-Newton step from LEAVE_AFTER accepted points in a
+    row would send p = exp(y[1]) below 0 (y[1] falls by 1 or more, linearised), the loop
+    stops, not converged, after 3 steps; without it the creep runs its whole budget (400
+    steps, p = exp(-17.7) and still falling)."""
+    y0 = jnp.asarray([1.0, jnp.log(0.3)])
+
+    def leave(y, newton):
+        return newton[1] >= 1.0
+
+    creep = jax.jit(lambda y: levenberg_marquardt(_towards_zero, y, rtol=1e-10, atol=1e-12,
+                                                  max_steps=400))(y0)
+    left = jax.jit(lambda y: levenberg_marquardt(_towards_zero, y, rtol=1e-10, atol=1e-12,
+                                                 max_steps=400, leave=leave))(y0)
+    assert not bool(left.converged) and bool(left.finite)
+    assert int(left.steps) + 10 <= int(creep.steps)
+    # where it stopped, the Gauss-Newton step (A^-1 g, from the returned J and r) crosses
+    J, r = np.asarray(left.jac), np.asarray(left.residual)
+    assert np.linalg.solve(J.T @ J, J.T @ r)[1] >= 1.0

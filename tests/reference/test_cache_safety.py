@@ -276,3 +276,33 @@ def test_a_prepared_program_is_built_once_in_the_background(cache, monkeypatch):
     with pytest.raises(RuntimeError, match="no program here"):
         _cache.call_cached("broken", "bg", broken, X)
     assert built == ["safety", "broken", "broken"]
+
+
+def test_kept_arrays_are_verified_and_read_without_pickle(cache, tmp_path):
+    """``kept_arrays`` (the example trace of ``dampax fit --example``): made once, then read
+    back equal without calling ``make``; another key makes them again; a file whose payload
+    is replaced by a pickle that would run code (the header kept, the HMAC now wrong) is set
+    aside with a warning and the arrays made again, and the planted code never runs."""
+    calls = []
+
+    def make():
+        calls.append(1)
+        return {"x": np.linspace(0.0, 1.0, 7) ** 3, "n": np.arange(4)}
+
+    first = _cache.kept_arrays("arrays", ("k", 1), make)
+    again = _cache.kept_arrays("arrays", ("k", 1), make)
+    assert len(calls) == 1
+    for k in first:
+        np.testing.assert_array_equal(again[k], first[k])
+    _cache.kept_arrays("arrays", ("k", 2), make)
+    assert len(calls) == 2
+    for path in (cache / "exported").glob("arrays-*.npz"):
+        data = path.read_bytes()
+        start = len(_cachefiles._MAGIC) + 8
+        size = int.from_bytes(data[len(_cachefiles._MAGIC):start], "little")
+        bomb = pickle.dumps(np.asarray([_Bomb(tmp_path / "planted")], dtype=object))
+        path.write_bytes(data[:start + size] + bomb + data[-_cachefiles._TAG:])
+    with pytest.warns(_cache.CacheWarning, match="set aside"):
+        out = _cache.kept_arrays("arrays", ("k", 1), make)
+    assert len(calls) == 3 and not (tmp_path / "planted").exists()
+    np.testing.assert_array_equal(out["x"], first["x"])

@@ -20,7 +20,6 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optax
 
 from .._cache import call_cached_tree, prepare_cached_tree
 from .._models._solution import result_where
@@ -138,6 +137,8 @@ def _clamp_flat(theta, args: ResidualArgs, model: FitModel):
 
 def _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol):
     """Minimise loss_fn with optax adam (decaying rate) or L-BFGS; (theta, code, steps)."""
+    import optax  # (imported here: a tenth of a second that the default optimizer never uses)
+
     lbfgs = optimizer == "lbfgs"
     if lbfgs:
         opt = optax.lbfgs()
@@ -181,17 +182,18 @@ def _lm_code(sol: LMSolution) -> FIT_RESULTS:
         sol.finite, FIT_RESULTS.max_steps_reached, FIT_RESULTS.failed))
 
 
-def _lm_once(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions, budget):
+def _lm_once(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions, budget,
+             give_up=None):
     """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point)."""
     sol = levenberg_marquardt(lambda th: fn(th, args), theta0, rtol=options.rtol,
                               atol=options.atol, max_steps=int(options.max_steps),
-                              budget=budget)
+                              budget=budget, give_up=give_up)
     return (_clamp_flat(sol.value, args, model), _lm_code(sol), sol.steps,
             (sol.residual, sol.jac))
 
 
 def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions,
-               budget=None):
+               budget=None, give_up=None):
     """optimistix Levenberg-Marquardt in ``model.lm_rounds`` restarts, for constants that go
     to 0.
 
@@ -201,15 +203,19 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     model is smooth through p = 0) moves a constant that it sends to p <= 0 next to its lower
     bound (~1e-10 of the damping scale; the optimizer can still raise it), and (2) the log
     coordinates are rescaled so that their columns match the largest nuisance column
-    (Marquardt's scaling, per round). A round after a converged one with nothing changed is
-    skipped. Returns (theta, code, steps, final) with final = (r, J) for one round.
-    ``budget``: the steps of one round (traced, at most max_steps; None: max_steps).
+    (Marquardt's scaling, per round). A round other than the last ends where (1) would move
+    a constant (``_lm.levenberg_marquardt``'s ``leave``: 3 accepted points in a row; the
+    example's (b, D) ansatz fit crept 51 steps towards D = 0 before). A round after a
+    converged one with nothing changed is skipped. Returns (theta, code, steps, final) with
+    final = (r, J) for one round.
+    ``budget``: the steps of one round (traced, at most max_steps; None: max_steps);
+    ``give_up``: the bound of ``_lm.levenberg_marquardt`` (one round only).
     """
     _, _, max_steps, rtol, atol, opts = options
     # the step budget is honoured: never more rounds than steps, never more steps in all
     rounds = max(min(model.lm_rounds, int(max_steps)), 1)
     if rounds == 1:
-        return _lm_once(fn, theta0, args, model, options, budget)
+        return _lm_once(fn, theta0, args, model, options, budget, give_up)
     per_round = max(int(max_steps) // rounds, 1)
     vary = flat(args.vary)
     dref, lo = log_bounds(args.setup, args.vary)
@@ -220,25 +226,33 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     def rows(th):
         return _residual_rows(th, args, model, opts, clamped=False)
 
-    def solve(theta, scale):
+    def solve(theta, scale, last):
+        def leave(u, newton):
+            # the undamped Gauss-Newton step sends p = dref exp(theta) to p <= 0 (theta
+            # falls by 1 or more, linearised) for a constant above lo + 1: the step that
+            # follows the round would move it (the round's damped steps only creep there)
+            th = theta + scale * u
+            return jnp.any(is_log & vary & (th > lo + 1.0) & (scale * newton >= 1.0)) & ~last
+
         sol = levenberg_marquardt(lambda u: fn(theta + scale * u, args),
                                   jnp.zeros_like(theta), rtol=rtol, atol=atol,
-                                  max_steps=per_round)
+                                  max_steps=per_round, leave=leave)
         return (_clamp_flat(theta + scale * sol.value, args, model), sol.steps,
                 _lm_code(sol))
 
     def one(carry, index):
         theta, scale, steps, code, redo = carry
         again = (steps == 0) | (code != FIT_RESULTS.successful) | redo
-        theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc: (th, 0, code),
-                                            theta, scale)
+        theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc, la: (th, 0, code),
+                                            theta, scale, index == rounds - 1)
         r, J = rows_and_jacobian(rows, theta)
         # Gauss-Newton step in (p for the damping constants, theta for the rest)
         p = dref * jnp.exp(theta)
         Jx = jnp.where(is_log, J / p, J)
         Jx = jnp.where(vary, Jx, 0.0)
         step = tall_lstsq(Jx, -r)  # (XLA's CPU lstsq of a tall J: 44 ms; _linalg)
-        snap = is_log & vary & (p + step <= 0.0) & (theta > lo + 1.0)
+        down = is_log & vary & (p + step <= 0.0)
+        snap = down & (theta > lo + 1.0)
         theta = jnp.where(snap, lo + 1.0, theta)
         # Marquardt-like rescaling of the log coordinates
         cn = jnp.sqrt(jnp.sum(J * J, axis=0))
@@ -246,12 +260,16 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
         safe = jnp.where(cn > 0.0, cn, 1.0)
         new = jnp.where(is_log & vary & (cn > 0.0), jnp.clip(ref / safe, 1.0, 1e15), 1.0)
         ratio = new / scale
-        redo = jnp.any(snap) | jnp.any((ratio > 10.0) | (ratio < 0.1))
+        # a constant held at its bound by the step (down, not snapped) gains nothing from
+        # another scale: a round for it alone changed nothing (28 steps on the example's
+        # (b, D) ansatz fit)
+        rescaled = ((ratio > 10.0) | (ratio < 0.1)) & ~(down & ~snap)
+        redo = jnp.any(snap) | jnp.any(rescaled)
         return (theta, new, steps + n_steps, code, redo), None
 
     init = (theta0, jnp.ones_like(theta0), jnp.array(0), FIT_RESULTS.successful,
             jnp.array(True))
-    (theta, _, steps, code, _), _ = jax.lax.scan(one, init, None, length=rounds)
+    (theta, _, steps, code, _), _ = jax.lax.scan(one, init, jnp.arange(rounds))
     return theta, code, steps, None
 
 
@@ -345,12 +363,14 @@ class CoreOptions(NamedTuple):
 
 class Tuning(NamedTuple):
     """The traced settings of one fit (:func:`core`): the soft_l1 scale ``f_scale`` in data
-    units (inf: the linear loss) and Levenberg-Marquardt's step ``budget`` (at most
-    ``CoreOptions.max_steps``; None: that), honoured by the models of one round
-    (``FitModel.lm_rounds``)."""
+    units (inf: the linear loss), Levenberg-Marquardt's step ``budget`` (at most
+    ``CoreOptions.max_steps``; None: that) and ``give_up``, a chi-square (data units) above
+    which the fit stops after ``_lm.GIVE_UP_AFTER`` steps (None or inf: never), both
+    honoured by the models of one round (``FitModel.lm_rounds``)."""
 
     f_scale: Any
     budget: Any = None
+    give_up: Any = None
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
@@ -371,7 +391,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         A :class:`CoreResult`.
     """
     model, optimizer, max_steps, rtol, atol, opts = options
-    f_scale, budget = tuning
+    f_scale, budget, give_up = tuning
     spec = FIT_MODELS[model]
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
@@ -380,8 +400,10 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
     fn = _materialised(raw, args)  # (reverse mode for optax: J built forward, transposed)
     final = None
     if optimizer == "lm":
-        theta, code, steps, final = _lm_rounds(raw, theta0, args, spec, options,
-                                               budget if spec.lm_rounds == 1 else None)
+        one = spec.lm_rounds == 1
+        theta, code, steps, final = _lm_rounds(
+            raw, theta0, args, spec, options, budget if one else None,
+            give_up / st.sx ** 2 if one and give_up is not None else None)
     else:
         def loss_fn(th):
             return 0.5 * jnp.sum(fn(th, args) ** 2)
@@ -430,11 +452,13 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
                       coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
-def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> CoreResult | None:
+def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | None:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
     the same shapes shares one compiled function. ``static``: the fields of
-    :class:`CoreOptions` by name; ``budget``: the steps (traced, at most ``max_steps``;
-    None: ``max_steps``), honoured by the models of one Levenberg-Marquardt round.
+    :class:`CoreOptions` by name; ``tuning``: a :class:`Tuning` (the soft_l1 scale, the
+    steps, traced, at most ``max_steps``, None: ``max_steps``, honoured by the models of one
+    Levenberg-Marquardt round, and the chi-square above which the fit gives up after
+    ``_lm.GIVE_UP_AFTER`` steps, None: never) or the soft_l1 scale alone.
 
     Called with concrete values (an eager fit), the compiled program is kept
     (``_cache.call_cached_tree``): a repeated fit, also in a new process, neither traces nor
@@ -442,10 +466,12 @@ def run_core(t, x, weight, p0, vary, consts, f_scale, budget=None, **static) -> 
     ``static``: only start compiling that program in the background
     (``_cache.prepare_cached_tree``; returns None)."""
     prepare = static.pop("prepare", False)
+    f_scale, budget, give_up = tuning if isinstance(tuning, Tuning) else Tuning(tuning)
     args = (jnp.asarray(t, dtype=float), jnp.asarray(x, dtype=float),
             jnp.asarray(weight, dtype=float), as_arrays(p0), as_arrays(vary, bool),
             as_arrays(consts), Tuning(jnp.asarray(f_scale, dtype=float), jnp.asarray(
-                static["max_steps"] if budget is None else budget, dtype=int)))
+                static["max_steps"] if budget is None else budget, dtype=int),
+                jnp.asarray(jnp.inf if give_up is None else give_up, dtype=float)))
     options = CoreOptions(**static)
     if is_concrete(args):
         call = prepare_cached_tree if prepare else call_cached_tree

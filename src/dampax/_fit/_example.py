@@ -8,7 +8,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import call_cached_tree
+from .._cache import call_cached_tree, kept_arrays
 from .._oscillator import Oscillator
 from .._reference import _uniform
 from .._solve import solve
@@ -37,17 +37,24 @@ def example_trace(**overrides) -> tuple[Trace, dict]:
     """
 
     truth = {**EXAMPLE, **overrides}
-    osc = Oscillator(m=truth["m"], k=truth["k"], mu=truth["mu"], b=truth["b"], D=truth["D"])
     t = np.arange(0.0, truth["t_end"], 1.0 / truth["rate"])
+    # the same arrays every time: kept in the cache (a repeated `dampax fit --example`
+    # neither solves nor samples)
+    x = kept_arrays("example", sorted(truth.items()), lambda: {"x": _example_x(truth, t)})["x"]
+    return Trace(t=t, x=x, source="dampax example (reference integrator)",
+                 time_column="t", position_column="x", n_rows=t.size), truth
+
+
+def _example_x(truth: dict, t: np.ndarray) -> np.ndarray:
+    """The example's noisy positions at ``t`` (:func:`example_trace`)."""
+    osc = Oscillator(m=truth["m"], k=truth["k"], mu=truth["mu"], b=truth["b"], D=truth["D"])
     w0 = math.sqrt(truth["k"] / truth["m"])
     swings = swing_budget(truth["t_end"], w0, "data")
     sol = solve(osc, truth["x0"], truth["v0"], method="reference", t_end=float(t[-1]) + 0.01,
                 max_swings=swings)
     x = np.asarray(_positions(sol, jnp.asarray(t)))
     rng = np.random.default_rng(truth["seed"])
-    x = x + truth["noise"] * rng.standard_normal(t.size)
-    return Trace(t=t, x=x, source="dampax example (reference integrator)",
-                 time_column="t", position_column="x", n_rows=t.size), truth
+    return x + truth["noise"] * rng.standard_normal(t.size)
 
 
 def _state_on_grid(sol, t, start, step):

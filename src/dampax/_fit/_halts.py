@@ -33,6 +33,13 @@ HALT_STEPS = 64
 #: noise variances of the optimum's: the check fails below LR_CHI2 (6.63) times the
 #: intervals' variance ratio (sd/stderr)^2, up to about 10 for correlated residuals
 NEAR_RISE = 100.0
+#: a fit of the search whose cost after ``_lm.GIVE_UP_AFTER`` (16) steps lies more than this
+#: many noise variances above the optimum's stops there (:func:`_far`): on the calibration
+#: family (benchmarks/halt_steps.py, 1341 held fits) the held fits that end within
+#: NEAR_RISE lay at most 385 NEAR_RISE up after 16 steps, 26 times below this bound; about
+#: one held fit in thirteen lies above it and sits on a jump of the halt (the example's three
+#: lie 4e5 NEAR_RISE up)
+GIVE_UP_RISE = 1e4 * NEAR_RISE
 
 
 def _motion_start(p: dict, t, m: float, g: float, k3: float, mu_s=None):
@@ -196,13 +203,20 @@ def _near(out, best, problem) -> bool:
     return float(out.chisqr) - float(best.chisqr) < NEAR_RISE * _noise_variance(problem, best)
 
 
+def _far(problem, best) -> float:
+    """The chi-square above which a fit of the search gives up after ``_lm.GIVE_UP_AFTER``
+    steps: :data:`GIVE_UP_RISE` noise variances above the optimum's."""
+    return float(best.chisqr) + GIVE_UP_RISE * _noise_variance(problem, best)
+
+
 def _unfinished(out) -> bool:
     """Whether a fit stopped without converging (its step budget ran out, or it failed)."""
     return int(np.asarray(out.code._value)) != int(FIT_RESULTS.successful._value)
 
 
 def _free_fit(problem, best, start, name: str, fs: float):
-    """A free fit of the search from ``start``: :data:`HALT_STEPS` steps, continued with the
+    """A free fit of the search from ``start``: :data:`HALT_STEPS` steps (16 where it is then
+    more than :data:`GIVE_UP_RISE` noise variances up: :func:`_far`), continued with the
     whole budget only where its cost is then within :data:`NEAR_RISE` noise variances of the
     optimum's (the rule of :func:`_held_fit`: a fit still far above after that many steps is
     crossing the jumps of the halt, and the optimizer only goes downhill). On the example
@@ -211,14 +225,16 @@ def _free_fit(problem, best, start, name: str, fs: float):
     Returns:
         The last solve (``_problem.Solved``).
     """
-    last = problem.solve(start, name, fs, budget=min(problem.steps, HALT_STEPS))
+    last = problem.solve(start, name, fs, budget=min(problem.steps, HALT_STEPS),
+                         give_up=_far(problem, best))
     if _unfinished(last.out) and _near(last.out, best, problem):
         last = problem.solve(last.out.params, name, fs, like=last)
     return last
 
 
 def _held_fit(held, full, best, mu_alt: float, last):
-    """The fit with mu held at ``mu_alt``: :data:`HALT_STEPS` steps (``held``) from the
+    """The fit with mu held at ``mu_alt``: :data:`HALT_STEPS` steps (``held``; 16 where it is
+    then more than :data:`GIVE_UP_RISE` noise variances up: :func:`_far`) from the
     linearised profile. Where its cost is within :data:`NEAR_RISE` noise variances of the
     optimum's, the held optimum may fit nearly as well: a fit that ran out of steps is
     continued with the whole budget (``full``), and a motion that :func:`other_halt_check`
@@ -230,7 +246,8 @@ def _held_fit(held, full, best, mu_alt: float, last):
         The last solve (``_problem.Solved``).
     """
     name, fs = last.model, last.fs
-    last = held.solve(predicted_start(best, "mu", mu_alt), name, fs, like=last)
+    last = held.solve(predicted_start(best, "mu", mu_alt), name, fs, like=last,
+                      give_up=_far(full, best))
     out = last.out
     if not _near(out, best, full):
         return last

@@ -23,7 +23,13 @@ The iteration (optimistix 0.1: ``AbstractGaussNewton.step`` with ``ClassicalTrus
   Gauss-Newton step would lower the cost by less than 1e-10 noise variances
   (:func:`resolved`; the trust-region test is rounding there);
 - the next candidate: y - (J^T J + lambda I)^-1 J^T r with lambda = 1 / step size (the
-  normal equations of [J; sqrt(lambda) I] d = [r; 0], Cholesky).
+  normal equations of [J; sqrt(lambda) I] d = [r; 0], Cholesky);
+- ``give_up`` (traced, optional): after :data:`GIVE_UP_AFTER` steps, a fit whose accepted
+  |r|^2 is still above it stops, not converged (the halt search's fits far above the
+  optimum: ``_halts``). A fit that goes on follows the same path as without it;
+- ``leave`` (optional): stop, not converged, where the undamped Gauss-Newton step from the
+  last :data:`LEAVE_AFTER` accepted points sends a coordinate past its bound (``_core``'s
+  rounds: a damping constant that goes to 0 in log coordinates).
 
 The returned point is the last accepted one, with its residuals and Jacobian (the fit's
 statistics reuse them). ``budget`` (traced) stops earlier than the loop's static
@@ -39,6 +45,10 @@ import jax.numpy as jnp
 
 #: optimistix's ClassicalTrustRegion constants
 LOW_CUTOFF, HIGH_CUTOFF, LOW_CONSTANT, HIGH_CONSTANT = 0.01, 0.99, 0.25, 3.5
+#: the step after which a fit with ``give_up`` stops where its cost is above it
+GIVE_UP_AFTER = 16
+#: accepted points in a row at which ``leave`` holds before the loop stops
+LEAVE_AFTER = 3
 
 
 class LMSolution(NamedTuple):
@@ -83,7 +93,15 @@ def _damped_step(A, g, step_size):
 GN_DECREMENT = 1e-10
 
 
-def resolved(r, A, g):
+def gauss_newton(A, g):
+    """(J^T J)^-1 J^T r from A = J^T J and g = J^T r (a ridge of 1e3 eps of A's largest
+    diagonal entry keeps it defined): minus the undamped Gauss-Newton step."""
+    ridge = 1e3 * jnp.finfo(A.dtype).eps * jnp.max(jnp.abs(jnp.diag(A)))
+    L = jnp.linalg.cholesky(A + ridge * jnp.eye(A.shape[0], dtype=A.dtype))
+    return jax.scipy.linalg.cho_solve((L, True), g)
+
+
+def resolved(r, g, newton):
     """Whether no step can lower the cost 0.5 |r|^2 by more than it can be resolved: the
     undamped Gauss-Newton decrement 0.5 g^T (J^T J)^-1 g (g = J^T r: the most the local
     quadratic model can gain) is below :data:`GN_DECREMENT` times the noise variance per
@@ -97,12 +115,11 @@ def resolved(r, A, g):
     optimum, on the example trace). NaN (a singular J^T J) resolves nothing.
 
     Arguments:
-        r: the residuals at the point; A = J^T J and g = J^T r there.
+        r: the residuals at the point; g = J^T r there and ``newton`` = (J^T J)^-1 g
+            (:func:`gauss_newton`).
     """
-    p = A.shape[0]
-    ridge = 1e3 * jnp.finfo(r.dtype).eps * jnp.max(jnp.abs(jnp.diag(A)))
-    L = jnp.linalg.cholesky(A + ridge * jnp.eye(p, dtype=A.dtype))
-    decrement = 0.5 * g @ jax.scipy.linalg.cho_solve((L, True), g)
+    p = g.shape[0]
+    decrement = 0.5 * g @ newton
     rows = jnp.sum(r != 0.0)
     s2 = 0.5 * jnp.sum(r * r) / jnp.maximum(rows - p, 1)
     return (rows > p) & (decrement <= GN_DECREMENT * s2)
@@ -117,10 +134,12 @@ class _State(NamedTuple):
     step_size: Any
     first: Any
     done: Any
+    gave_up: Any
+    leaving: Any
 
 
 def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
-                        budget=None) -> LMSolution:
+                        budget=None, give_up=None, leave=None) -> LMSolution:
     """Minimise 0.5 |fn(y)|^2 from ``y0`` (the module docstring's iteration).
 
     Arguments:
@@ -129,6 +148,13 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
         rtol, atol: the termination tolerances.
         max_steps: the loop's static bound.
         budget: a traced bound (at most ``max_steps``), or None.
+        give_up: a traced bound on |fn(y)|^2 after :data:`GIVE_UP_AFTER` steps (above it the
+            loop stops, not converged), or None.
+        leave: optional ``leave(y, newton) -> bool``, with ``y - newton`` the undamped
+            Gauss-Newton step from the accepted point: where it holds at :data:`LEAVE_AFTER`
+            accepted points in a row the loop stops, not converged (a coordinate that the
+            model sends past its bound, which damped steps only approach: ``_core``'s
+            rounds move it there and start again).
 
     Returns:
         :class:`LMSolution`.
@@ -137,7 +163,9 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
     limit = max_steps if budget is None else jnp.minimum(budget, max_steps)
     zero_r = jnp.zeros(r0.shape, r0.dtype)
     init = _State(jnp.array(0), y0, zero_r, jnp.zeros(r0.shape + y0.shape, y0.dtype), y0,
-                  jnp.array(1.0, dtype=y0.dtype), jnp.array(True), jnp.array(False))
+                  jnp.array(1.0, dtype=y0.dtype), jnp.array(True), jnp.array(False),
+                  jnp.array(False), jnp.array(0))
+    give_up = jnp.inf if give_up is None else give_up
 
     def cond(s: _State):
         return (s.k < limit) & ~s.done
@@ -160,9 +188,17 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
         step_size = mul * s.step_size
         A, g = J.T @ J, J.T @ r  # the normal equations of the step and of the stop
         y_eval = y - _damped_step(A, g, step_size)
-        done = accept & small | resolved(r, A, g) | ~jnp.all(jnp.isfinite(y))
-        return _State(s.k + 1, y, r, J, y_eval, step_size, jnp.array(False), done)
+        newton = gauss_newton(A, g)
+        gave_up = (s.k + 1 == GIVE_UP_AFTER) & (jnp.sum(r * r) > give_up)
+        leaving = s.leaving
+        if leave is not None:
+            leaving = jnp.where(accept, jnp.where(leave(y, newton), leaving + 1, 0), leaving)
+        left = leaving >= LEAVE_AFTER
+        done = accept & small | resolved(r, g, newton) | ~jnp.all(jnp.isfinite(y)) | \
+            gave_up | left
+        return _State(s.k + 1, y, r, J, y_eval, step_size, jnp.array(False), done,
+                      gave_up | left, leaving)
 
     s = jax.lax.while_loop(cond, body, init)
     finite = jnp.all(jnp.isfinite(s.y))
-    return LMSolution(s.y, s.done & finite, finite, s.k, s.r, s.J)
+    return LMSolution(s.y, s.done & finite & ~s.gave_up, finite, s.k, s.r, s.J)

@@ -29,7 +29,7 @@ from ._checks import (
     check_time_axis,
     check_trace,
 )
-from ._core import FIT_MODELS, MAX_STEPS, ReferenceOptions, run_core, swing_budget
+from ._core import FIT_MODELS, MAX_STEPS, ReferenceOptions, Tuning, run_core, swing_budget
 from ._guess import Analysis, analyse, guess_trace
 from ._params import MAD, PARAMS, Constants, TraceParams, oscillator_values, vary_mask
 
@@ -134,7 +134,7 @@ class Problem:
 
     def solve(self, p_start: TraceParams, model: str, fs: float, *,
               like: Solved | None = None, budget: int | None = None,
-              prepare: bool = False) -> Solved | None:
+              give_up: float | None = None, prepare: bool = False) -> Solved | None:
         """Optimise from ``p_start`` with ``model`` (the jitted core, ``_core.run_core``).
 
         Arguments:
@@ -145,6 +145,8 @@ class Problem:
                 default: options for ``p_start``'s w0.
             budget: the optimizer's steps (default :attr:`steps`); ``budget=1`` returns the
                 start itself with the model's curve and Jacobian there.
+            give_up: a chi-square above which the fit stops after ``_lm.GIVE_UP_AFTER``
+                steps, not converged (the exact model; None: never).
             prepare: only start compiling the fit's program in the background (None).
 
         Returns:
@@ -158,9 +160,9 @@ class Problem:
         cap = max(budget, MAX_STEPS[s.optimizer]) if s.optimizer == "lm" and \
             FIT_MODELS[model].lm_rounds == 1 else budget
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
-                       self.consts, fs, budget, model=model, optimizer=s.optimizer,
-                       max_steps=cap, rtol=float(s.rtol), atol=float(s.atol), opts=opts,
-                       prepare=prepare)
+                       self.consts, Tuning(fs, budget, give_up), model=model,
+                       optimizer=s.optimizer, max_steps=cap, rtol=float(s.rtol),
+                       atol=float(s.atol), opts=opts, prepare=prepare)
         return None if prepare else Solved(out, model, fs, opts)
 
     def holding(self, *names: str) -> Problem:
