@@ -73,27 +73,42 @@ def bandwidth(g: np.ndarray, period_samples: float) -> int:
     return int(min(max(2 * lag, lo), hi))
 
 
-def _backward_ar1(J: np.ndarray, phi: float) -> np.ndarray:
-    """K = A^-T J: K_t = J_t + phi K_(t+1) from the last row back, row by row.
+#: rows per block of :func:`_backward_ar1`
+AR1_BLOCK = 64
 
-    The same array as ``scipy.signal.lfilter([1], [1, -phi], J[::-1], axis=0)[::-1]``, to the
-    last bit and in the same memory layout (a C-ordered array, reversed; the layout sets the
-    order of the sums downstream), without importing scipy.signal (over a second).
+
+def _backward_ar1(J: np.ndarray, phi: float) -> np.ndarray:
+    """K = A^-T J: K_t = J_t + phi K_(t+1) from the last row back.
+
+    In blocks of :data:`AR1_BLOCK` rows: within a block K_i = sum_(j >= i) phi^(j - i) J_j
+    (one product with the block's triangular matrix of powers, all blocks at once), plus
+    phi^(B - i) times K at the next block's first row (a loop over the blocks, from the
+    last). Equal to ``scipy.signal.lfilter([1], [1, -phi], J[::-1], axis=0)[::-1]`` to
+    rounding (every power |phi|^k <= 1: no growth), without importing scipy.signal (over a
+    second) and without a Python loop over the rows (74 ms for 5,000 rows, a tenth of a
+    default fit's assessment).
 
     Arguments:
         J: an (n, p) array.
-        phi: the AR(1) coefficient.
+        phi: the AR(1) coefficient (|phi| < 1).
 
     Returns:
         K, shaped like J.
     """
-    n = J.shape[0]
-    out = np.empty(J.shape, dtype=J.dtype)  # the filtered reversed rows, as lfilter writes
-    acc = np.zeros(J.shape[1:], dtype=J.dtype)
-    for i in range(n):
-        acc = J[n - 1 - i] + phi * acc
-        out[i] = acc
-    return out[::-1]
+    n, p = J.shape
+    size = AR1_BLOCK
+    m = -(-n // size)
+    blocks = np.zeros((m * size, p), dtype=J.dtype)
+    blocks[:n] = J
+    blocks = blocks.reshape(m, size, p)
+    i = np.arange(size)
+    ahead = i[None, :] - i[:, None]  # j - i
+    T = np.where(ahead >= 0, float(phi) ** np.maximum(ahead, 0), 0.0)
+    K = T @ blocks
+    carry = (float(phi) ** (size - i))[:, None]
+    for b in range(m - 2, -1, -1):
+        K[b] += carry * K[b + 1, 0]
+    return K.reshape(m * size, p)[:n]
 
 
 #: the prewhitened residuals count as white (no kernel: the AR(1) sandwich) unless the
