@@ -272,6 +272,29 @@ def phase_drift(t: np.ndarray, x: np.ndarray, model: np.ndarray, w0: float, offs
     return float(np.max(np.abs(ph - np.median(ph))))
 
 
+def _block_regressions(t, r, w0: float, phi: float, edges) -> tuple[np.ndarray, float]:
+    """(q, rss) of :func:`residual_structure`: per block (rows ``edges[j]`` to
+    ``edges[j + 1]``) the explained sum of squares of the prewhitened residuals regressed on
+    the prewhitened 1, cos(w0 t), sin(w0 t) (the rows after the block's first), and the sum
+    of what the regressions leave. All blocks at once, by their 3 x 3 normal equations
+    (pseudo-inverse: a degenerate block explains what its columns span); the same span as
+    cos/sin of the time from each block's start, so the same numbers as a least-squares fit
+    per block (67 of them took 13-30 ms a call)."""
+    X = np.stack([np.ones_like(t), np.cos(w0 * t), np.sin(w0 * t)], axis=1)
+    Xw = np.concatenate([X[:1], X[1:] - phi * X[:-1]])
+    rw = np.concatenate([r[:1], r[1:] - phi * r[:-1]])
+    keep = np.ones(r.size)
+    keep[edges[:-1]] = 0.0  # each block's first row has no predecessor in the block
+    Xw, rw = Xw * keep[:, None], rw * keep
+    starts = edges[:-1]
+    A = np.add.reduceat(Xw[:, :, None] * Xw[:, None, :], starts, axis=0)
+    b = np.add.reduceat(Xw * rw[:, None], starts, axis=0)
+    rr = np.add.reduceat(rw * rw, starts)
+    explained = np.einsum("ji,jik,jk->j", b, np.linalg.pinv(A, hermitian=True), b)
+    explained = np.clip(explained, 0.0, rr)
+    return explained, float(np.sum(rr - explained))
+
+
 def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     """A test of the residuals against AR(1) noise: do they hold a level shift or a swing at
     the oscillation's frequency that the noise cannot produce, anywhere in the window?
@@ -302,19 +325,8 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     J = max(n // size, 1)
     edges = np.linspace(0, n, J + 1).astype(int)
     phi = ar1_coefficient(r, clip=(-0.99, 0.99))
-    q = np.zeros(J)
-    rss, dof = 0.0, 0
-    for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
-        tt = t[lo:hi] - t[lo]
-        X = np.stack([np.ones(hi - lo), np.cos(w0 * tt), np.sin(w0 * tt)], axis=1)
-        rw = r[lo + 1:hi] - phi * r[lo:hi - 1]
-        Xw = X[1:] - phi * X[:-1]
-        coef, *_ = np.linalg.lstsq(Xw, rw, rcond=None)
-        fit = Xw @ coef
-        q[j] = float(fit @ fit)
-        left = rw - fit
-        rss += float(left @ left)
-        dof += rw.size - 3
+    q, rss = _block_regressions(t, r, w0, phi, edges)
+    dof = n - J * 4  # each block: its rows but the first, less 3 coefficients
     s2 = rss / max(dof, 1)
     if not s2 > 0:
         return out
