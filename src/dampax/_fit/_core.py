@@ -20,7 +20,6 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from .._cache import call_cached_tree, prepare_cached_tree
 from .._models._solution import result_where
@@ -39,6 +38,7 @@ from ._params import (
     Setup,
     clamp,
     flat,
+    host_array,
     log_bounds,
     on_damping,
     to_model,
@@ -184,12 +184,55 @@ def _lm_code(sol: LMSolution) -> FIT_RESULTS:
 
 def _lm_once(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions, budget,
              give_up=None):
-    """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point)."""
+    """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point);
+    ``give_up`` a chi-square in data units (the residuals are in units of ``sx``)."""
     sol = levenberg_marquardt(lambda th: fn(th, args), theta0, rtol=options.rtol,
                               atol=options.atol, max_steps=int(options.max_steps),
-                              budget=budget, give_up=give_up)
+                              budget=budget, give_up=None if give_up is None else
+                              give_up / args.setup.sx ** 2)
     return (_clamp_flat(sol.value, args, model), _lm_code(sol), sol.steps,
             (sol.residual, sol.jac))
+
+
+class _LogBounds(NamedTuple):
+    """The damping constants of a fit in log coordinates (flat, like theta): p = dref
+    exp(theta) for ``is_log``, theta >= lo, ``vary`` the mask."""
+
+    dref: Any
+    lo: Any
+    is_log: Any
+    vary: Any
+
+
+def _log_coordinates(args: ResidualArgs, model: FitModel) -> _LogBounds:
+    dref, lo = log_bounds(args.setup, args.vary)
+    return _LogBounds(flat(on_damping(model.coords, dref, 1.0)),
+                      flat(on_damping(model.coords, lo, -jnp.inf)),
+                      flat(on_damping(model.coords, Damping(True, True, True), False)),
+                      flat(args.vary))
+
+
+def _between_rounds(b: _LogBounds, theta, scale, r, J):
+    """(theta, scale, redo) after a round of :func:`_lm_rounds`: (1) a Gauss-Newton step in
+    the physical constants p (where the model is smooth through p = 0) places a constant
+    that it sends to p <= 0 next to its lower bound; (2) the log coordinates rescaled so that
+    their columns match the largest nuisance column (Marquardt's scaling). ``redo``: a
+    constant moved or a scale changed 10x (a constant held at its bound by the step gains
+    nothing from another scale: a round for it alone changed nothing, 28 steps on the
+    example's (b, D) ansatz fit)."""
+    p = b.dref * jnp.exp(theta)
+    Jx = jnp.where(b.vary, jnp.where(b.is_log, J / p, J), 0.0)
+    step = tall_lstsq(Jx, -r)  # (XLA's CPU lstsq of a tall J: 44 ms; _linalg)
+    down = b.is_log & b.vary & (p + step <= 0.0)
+    snap = down & (theta > b.lo + 1.0)
+    theta = jnp.where(snap, b.lo + 1.0, theta)
+    cn = jnp.sqrt(jnp.sum(J * J, axis=0))
+    ref = jnp.max(jnp.where(b.vary & ~b.is_log, cn, 0.0))
+    safe = jnp.where(cn > 0.0, cn, 1.0)
+    new = jnp.where(b.is_log & b.vary & (cn > 0.0), jnp.clip(ref / safe, 1.0, 1e15), 1.0)
+    ratio = new / scale
+    rescaled = ((ratio > 10.0) | (ratio < 0.1)) & ~(down & ~snap)
+    return theta, new, jnp.any(snap) | jnp.any(rescaled)
 
 
 def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions,
@@ -199,17 +242,14 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
 
     optimistix damps with lambda I (Levenberg), which is not scale-invariant: a log-parameter
     whose constant tends to 0 has a vanishing Jacobian column and creeps towards its bound by
-    tiny steps. Between rounds (1) a Gauss-Newton step in the physical constants p (where the
-    model is smooth through p = 0) moves a constant that it sends to p <= 0 next to its lower
-    bound (~1e-10 of the damping scale; the optimizer can still raise it), and (2) the log
-    coordinates are rescaled so that their columns match the largest nuisance column
-    (Marquardt's scaling, per round). A round other than the last ends where (1) would move
-    a constant (``_lm.levenberg_marquardt``'s ``leave``: 3 accepted points in a row; the
-    example's (b, D) ansatz fit crept 51 steps towards D = 0 before). A round after a
-    converged one with nothing changed is skipped. Returns (theta, code, steps, final) with
-    final = (r, J) for one round.
-    ``budget``: the steps of one round (traced, at most max_steps; None: max_steps);
-    ``give_up``: the bound of ``_lm.levenberg_marquardt`` (one round only).
+    tiny steps. Between rounds a constant that a Gauss-Newton step sends below 0 is placed
+    at its bound and the log coordinates are rescaled (:func:`_between_rounds`). A round
+    other than the last ends where that step would move a constant
+    (``_lm.levenberg_marquardt``'s ``leave``: 3 accepted points in a row; the example's
+    (b, D) ansatz fit crept 51 steps towards D = 0 before). A round after a converged one
+    with nothing changed is skipped. Returns (theta, code, steps, final) with final = (r, J)
+    for one round. ``budget``: the steps of one round (traced, at most max_steps; None:
+    max_steps); ``give_up``: the bound of ``_lm.levenberg_marquardt`` (one round only).
     """
     _, _, max_steps, rtol, atol, opts = options
     # the step budget is honoured: never more rounds than steps, never more steps in all
@@ -217,22 +257,18 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     if rounds == 1:
         return _lm_once(fn, theta0, args, model, options, budget, give_up)
     per_round = max(int(max_steps) // rounds, 1)
-    vary = flat(args.vary)
-    dref, lo = log_bounds(args.setup, args.vary)
-    is_log = flat(on_damping(model.coords, Damping(True, True, True), False))
-    dref = flat(on_damping(model.coords, dref, 1.0))
-    lo = flat(on_damping(model.coords, lo, -jnp.inf))
+    b = _log_coordinates(args, model)
 
     def rows(th):
         return _residual_rows(th, args, model, opts, clamped=False)
 
     def solve(theta, scale, last):
         def leave(u, newton):
-            # the undamped Gauss-Newton step sends p = dref exp(theta) to p <= 0 (theta
-            # falls by 1 or more, linearised) for a constant above lo + 1: the step that
-            # follows the round would move it (the round's damped steps only creep there)
+            # the undamped Gauss-Newton step (-scale newton in theta) sends p to p <= 0
+            # (theta falls by 1 or more, linearised) for a constant above lo + 1
             th = theta + scale * u
-            return jnp.any(is_log & vary & (th > lo + 1.0) & (scale * newton >= 1.0)) & ~last
+            return jnp.any(b.is_log & b.vary & (th > b.lo + 1.0) & (scale * newton >= 1.0)) \
+                & ~last
 
         sol = levenberg_marquardt(lambda u: fn(theta + scale * u, args),
                                   jnp.zeros_like(theta), rtol=rtol, atol=atol,
@@ -246,32 +282,13 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
         theta, n_steps, code = jax.lax.cond(again, solve, lambda th, sc, la: (th, 0, code),
                                             theta, scale, index == rounds - 1)
         r, J = rows_and_jacobian(rows, theta)
-        # Gauss-Newton step in (p for the damping constants, theta for the rest)
-        p = dref * jnp.exp(theta)
-        Jx = jnp.where(is_log, J / p, J)
-        Jx = jnp.where(vary, Jx, 0.0)
-        step = tall_lstsq(Jx, -r)  # (XLA's CPU lstsq of a tall J: 44 ms; _linalg)
-        down = is_log & vary & (p + step <= 0.0)
-        snap = down & (theta > lo + 1.0)
-        theta = jnp.where(snap, lo + 1.0, theta)
-        # Marquardt-like rescaling of the log coordinates
-        cn = jnp.sqrt(jnp.sum(J * J, axis=0))
-        ref = jnp.max(jnp.where(vary & ~is_log, cn, 0.0))
-        safe = jnp.where(cn > 0.0, cn, 1.0)
-        new = jnp.where(is_log & vary & (cn > 0.0), jnp.clip(ref / safe, 1.0, 1e15), 1.0)
-        ratio = new / scale
-        # a constant held at its bound by the step (down, not snapped) gains nothing from
-        # another scale: a round for it alone changed nothing (28 steps on the example's
-        # (b, D) ansatz fit)
-        rescaled = ((ratio > 10.0) | (ratio < 0.1)) & ~(down & ~snap)
-        redo = jnp.any(snap) | jnp.any(rescaled)
-        return (theta, new, steps + n_steps, code, redo), None
+        theta, scale, redo = _between_rounds(b, theta, scale, r, J)
+        return (theta, scale, steps + n_steps, code, redo), None
 
     init = (theta0, jnp.ones_like(theta0), jnp.array(0), FIT_RESULTS.successful,
             jnp.array(True))
     (theta, _, steps, code, _), _ = jax.lax.scan(one, init, jnp.arange(rounds))
     return theta, code, steps, None
-
 
 
 # ----------------------------------------------------------------------------------------------
@@ -400,10 +417,8 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
     fn = _materialised(raw, args)  # (reverse mode for optax: J built forward, transposed)
     final = None
     if optimizer == "lm":
-        one = spec.lm_rounds == 1
-        theta, code, steps, final = _lm_rounds(
-            raw, theta0, args, spec, options, budget if one else None,
-            give_up / st.sx ** 2 if one and give_up is not None else None)
+        theta, code, steps, final = _lm_rounds(raw, theta0, args, spec, options, *(
+            (budget, give_up) if spec.lm_rounds == 1 else ()))
     else:
         def loss_fn(th):
             return 0.5 * jnp.sum(fn(th, args) ** 2)
@@ -452,16 +467,6 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
                       coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
-def _host_array(v, dtype):
-    """``v`` as a strongly typed array of ``dtype`` for a kept program: a JAX array of that
-    type as it is (not awaited), anything else as a numpy array (a jnp.asarray per leaf
-    cost each fit's call of 26 leaves 6-11 ms of Python)."""
-    if isinstance(v, jax.Array):
-        same = v.dtype == np.dtype(dtype) and not v.weak_type
-        return v if same else jnp.asarray(v, dtype=dtype)
-    return np.asarray(v, dtype=dtype)
-
-
 def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | None:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
     the same shapes shares one compiled function. ``static``: the fields of
@@ -483,7 +488,7 @@ def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | N
     options = CoreOptions(**static)
     types = (float, float, float, float, bool, float, Tuning(float, int, float))
     concrete = is_concrete(args)
-    to_array = _host_array if concrete else jnp.asarray
+    to_array = host_array if concrete else jnp.asarray
     args = jax.tree_util.tree_map(
         lambda d, a: jax.tree_util.tree_map(lambda v: to_array(v, dtype=d), a), types, args)
     if concrete:
