@@ -60,6 +60,7 @@ import contextlib
 import functools
 import gc
 import hashlib
+import io
 import os
 import threading
 from pathlib import Path
@@ -720,10 +721,6 @@ def kept_arrays(name: str, key, make) -> dict:
         key: a description of everything ``make``'s result depends on (its repr).
         make: a function of no arguments returning {name: numpy array}.
     """
-    import io
-
-    import numpy as np
-
     folder = exported_dir()
     if folder is None:
         return make()

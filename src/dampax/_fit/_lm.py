@@ -134,8 +134,8 @@ class _State(NamedTuple):
     step_size: Any
     first: Any
     done: Any
-    gave_up: Any
-    leaving: Any
+    stopped: Any  # done without converging (give_up, leave)
+    leaving: Any  # accepted points in a row where leave held
 
 
 def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
@@ -201,4 +201,4 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
 
     s = jax.lax.while_loop(cond, body, init)
     finite = jnp.all(jnp.isfinite(s.y))
-    return LMSolution(s.y, s.done & finite & ~s.gave_up, finite, s.k, s.r, s.J)
+    return LMSolution(s.y, s.done & finite & ~s.stopped, finite, s.k, s.r, s.J)
