@@ -11,7 +11,7 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from dampax._fit._lm import GIVE_UP_AFTER, levenberg_marquardt
+from dampax._fit._lm import GIVE_UP_AFTER, LEAVE_AFTER, levenberg_marquardt
 
 T = np.linspace(0.0, 4.0, 60)
 DATA = 2.0 * np.exp(-0.7 * T) * np.cos(3.0 * T + 0.4) + 0.01 * np.random.default_rng(
@@ -134,8 +134,8 @@ def _towards_zero(y):
 def test_leave_stops_where_the_newton_step_crosses_the_bound():
     """``leave``: where the undamped Gauss-Newton step from LEAVE_AFTER accepted points in a
     row would send p = exp(y[1]) below 0 (y[1] falls by 1 or more, linearised), the loop
-    stops, not converged, after 3 steps; without it the creep runs its whole budget (400
-    steps, p = exp(-17.7) and still falling)."""
+    stops, not converged, after LEAVE_AFTER steps; without it the creep runs its whole
+    budget (400 steps, p = exp(-17.7) and still falling)."""
     y0 = jnp.asarray([1.0, jnp.log(0.3)])
 
     def leave(y, newton):
@@ -146,7 +146,7 @@ def test_leave_stops_where_the_newton_step_crosses_the_bound():
     left = jax.jit(lambda y: levenberg_marquardt(_towards_zero, y, rtol=1e-10, atol=1e-12,
                                                  max_steps=400, leave=leave))(y0)
     assert not bool(left.converged) and bool(left.finite)
-    assert int(left.steps) + 10 <= int(creep.steps)
+    assert int(left.steps) == LEAVE_AFTER and int(creep.steps) == 400
     # where it stopped, the Gauss-Newton step (A^-1 g, from the returned J and r) crosses
     J, r = np.asarray(left.jac), np.asarray(left.residual)
     assert np.linalg.solve(J.T @ J, J.T @ r)[1] >= 1.0

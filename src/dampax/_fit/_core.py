@@ -245,8 +245,9 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     tiny steps. Between rounds a constant that a Gauss-Newton step sends below 0 is placed
     at its bound and the log coordinates are rescaled (:func:`_between_rounds`). A round
     other than the last ends where that step would move a constant
-    (``_lm.levenberg_marquardt``'s ``leave``: 3 accepted points in a row; the example's
-    (b, D) ansatz fit crept 51 steps towards D = 0 before). A round after a converged one
+    (``_lm.levenberg_marquardt``'s ``leave``: 10 accepted points in a row, so that the
+    unsettled steps of a far start do not place a constant; the example's (b, D) ansatz fit
+    crept 51 steps towards D = 0 before). A round after a converged one
     with nothing changed is skipped. Returns (theta, code, steps, final) with final = (r, J)
     for one round. ``budget``: the steps of one round (traced, at most max_steps; None:
     max_steps); ``give_up``: the bound of ``_lm.levenberg_marquardt`` (one round only).
