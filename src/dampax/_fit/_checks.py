@@ -279,8 +279,10 @@ def _block_regressions(t, r, w0: float, phi: float, edges) -> tuple[np.ndarray, 
     of what the regressions leave. All blocks at once, by their 3 x 3 normal equations
     (pseudo-inverse: a degenerate block explains what its columns span); the same span as
     cos/sin of the time from each block's start, so the same numbers as a least-squares fit
-    per block (67 of them took 13-30 ms a call)."""
-    X = np.stack([np.ones_like(t), np.cos(w0 * t), np.sin(w0 * t)], axis=1)
+    per block (67 of them took 13-30 ms a call). The phases from the window's start, so that
+    clock times far from 0 (a logger's epoch seconds) keep their digits."""
+    s = np.asarray(t, dtype=float) - float(t[0])
+    X = np.stack([np.ones_like(s), np.cos(w0 * s), np.sin(w0 * s)], axis=1)
     Xw = np.concatenate([X[:1], X[1:] - phi * X[:-1]])
     rw = np.concatenate([r[:1], r[1:] - phi * r[:-1]])
     keep = np.ones(r.size)
