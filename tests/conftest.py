@@ -31,6 +31,15 @@ else:
     os.environ["DAMPAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="dampax-test-cache-")
     os.environ[_SESSION_DIR] = os.environ["DAMPAX_CACHE_DIR"]
 
+#: the tests' own ``jax.jit`` programs (gradients through the reference, vmapped solves, maps)
+#: compile with XLA's loop-fusion emitter, as dampax's kept programs do on a CPU
+#: (``dampax._cache.CPU_COMPILER_OPTIONS``): more than half of the suite's time is XLA
+#: compiling, and this takes a third off the largest programs (benchmarks/README.md, eleventh
+#: session). Set before JAX starts its backend; a flag the user set is kept.
+FUSION_FLAG = "--xla_cpu_use_fusion_emitters=false"
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FUSION_FLAG}".strip()
+
 import pytest  # noqa: E402
 
 import dampax  # noqa: E402, F401  (jax_enable_x64 is set on import)
