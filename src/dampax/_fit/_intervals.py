@@ -212,14 +212,21 @@ def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
         L = bandwidth(g, period_samples)
     L = min(L, g.shape[0] - 1)
     G = _autocov(g, L)
-    w = 1.0 - np.arange(L + 1) / (L + 1.0)
-    S = w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1)))
+    S = bartlett_sum(G)
     return (S if L == 0 else _at_least(S, G[0])), L
 
 
+def bartlett_sum(G: np.ndarray) -> np.ndarray:
+    """sum_l w_l (Gamma_l + Gamma_l^T) with Bartlett weights w_l = 1 - l/(L+1) (w_0 counted
+    once) of the autocovariances G = (Gamma_0 .. Gamma_L) of :func:`_autocov`."""
+    L = G.shape[0] - 1
+    w = 1.0 - np.arange(L + 1) / (L + 1.0)
+    return w[0] * G[0] + np.einsum("l,lij->ij", w[1:], G[1:] + np.transpose(G[1:], (0, 2, 1)))
+
+
 def _at_least(S: np.ndarray, S0: np.ndarray) -> np.ndarray:
-    """S0 + (S - S0)_+: the smallest symmetric matrix above both S and S0 in the positive
-    semidefinite order along the eigenvectors of S - S0 (each direction keeps the larger).
+    """S0 + (S - S0)_+: a symmetric matrix above both S and S0 in the positive semidefinite
+    order (S0 plus the positive part of S - S0: along each eigenvector of S - S0 the larger).
 
     The kernel takes up correlation the AR(1) filter leaves; it is not to remove variance
     that the prewhitened sandwich S0 (L = 0) counts. Where it does, that is its bias (the
