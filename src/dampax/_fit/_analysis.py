@@ -381,6 +381,46 @@ def _scan_arrays(t: np.ndarray, x: np.ndarray, omega0: float | None) -> Analysis
                     omega_spread=spread, level=level)
 
 
+#: the motion before a record's first turning point counts as free when it covers at least
+#: this share of what a sinusoid of the next half swing's range covers in that time
+#: (:func:`free_from_start`)
+FREE_SHARE = 0.5
+#: ... and when that first turning point comes within this many half periods: a half swing,
+#: with room for a turning point that noise places late on the flat bottom of a strongly damped
+#: swing (a hold of more than a quarter of a half period before a half swing is not free)
+FREE_HALF = 1.25
+
+
+def free_from_start(t, y, an: Analysis) -> bool:
+    """Whether the record moves freely from its first sample: nothing to skip.
+
+    A hand release leaves a hold (the data still) or a slow lead-in before the release, its
+    first turning point; a record of the free decay itself reaches its first turning point
+    within half a period, moving as the oscillation does. Over the time d before the first
+    turning point a sinusoid of amplitude A covers A (1 - cos w d) = 2 A sin^2(w d / 2), where
+    2 A is the range of the next half swing (to the second turning point, or the record's
+    end): the record is free from its start when d < :data:`FREE_HALF` pi / w and the data
+    cover at least :data:`FREE_SHARE` of that. Skipping the first half swing of such a record
+    discards the swing that carries the most information: on records of 1.5-3 half swings
+    the fit lost half its samples or more, and with them the decay (confident wrong answers:
+    fit_calibration.py seed 2, draws 3 and 10).
+
+    Arguments:
+        t, y: the whole trace (despiked positions).
+        an: its :class:`Analysis` (turning points, angular frequency).
+    """
+    if an.ext_i.size == 0 or not (math.isfinite(an.omega) and an.omega > 0):
+        return False
+    first = int(an.ext_i[0])
+    d = float(t[first] - t[0])
+    if d >= FREE_HALF * math.pi / an.omega:
+        return False
+    nxt = int(an.ext_i[1]) if an.ext_i.size > 1 else len(y) - 1
+    covered = float(np.ptp(y[:first + 1]))
+    span = float(np.ptp(y[first:nxt + 1]))
+    return covered >= FREE_SHARE * span * math.sin(0.5 * an.omega * d) ** 2
+
+
 def start_index(t, x, an: Analysis, start) -> int:
     """Index of the first sample of the fit window.
 
@@ -402,6 +442,8 @@ def start_index(t, x, an: Analysis, start) -> int:
     if start != "auto":
         raise ValueError(f"start must be 'auto', 'data', None or a time, got {start!r}")
     y = despike(x)
+    if free_from_start(t, y, an):
+        return 0
     i_big = int(np.argmax(np.abs(y - an.offset)))
     quarter = 0.5 * math.pi / an.omega
     before = (t >= t[i_big] - quarter) & (t <= t[i_big])

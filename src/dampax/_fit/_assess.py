@@ -1,16 +1,9 @@
 """The assessment of a finished fit as a table of checks (issue 33): each check a function of
 what the fit shows (:class:`Inputs`) and of what the checks before it found, returning a
-:class:`Finding`; :func:`assess` runs :data:`CHECKS` in order and builds the verdict from their
-findings (failures, inadequacies, the numbers measured). The statistics behind each are
-described in ``_checks`` (tests whose null distribution is known, no tuned thresholds).
-
-The checks, in order: the step budget (a flat valley counts as converged), convergence, finite
-parameters, exact degeneracies, finite standard errors, the envelope's decay note (the
-checks of an envelope fit end there), a positive amplitude and frequency, absurd values, the
-measures of the residuals and the intervals' covariance, the decay's Wald test, the split
-between the damping terms, the residuals against AR(1) noise, the motion ends, structure an
-exact model cannot leave, the residuals' size, the phase drift, and the intervals against the
-cost (profiles and the tests at the bound).
+:class:`Finding`; :func:`assess` runs :data:`FIRST`, then :data:`CHECKS` on the residuals'
+:class:`Measures`, in the order listed there, and builds the verdict from their findings
+(failures, inadequacies, the numbers measured). The statistics behind each are described in
+``_checks`` (tests whose null distribution is known, no tuned thresholds).
 """
 
 from __future__ import annotations
@@ -217,12 +210,18 @@ def degeneracy(a: Inputs, v: Verdict) -> Finding:
 
 
 def standard_errors(a: Inputs, v: Verdict) -> Finding:
-    """Finite standard errors of every varied parameter."""
-    nonfinite = [n for n in a.varied if not math.isfinite(a.stderr.get(n, math.nan))]
-    if not nonfinite:
-        return Finding()
-    return Finding(fails=(f"the standard error of {', '.join(nonfinite)} is not finite (the "
-                          "data do not determine it)",))
+    """Finite standard errors of every varied parameter and intervals of positive width (a
+    variance <= 0, clipped to 0, is a numerically singular Jacobian's, not a parameter the data
+    pin down: a quarter-swing window had zero-width intervals, fit_calibration.py seed 2)."""
+    bad = [n for n in a.varied if not math.isfinite(a.stderr.get(n, math.nan))]
+    sd = interval_sd(a.jac, a.rows, a.params, a.t) if not bad and a.kind == "trace" and \
+        a.jac is not None and a.rows is not None else None
+    flat = [] if sd is None else [n for n, s in zip(_names(a), sd, strict=True) if not s > 0]
+    return Finding(fails=tuple(f"the {what} of {', '.join(names)} {why} (not determined by "
+                               "the data)" for what, names, why in (
+                                   ("standard error", bad, "is not finite"),
+                                   ("interval", flat, "has no width: the Jacobian is "
+                                    "numerically singular")) if names))
 
 
 def envelope_decay(a: Inputs, v: Verdict) -> Finding:
