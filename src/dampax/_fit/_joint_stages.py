@@ -310,11 +310,14 @@ def _noise_level(single) -> float:
 
 def _start_params(singles, osc) -> tuple[list, list]:
     """Each run's start (dicts of the :data:`~dampax._fit._params.PARAMS`) and whether it is
-    its single fit's optimum: where that has a non-finite value, the run starts from its
-    data (offset the median, x0 the first sample about it, v0 the slope of the first samples)
-    with w0 and the damping constants at the median of the finite single fits."""
+    its single fit's optimum: where that has a non-finite value or w0 <= 0, the run starts
+    from its data (offset the median, x0 the first sample about it, v0 the slope of the first
+    samples) with w0 and the damping constants at the median of the finite single fits."""
     fields = TraceParams._fields
-    usable = [all(math.isfinite(float(s.params[n])) for n in fields) for s in singles]
+    # (a wild single fit may end at a finite w0 <= 0: no start for a shared w0, whose
+    # damping floors would be negative, a math domain error: joint_calibration.py set 6)
+    usable = [all(math.isfinite(float(s.params[n])) for n in fields)
+              and float(s.params["w0"]) > 0.0 for s in singles]
     pool = [s.params for s, ok in zip(singles, usable, strict=True) if ok]
     med = {n: (float(np.median([p[n] for p in pool])) if pool else
                (float(osc["w0"]) if n == "w0" and osc.get("w0") else 0.0)) for n in fields}
