@@ -385,9 +385,8 @@ def _scan_arrays(t: np.ndarray, x: np.ndarray, omega0: float | None) -> Analysis
 #: this share of what a sinusoid of the next half swing's range covers in that time
 #: (:func:`free_from_start`)
 FREE_SHARE = 0.5
-#: ... and when that first turning point comes within this many half periods: a half swing,
-#: with room for a turning point that noise places late on the flat bottom of a strongly damped
-#: swing (a hold of more than a quarter of a half period before a half swing is not free)
+#: ... and when that turning point comes within this many half periods: a half swing, with room
+#: for noise on the flat bottom of a strongly damped swing (no hold longer than T/8 passes)
 FREE_HALF = 1.25
 
 
