@@ -303,8 +303,9 @@ def add_fit_arguments(parser: argparse.ArgumentParser) -> None:
                        help="; ".join(f"{name}: {METHOD_NAMES[name]}" for name in OPTIMIZERS)
                             + " (default: %(default)s)")
     model.add_argument("--start", default="auto",
-                       help="fit start: auto (first extreme after the largest excursion), "
-                            "data (first sample) or a time [s] (default: %(default)s)")
+                       help="fit start: auto (the first sample of a record that moves from "
+                            "it, else the first extreme after the largest excursion), data "
+                            "(first sample) or a time [s] (default: %(default)s)")
     model.add_argument("--end", type=float, default=None, help="fit end time [s]")
     model.add_argument("--envelope", action="store_true",
                        help="the file holds successive maxima (t, amplitude): envelope fit")

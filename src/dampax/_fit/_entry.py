@@ -104,7 +104,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
             False with one.
         offset: fit the equilibrium offset (else the trace is taken as centred on 0).
         window: :class:`~dampax.Window` (start, end, units of the positions); default
-            ``Window()``: from the first clear extreme after the largest excursion.
+            ``Window()``: the first sample of a record that moves from it, else the first clear
+            extreme after the largest excursion (skipping a hand release's hold).
         solver: :class:`~dampax.LeastSquares` (loss, optimizer, tolerances, step budget,
             global starts, seed, initial values, the reference model's swing budget); default
             ``LeastSquares()``.

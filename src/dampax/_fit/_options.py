@@ -118,8 +118,9 @@ class Window(_WindowFields):
     (a ValueError naming the field: ``Window.start``, ``Window.end``, ``Window.units``).
 
     Arguments:
-        start: where the window begins: "auto" (the first clear extreme after the largest
-            excursion, which skips a hand release), "data" / None (the first sample) or a
+        start: where the window begins: "auto" (the first sample where the record moves
+            freely from it; else the first clear extreme after the largest excursion, which
+            skips the hold of a hand release), "data" / None (the first sample) or a
             finite time [s]; for a joint fit also a list of these, one per run.
         end: the window's end, a finite time [s] after ``start`` (default None: the last
             sample); for a joint fit also a list, one per run.
