@@ -274,3 +274,26 @@ def test_spring_runs_1_and_2_joint_agrees_with_the_single_fits():
             assert own[name][0] < res.params[name] < own[name][1], (name, res.params[name])
         assert run.rms < 1.01 * single.rms
         assert 8.40 < run.params["w0"] < 8.50
+
+
+def test_an_absurd_single_fit_gives_no_start():
+    """A single fit that ends finite but absurd (joint_calibration.py set 6: D 3e293, an
+    amplitude of 1e289 m; or w0 <= 0) starts its run from its data, with the shared constants
+    at the median of the sound fits: it used to reach the joint start's log-bounds as a math
+    domain error, reported as a refusal."""
+    from types import SimpleNamespace
+
+    from dampax._fit._joint_stages import _start_params
+    from dampax._fit._params import TraceParams
+
+    t = np.linspace(0.0, 2.0, 400)
+    x = 0.01 * np.cos(5.0 * t) + 0.003
+    sound = dict(mu=0.01, b=0.2, D=1.0, w0=5.0, offset=0.003, x0=0.01, v0=0.0)
+    wild = [dict(sound, D=2.95e293, v0=-1.8e290), dict(sound, w0=-4.0)]
+    singles = [SimpleNamespace(params=p, t=t, x=x) for p in [sound, *wild]]
+    own, usable = _start_params(singles, {"m": 1.0, "g": 9.81})
+    assert usable == [True, False, False]
+    for start in own[1:]:
+        assert start["w0"] == 5.0 and start["D"] == 1.0 and abs(start["x0"]) < 0.02
+        assert all(np.isfinite(v) for v in start.values())
+    assert set(own[0]) == set(TraceParams._fields)

@@ -310,14 +310,16 @@ def _noise_level(single) -> float:
 
 def _start_params(singles, osc) -> tuple[list, list]:
     """Each run's start (dicts of the :data:`~dampax._fit._params.PARAMS`) and whether it is
-    its single fit's optimum: where that has a non-finite value or w0 <= 0, the run starts
+    its single fit's optimum: where that has a non-finite or absurd value, the run starts
     from its data (offset the median, x0 the first sample about it, v0 the slope of the first
     samples) with w0 and the damping constants at the median of the finite single fits."""
     fields = TraceParams._fields
-    # (a wild single fit may end at a finite w0 <= 0: no start for a shared w0, whose
-    # damping floors would be negative, a math domain error: joint_calibration.py set 6)
+    # a wild single fit may end finite but absurd (joint_calibration.py set 6: D 3e293, an
+    # amplitude of 1e289 m): no start, as where it is not finite
     usable = [all(math.isfinite(float(s.params[n])) for n in fields)
-              and float(s.params["w0"]) > 0.0 for s in singles]
+              and float(s.params["w0"]) > 0.0 and math.hypot(
+                  float(s.params["x0"]), float(s.params["v0"]) / float(s.params["w0"]))
+              <= 100.0 * float(np.ptp(np.asarray(s.x, dtype=float))) for s in singles]
     pool = [s.params for s, ok in zip(singles, usable, strict=True) if ok]
     med = {n: (float(np.median([p[n] for p in pool])) if pool else
                (float(osc["w0"]) if n == "w0" and osc.get("w0") else 0.0)) for n in fields}
@@ -329,10 +331,7 @@ def _start_params(singles, osc) -> tuple[list, list]:
             out.append({n: float(s.params[n]) for n in fields})
             continue
         t, x = np.asarray(s.t, dtype=float), np.asarray(s.x, dtype=float)
-        p = {n: (float(s.params[n]) if math.isfinite(float(s.params[n])) else med[n])
-             for n in fields}
-        if not p["w0"] > 0:
-            p["w0"] = med["w0"]
+        p = dict(med)  # w0 and the damping constants: the median of the sound fits
         off = float(np.median(x))
         k = max(2, min(x.size, int(0.1 * 2 * math.pi / p["w0"] / max(t[1] - t[0], 1e-300))))
         p.update(offset=off, x0=float(x[0] - off),
@@ -370,7 +369,7 @@ def _arrays(data: StartData, spec, lay: Layout, start_vals) -> JointArrays:
             if name in DAMPING and (name in lay.shared or name in lay.local):
                 fl = float(getattr(floors, name))
                 v = max(v, fl)
-                lo.append(math.log(1e-6 * fl / v))
+                lo.append(math.log(max(1e-6 * fl / v, 1e-300)))  # (v may be absurd)
             else:
                 lo.append(-math.inf)
             ref.append(v)
