@@ -37,11 +37,11 @@ from ._measures import (
     worst_swing,
 )
 from ._profile import (
-    LR_CHI2,
     PROFILE_FAIL,
     PROFILE_REACH,
     Optimum,
     bound_tests,
+    bound_verdict,
     profile_ratios,
 )
 from ._text import time_span
@@ -459,15 +459,10 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
     lr = bound_tests(a.profile, fitted, damping, d_scale=a.d_scale,
                      amplitude=float(a.derived.get("A", math.nan)))
     diag.update({f"lr_zero_{k}": x[1] for k, x in lr.items()})
-    weak = [(k, z, c) for k, (z, c) in lr.items() if c < LR_CHI2]
-    if not weak:
-        return Finding(diag=diag)
-    k, z, c = min(weak, key=lambda kzc: kzc[2])
-    return Finding(diag=diag, fails=(
-        f"the intervals do not hold: {k}'s interval excludes 0 by {z:.2g} sd, but with {k} "
-        f"held at 0 and the rest refitted the cost rises by a likelihood-ratio chi2 of only "
-        f"{c:.2g} (< {LR_CHI2:.2f}, 1 %): the other terms explain the decay nearly as well "
-        "(the split between them is not determined)",))
+    fail, note = bound_verdict(lr, fitted, diag["interval_scale"])
+    if note:
+        diag["note_bound"] = note
+    return Finding(diag=diag, fails=(fail,) if fail else ())
 
 
 #: the checks before the residuals are measured (a ``stop`` ends the assessment)

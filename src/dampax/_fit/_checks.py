@@ -24,13 +24,18 @@ failures
     produce (:func:`residual_structure`: a local optimum); intervals that do not hold (the
     profile of the cost rises far less over them than they assume, :func:`profile_ratios`
     below :data:`PROFILE_FAIL`; a smaller shortfall widens that side of the interval); or a
-    damping constant whose interval excludes 0 at 1 % is not needed by the likelihood-ratio
-    test at 1 %: :func:`bound_tests`, a valley in the cost far outside the intervals).
+    damping constant held at 0 and the rest refitted finds a lower cost (a local optimum;
+    :func:`bound_tests`).
 refusals (ValueError, the true reason)
     the split between damping terms is not determined: they are measured together, none alone
     (a Wald test), or the Jacobian is singular (:func:`null_directions`: over a single swing
     Coulomb friction only moves the centre, which the offset does too).
 notes (success stays True)
+    a damping constant whose interval excludes 0 at 1 % is not needed by the likelihood-ratio
+    test at 1 % (:func:`bound_tests`: a valley in the cost toward the bound, the split between
+    the terms weakly determined): every interval is widened to reach the held fit's values
+    (``_profile.widening_toward``: the profile likelihood's interval holds them at levels
+    beyond that chi2).
     no measurable decay (the Wald test that the fitted damping constants are all zero, with
     the intervals' covariance, does not reject at 5 %): the values and their intervals, which
     reach 0, are then upper bounds.

@@ -184,10 +184,11 @@ def neighbouring_halts(problem: Problem, plan: Plan, state: Fit) -> tuple[Fit, d
 
 
 def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, start=None,
-                  batch: bool = False) -> float:
+                  batch: bool = False, values: bool = False):
     """The cost of the fit with ``name`` held at ``value`` (the intervals' checks), from the
     fit's values with ``start``'s in place; ``batch``: first a batch of jittered starts
-    around there (the first model's batch program), the best one polished."""
+    around there (the first model's batch program), the best one polished; ``values``:
+    (the cost, {name: value} of the held fit's varied parameters)."""
     held = {name: float(value), **{k: float(v) for k, v in (start or {}).items()}}
     best = state.best.params
     p = best._replace(**held) if start else predicted_start(state.best, name, value)
@@ -200,8 +201,11 @@ def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, st
         p = p._replace(**{k: float(getattr(p, k)) for k in problem.settings.free if k != name},
                        **{k: getattr(best, k) for k in ("w0", "offset", "x0", "v0")})
         p = p._replace(**{name: float(value)})
-    return float(problem.holding(name).solve(p, state.last.model, state.last.fs,
-                                             like=state.last).out.chisqr)
+    out = problem.holding(name).solve(p, state.last.model, state.last.fs, like=state.last).out
+    if not values:
+        return float(out.chisqr)
+    return float(out.chisqr), {k: float(getattr(out.params, k))
+                               for k in varied_names(problem.vary)}
 
 
 #: a free damping constant within this many standard errors of 0 is not told from its bound

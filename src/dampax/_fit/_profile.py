@@ -30,6 +30,10 @@ PROFILE_FAIL = 1.0 / PROFILE_REACH ** 2
 LR_LEVEL = 0.01
 LR_Z = 2.5758293035489004
 LR_CHI2 = LR_Z * LR_Z
+#: a point of the cost at a likelihood-ratio chi2 below this widens the intervals as if it
+#: lay at this rise (:func:`widening_toward`: the quadratic extrapolation beyond a nearly
+#: flat rise reaches nowhere)
+WIDEN_FLOOR = 1.0
 
 
 class Optimum(NamedTuple):
@@ -88,18 +92,21 @@ def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,
     for correlated noise), is the likelihood-ratio chi2(1) of the same hypothesis. Where the
     model is linear in its parameters both tests agree (chi2 = z^2); a rise below chi2(1)'s
     1 % point while the Wald z is beyond it means a valley in the cost: the decay the constant
-    explains is explained nearly as well by the others, far outside the intervals.
+    explains is explained nearly as well by the others, far outside the intervals
+    (:func:`widening_toward` widens them to that point).
 
     Arguments:
-        profile: ``profile(name, value, start=None, batch=False)`` -> the chi-square of the fit
-            with that parameter held at that value.
+        profile: ``profile(name, value, start=None, batch=False, values=False)`` -> the
+            chi-square of the fit with that parameter held at that value (``values``: and
+            {name: value} of that fit's varied parameters).
         fitted: the fit (its values, errors, interval sd, chi-square and s2).
         names: the damping constants to test.
         d_scale: d per unit of each constant at the fitted w0 (eq. 21; the transferred starts).
         amplitude: the fitted initial amplitude A.
 
     Returns:
-        {name: (Wald z, likelihood-ratio chi2)} for the constants tested.
+        {name: (Wald z, likelihood-ratio chi2, {name: value} of the held fit)} for the
+        constants tested.
     """
     params, stderr, sd, chisqr, s2 = fitted
     out = {}
@@ -111,14 +118,81 @@ def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,
         if not z > LR_Z:
             continue
         unit = s2 * (s / se) ** 2
-        c = profile(name, 0.0)
+        c, point = profile(name, 0.0, values=True)
         start = transferred_start(name, params, names, d_scale or {}, amplitude)
         if start is not None and not (c - chisqr) / unit < LR_CHI2:
-            other = profile(name, 0.0, start, batch=True)
-            c = other if math.isfinite(other) and not other >= c else c
+            other, there = profile(name, 0.0, start, batch=True, values=True)
+            if math.isfinite(other) and not other >= c:
+                c, point = other, there
         if math.isfinite(c):
-            out[name] = (z, (c - chisqr) / unit)
+            out[name] = (z, (c - chisqr) / unit, point)
     return out
+
+
+def widening_toward(fitted: Optimum, point: dict, chi2: float) -> dict:
+    """The sides of the intervals widened to reach a point of the cost: ``point`` (a fit with
+    one parameter held, the rest refitted) lies at likelihood-ratio ``chi2`` above the fit,
+    so each of its values is inside that parameter's profile-likelihood interval at every
+    level beyond chi2 (the profile is the lowest cost at that value: at most the point's).
+    The normal interval value +- z sd reaches a value d away at level chi2 = z^2 only when
+    |d| <= sqrt(chi2) sd; a side that falls short is widened by |d| / (sd sqrt(chi2)) (chi2
+    at least :data:`WIDEN_FLOOR`): the rise taken as quadratic from the fit to the point, as
+    :func:`profile_ratios` does for its sides. Where the cost is quadratic (the model linear
+    in its parameters) no side is widened: the held fit's values then lie at |rho| sqrt(chi2)
+    sd or less.
+
+    Arguments:
+        fitted: the fit (its values and interval sd).
+        point: {name: value} of the held fit's parameters.
+        chi2: its likelihood-ratio chi2 against the fit, in the intervals' noise variance.
+
+    Returns:
+        {name: (below, above)} factors of the sides widened (those above 1 only).
+    """
+    params, _, sd, _, _ = fitted
+    out = {}
+    for name, value in point.items():
+        s = sd.get(name, math.nan)
+        if not (name in params and math.isfinite(s) and s > 0 and math.isfinite(value)):
+            continue
+        d = value - params[name]
+        w = abs(d) / (s * math.sqrt(max(chi2, WIDEN_FLOOR)))
+        if w > 1.0 + 1e-9:  # (the held parameter itself on a quadratic cost: 1 to rounding)
+            out[name] = (w, 1.0) if d < 0 else (1.0, w)
+    return out
+
+
+def widen(scale: dict, fitted: Optimum, point: dict, chi2: float) -> None:
+    """:func:`widening_toward`'s factors merged into ``scale`` ({name: (below, above)}, in
+    place; the larger factor of each side kept)."""
+    for name, w in widening_toward(fitted, point, chi2).items():
+        old = scale.get(name, (1.0, 1.0))
+        scale[name] = (max(old[0], w[0]), max(old[1], w[1]))
+
+
+def bound_verdict(lr: dict, fitted: Optimum, scale: dict) -> tuple[str, str]:
+    """The tests at the bound (:func:`bound_tests`' ``lr``) read: a held fit with a lower
+    cost than the fit's is a local optimum (the failure); one whose cost rises by less than
+    :data:`LR_CHI2` is a valley toward the bound, and every interval is widened to reach its
+    values (:func:`widening_toward`, into ``scale``: {name: (below, above)}, updated in
+    place) with a note.
+
+    Returns:
+        (failure, note): one-line texts, "" where none.
+    """
+    weak = sorted((c, k, z, p) for k, (z, c, p) in lr.items() if c < LR_CHI2)
+    if not weak:
+        return "", ""
+    c, k, z, _ = weak[0]
+    if not c > 0.0:
+        return (f"a local optimum: with {k} held at 0 and the rest refitted the cost is lower "
+                f"(likelihood-ratio chi2 {c:.2g})"), ""
+    for chi2, _, _, point in weak:
+        widen(scale, fitted, point, chi2)
+    return "", (f"{k} is weakly separated from the other damping terms: its normal interval "
+                f"excluded 0 by {z:.2g} sd, but with {k} held at 0 and the rest refitted the "
+                f"cost rises by a likelihood-ratio chi2 of only {c:.2g} (< {LR_CHI2:.2f}, 1 %); "
+                "the intervals are widened to reach that fit's values (profile likelihood)")
 
 
 def profile_side(rise, d0: float, c0: float, *, limit: float = math.inf) -> float:

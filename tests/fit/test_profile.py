@@ -1,0 +1,98 @@
+"""The intervals' tests at the bound against a linear least-squares problem, where the
+likelihood ratio is known in closed form (chi2 = z^2 of the Wald test), and against a valley
+that the linearisation does not see."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from dampax._fit._intervals import normal_intervals
+from dampax._fit._profile import (
+    LR_CHI2,
+    Optimum,
+    bound_tests,
+    bound_verdict,
+    widening_toward,
+)
+
+NAMES = ("mu", "b", "offset")
+
+
+def _linear_problem(rho: float, seed: int = 0):
+    """y = X theta + noise with two correlated columns (correlation ``rho``): its fit, and its
+    profile (the least-squares refit with one parameter held), both by numpy's lstsq."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    z1 = rng.standard_normal(n)
+    z2 = rho * z1 + math.sqrt(1 - rho**2) * rng.standard_normal(n)
+    X = np.column_stack([z1, z2, np.ones(n)])
+    y = X @ np.array([0.8, 0.6, 0.1]) + 0.5 * rng.standard_normal(n)
+    theta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    chisqr = float(np.sum((y - X @ theta) ** 2))
+    s2 = chisqr / (n - 3)
+    se = np.sqrt(s2 * np.diag(np.linalg.inv(X.T @ X)))
+    params = dict(zip(NAMES, theta.tolist(), strict=True))
+    sd = dict(zip(NAMES, se.tolist(), strict=True))
+
+    def profile(name, value, start=None, batch=False, values=False):
+        i = NAMES.index(name)
+        rest = [j for j in range(3) if j != i]
+        sub, *_ = np.linalg.lstsq(X[:, rest], y - value * X[:, i], rcond=None)
+        full = np.empty(3)
+        full[i], full[rest] = value, sub
+        c = float(np.sum((y - X @ full) ** 2))
+        return (c, dict(zip(NAMES, full.tolist(), strict=True))) if values else c
+
+    return Optimum(params, dict(sd), sd, chisqr, s2), profile
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.9, -0.99])
+def test_the_bound_test_of_a_linear_model_is_the_wald_test(rho):
+    fitted, profile = _linear_problem(rho)
+    lr = bound_tests(profile, fitted, ["mu", "b"])
+    assert lr, "both constants lie beyond 2.58 sd from 0"
+    for name, (z, chi2, point) in lr.items():
+        assert z == pytest.approx(fitted.params[name] / fitted.sd[name], rel=1e-12)
+        assert chi2 == pytest.approx(z * z, rel=1e-9)  # likelihood ratio = Wald^2
+        assert point[name] == 0.0
+        # on a quadratic cost the held fit lies inside every interval of its level
+        assert widening_toward(fitted, point, chi2) == {}
+    scale = {}
+    assert bound_verdict(lr, fitted, scale) == ("", "") and scale == {}
+
+
+def test_a_valley_toward_the_bound_widens_the_intervals_to_its_point():
+    fitted, _ = _linear_problem(0.0)
+    p, sd = fitted.params, fitted.sd
+    # a held fit at mu = 0 (z = p/sd far beyond 2.58) whose cost rises by a chi2 of only 3,
+    # with b moved 5 sd: the data's valley
+    point = {"mu": 0.0, "b": p["b"] + 5.0 * sd["b"], "offset": p["offset"]}
+    chi2 = 3.0
+    lr = {"mu": (p["mu"] / sd["mu"], chi2, point)}
+    scale = {"mu": (1.0, 1.2)}
+    fail, note = bound_verdict(lr, fitted, scale)
+    assert fail == "" and "mu is weakly separated" in note and "chi2 of only 3" in note
+    assert scale["mu"] == pytest.approx((p["mu"] / sd["mu"] / math.sqrt(chi2), 1.2))
+    assert scale["b"] == pytest.approx((1.0, 5.0 / math.sqrt(chi2)))
+    assert "offset" not in scale
+    # at the level whose normal quantile is sqrt(chi2) the intervals end at the point
+    level = 2.0 * norm.cdf(math.sqrt(chi2)) - 1.0
+    ci = normal_intervals(p, sd, level, nonneg=("mu", "b"), scale=scale)
+    assert ci["mu"][0] == pytest.approx(0.0, abs=1e-12 * p["mu"])
+    assert ci["b"][1] == pytest.approx(point["b"], rel=1e-12)
+    # at 99 % they reach beyond it (chi2 3 < 6.63): the constant's interval holds 0
+    ci99 = normal_intervals(p, sd, 0.99, nonneg=("mu", "b"), scale=scale)
+    assert ci99["mu"][0] == 0.0 and ci99["b"][1] > point["b"]
+
+
+def test_a_lower_cost_at_the_bound_is_a_local_optimum():
+    fitted, _ = _linear_problem(0.0)
+    point = dict(fitted.params, mu=0.0)
+    fail, note = bound_verdict({"mu": (30.0, -0.5, point)}, fitted, {})
+    assert "a local optimum" in fail and note == ""
+    # a rise at the test's 1 % point is no valley
+    assert bound_verdict({"mu": (30.0, LR_CHI2, point)}, fitted, {}) == ("", "")
