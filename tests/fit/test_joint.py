@@ -297,3 +297,43 @@ def test_an_absurd_single_fit_gives_no_start():
         assert start["w0"] == 5.0 and start["D"] == 1.0 and abs(start["x0"]) < 0.02
         assert all(np.isfinite(v) for v in start.values())
     assert set(own[0]) == set(TraceParams._fields)
+
+
+def test_the_joint_search_hands_each_constants_decay_to_the_others():
+    """The joint exact search's extra starts (joint_calibration.py set 4: every start of the
+    shared constants settled on b 8 sd from its truth 0): each shared damping constant at 0,
+    its decay rate at half the runs' amplitude handed to the others in equal parts, so that
+    the envelope's dA/dt = -(d0 + d1 a + d2 a^2) at a = A/2 (eq. 21, d by hand) is kept."""
+    from types import SimpleNamespace
+
+    from dampax._fit._joint_problem import Layout
+    from dampax._fit._joint_stages import _transferred
+    from dampax._fit._params import PARAMS, Constants
+
+    m, g, w0 = 0.5, 9.81, 6.0
+    lay = Layout(model="reference", n_runs=2, shared=("mu", "b", "D"), local=("w0",),
+                 k3="none")
+    opt = {"mu": 0.003, "b": 0.02, "D": 0.4}
+    P = np.array([[opt[n] if n in opt else v for n, v in zip(
+        PARAMS, (0, 0, 0, w0, 0.0, A, 0.0), strict=True)] for A in (0.08, 0.12)])
+    out = SimpleNamespace(p=np.array([opt[n] for n in lay.shared]), P=P)
+    init = SimpleNamespace(lay=lay, data=SimpleNamespace(consts=Constants(m=m, g=g)))
+    starts = _transferred(out, init)
+    assert len(starts) == 3
+    a = 0.5 * 0.1  # half the median amplitude
+
+    def rate(p):
+        d0 = 2 * g * p["mu"] / (np.pi * w0)
+        d1 = p["b"] / (2 * m)
+        d2 = 4 * w0 * p["D"] / (3 * np.pi * m)
+        return d0 + d1 * a + d2 * a * a
+
+    for name, start in zip(lay.shared, starts, strict=True):
+        assert start[name] == 0.0
+        assert rate(start) == pytest.approx(rate(opt), rel=1e-12)
+        others = [n for n in lay.shared if n != name]
+        assert all(start[n] > opt[n] for n in others)
+    # one shared damping constant: nothing to hand its decay to
+    one = Layout(model="reference", n_runs=2, shared=("D",), local=("mu", "w0"), k3="none")
+    assert _transferred(SimpleNamespace(p=np.array([0.4]), P=P),
+                        SimpleNamespace(lay=one, data=init.data)) == []

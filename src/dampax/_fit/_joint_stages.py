@@ -35,13 +35,16 @@ from ._measures import SETTLE_RTOL, settled_starts
 from ._params import (
     DAMPING,
     FREE,
+    PARAMS,
     Constants,
     TraceParams,
     check_free,
+    damping_d,
     damping_floors,
 )
 from ._pipeline import INNER, run
 from ._problem import Settings, bucket, pad, prepare
+from ._profile import transferred_start
 from ._starts import REACHED_RTOL, Starts
 
 
@@ -115,14 +118,16 @@ class JointStart(NamedTuple):
     w0s: list
 
 
-def _single_fits(runs, windows, cfg: JointSettings) -> tuple[list, list]:
+def _single_fits(runs, windows, cfg: JointSettings, model: str | None = None
+                 ) -> tuple[list, list]:
     """Each run alone (its window, guesses, global starts; the approximate model where the
-    fit model starts from one): the starts of the joint fit.
+    fit model starts from one, else ``model``): the starts of the joint fit.
 
     Arguments:
         runs: (trace_or_t, x) of each run.
         windows: (starts, ends) of the runs' windows.
         cfg: the settings.
+        model: the model of the single fits (None: the first model of ``cfg.model``).
 
     Returns:
         (the single fits, the sorted distinct warnings they gave).
@@ -131,7 +136,7 @@ def _single_fits(runs, windows, cfg: JointSettings) -> tuple[list, list]:
         ValueError: a run cannot be fitted (its index named).
     """
     starts_at, ends_at = windows
-    first = FIT_MODELS[cfg.model].start_from or cfg.model
+    first = model or FIT_MODELS[cfg.model].start_from or cfg.model
     singles = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -264,6 +269,10 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
     the approximate model's optimum, where some run's residuals are structured
     (:func:`_structured`). Structured residuals at an optimum that no start improves on, on
     which the starts settle, are the model's (it lacks something), not a local optimum's.
+    The starts also hand each shared damping constant's decay to the others
+    (:func:`_transferred`: a split of the decay between the terms that none of the single
+    fits suggests; joint_calibration.py set 4: b 8 sd from its truth 0, every start settled
+    there), and start from each run's own fit with the exact model (every run's values).
 
     Arguments:
         out, arrays: the exact fit from the approximate model's optimum and its arrays.
@@ -278,7 +287,19 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
     if not _structured(out, arrays):  # noise is all the runs leave: nothing to tell apart
         return out, arrays, None
     spec = FIT_MODELS[cfg.model]
-    batch = [_arrays(init.data, spec, init.lay, sv) for sv in init.candidates]
+    batch = [_arrays(init.data, spec, init.lay, sv)
+             for sv in list(init.candidates) + _transferred(out, init)]
+    # each run's own exact fit: the approximate single fits may all lie in a valley of the
+    # approximation (joint_calibration.py set 26: Coulomb friction over 3 half swings, the
+    # ansatz's runs all at b 15 times its truth and mu 0, the exact fits at the truth)
+    exact = _single_fits([(s.t, s.x) for s in init.data.singles],
+                         ([float(s.t[0]) for s in init.data.singles],
+                          [None] * len(init.data.singles)), cfg, model=cfg.model)[0]
+    own, usable = _start_params(exact, init.data.osc)
+    data = init.data._replace(own=own)
+    shared = [n for n in init.candidates[0]]
+    batch += [_arrays(data, spec, init.lay, {n: float(p[n]) for n in shared})
+              for p, ok in zip(own, usable, strict=True) if ok]
     outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch),
                            lay=init.lay, opts=opts, max_steps=cfg.max_steps, rtol=cfg.rtol,
                            atol=cfg.atol)
@@ -296,6 +317,35 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
     # an array (equinox's Enumeration: a numpy scalar's message is "unknown")
     return jax.tree_util.tree_map(lambda v: np.asarray(v[best]), both), batch[best - 1], \
         search
+
+
+def _transferred(out: JointCore, init: JointStart) -> list:
+    """Starts of the shared constants at the joint optimum ``out`` with each shared damping
+    constant's decay handed to the other shared ones (``_profile.transferred_start``, as the
+    single fit's test at the bound: at half the runs' median amplitude; the constant itself
+    started at 0, its floor): where the optimum is a split of the decay that the data do
+    not hold, the other valley is reached from there.
+
+    Returns:
+        A list of dicts by name (empty where fewer than two damping constants are shared).
+    """
+    lay, data = init.lay, init.data
+    vals = {n: float(v) for n, v in zip(lay.shared, np.asarray(out.p), strict=False)}
+    damping = [n for n in lay.shared if n in DAMPING and vals[n] > 0.0]
+    if len(damping) < 2:
+        return []
+    P = np.asarray(out.P, dtype=float)
+    w0 = vals.get("w0", float(np.median(P[:, PARAMS.index("w0")])))
+    per_unit = damping_d(1.0, 1.0, 1.0, w0, data.consts.m, data.consts.g)
+    d_scale = {n: float(d) for n, d in zip(DAMPING, per_unit, strict=True)}
+    amplitude = float(np.median(np.hypot(P[:, PARAMS.index("x0")],
+                                         P[:, PARAMS.index("v0")] / P[:, PARAMS.index("w0")])))
+    out_starts = []
+    for name in damping:
+        start = transferred_start(name, vals, damping, d_scale, amplitude)
+        if start is not None:
+            out_starts.append({**vals, **start, name: 0.0})
+    return out_starts
 
 
 def _noise_level(single) -> float:
