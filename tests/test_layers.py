@@ -239,7 +239,8 @@ FIT_LAYERS = (
     ("_pipeline",),  # the plan of stages and the assessment
     ("_static", "_stiffness"),  # the searches of mu_s and k3
     ("_api",),  # single-trace entry points
-    ("_joint_problem", "_joint_result", "_joint_build", "_joint_stages", "_joint"),  # joint fits
+    ("_joint_problem", "_joint_result", "_joint_build", "_joint_stages", "_joint_search",
+     "_joint"),  # joint fits
     ("_entry",),  # dp.fit
     ("_posterior_result", "_posterior_joint", "_posterior"),  # the posterior
     ("__init__",),

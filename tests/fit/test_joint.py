@@ -307,7 +307,7 @@ def test_the_joint_search_hands_each_constants_decay_to_the_others():
     from types import SimpleNamespace
 
     from dampax._fit._joint_problem import Layout
-    from dampax._fit._joint_stages import _transferred
+    from dampax._fit._joint_search import _transferred
     from dampax._fit._params import PARAMS, Constants
 
     m, g, w0 = 0.5, 9.81, 6.0

@@ -46,7 +46,8 @@ from ._core import MAX_STEPS, MODELS
 from ._joint_build import JointContext, _result
 from ._joint_problem import SHARED
 from ._joint_result import JointResult
-from ._joint_stages import JointSettings, _joint_start, _optimise, _single_fits
+from ._joint_search import _optimise
+from ._joint_stages import JointSettings, _joint_start, _single_fits
 from ._options import LeastSquares, Window
 from ._params import DAMPING, check_choice, check_free, oscillator_values
 from ._problem import units_of
