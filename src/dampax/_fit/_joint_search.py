@@ -141,7 +141,7 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
                           [None] * len(init.data.singles)), cfg, model=cfg.model)[0]
     own, usable = _start_params(exact, init.data.osc)
     data = init.data._replace(own=own)
-    shared = [n for n in init.candidates[0]]
+    shared = list(init.candidates[0])
     batch += [_arrays(data, spec, init.lay, {n: float(p[n]) for n in shared})
               for p, ok in zip(own, usable, strict=True) if ok]
     outs = run_joint_batch(jax.tree_util.tree_map(lambda *v: np.stack(v), *batch),
