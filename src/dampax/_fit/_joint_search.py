@@ -32,7 +32,7 @@ from ._joint_stages import (
 from ._measures import SETTLE_RTOL, settled_starts
 from ._params import DAMPING, PARAMS, damping_d
 from ._profile import transferred_start
-from ._starts import REACHED_RTOL, Starts
+from ._starts import BATCH_LANES, REACHED_RTOL, Starts
 
 
 def _optimise(init: JointStart, cfg: JointSettings) -> tuple:
@@ -136,9 +136,11 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
     # each run's own exact fit: the approximate single fits may all lie in a valley of the
     # approximation (joint_calibration.py set 26: Coulomb friction over 3 half swings, the
     # ansatz's runs all at b 15 times its truth and mu 0, the exact fits at the truth)
+    # (one batch of BATCH_LANES starts each: the batch program of the tests at the bound)
     exact = _single_fits([(s.t, s.x) for s in init.data.singles],
                          ([float(s.t[0]) for s in init.data.singles],
-                          [None] * len(init.data.singles)), cfg, model=cfg.model)[0]
+                          [None] * len(init.data.singles)),
+                         cfg._replace(starts=min(cfg.starts, BATCH_LANES)), model=cfg.model)[0]
     own, usable = _start_params(exact, init.data.osc)
     data = init.data._replace(own=own)
     shared = list(init.candidates[0])
