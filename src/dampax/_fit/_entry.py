@@ -68,9 +68,14 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
     Failures are named: ``success`` is False, with a one-line ``reason``, when the optimizer
     did not converge, a parameter ran to absurd values, the model stops moving before (or
     after) the data, a standard error is not finite, the intervals do not hold (the cost is not
-    quadratic over them), or, for the exact model "reference", the residuals hold structure
-    that AR(1) noise cannot produce (``_checks``: tests with known null distributions, none on
-    zero crossings). ``adequate`` says separately whether the model describes the data. Input
+    quadratic over them), two motions that halt at different turning points fit nearly as
+    well, or, for the exact model "reference", the residuals hold structure that AR(1) noise
+    cannot produce and its search of starts does not settle (``_checks``: tests with known
+    null distributions, none on zero crossings). Where a damping constant held at 0 costs
+    nearly as little (a likelihood ratio below chi2(1)'s 1 % point) although its interval
+    excludes 0, the fit succeeds with every interval widened to reach that held fit
+    (``diagnostics["note_bound"]``). ``adequate`` says separately whether the model describes
+    the data. Input
     without a free decay in it (constant, pure noise, growing or time-reversed, constant time)
     raises ValueError; a trace that halts after one swing is fitted.
 

@@ -148,8 +148,11 @@ class FitResult:
         kernel whose bandwidth comes from the autocorrelation of the scores
         (``dampax._fit._intervals``: why this method), normal intervals value +- z sd,
         clipped at 0 for the damping constants; a side over which the profile of the cost
-        rises c < 1 times what the interval assumes is widened by 1/sqrt(c)
-        (``diagnostics["interval_scale"]``, ``_profile.PROFILE_FAIL``).
+        rises c < 1 times what the interval assumes is widened by 1/sqrt(c), and where a
+        damping constant held at 0 costs less than chi2(1)'s 1 % point although its interval
+        excludes 0, every side is widened to reach that held fit's values
+        (``diagnostics["interval_scale"]``, ``_profile.PROFILE_FAIL``,
+        ``_profile.bound_verdict``; ``diagnostics["note_bound"]`` says so).
 
         Arguments:
             level: two-sided coverage, in (0, 1).
