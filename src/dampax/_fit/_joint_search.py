@@ -151,8 +151,7 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
                            atol=cfg.atol)
     both = jax.tree_util.tree_map(lambda a, b: np.concatenate([np.asarray(a)[None],
                                                                np.asarray(b)]), out, outs)
-    arrs = [arrays] + batch
-    both = _continue_lowest(both, arrs, init, cfg, opts)
+    both, arrs = _continue_lowest(both, [arrays] + batch, init, cfg, opts)
     best = best_start(both)
     cost = 0.5 * np.sum(np.asarray(both.resid, dtype=float) ** 2, axis=(1, 2))
     # the settle rule counts the starts that converged, as ``best_start`` chooses among them
@@ -169,16 +168,21 @@ def _exact_search(out: JointCore, arrays: JointArrays, init: JointStart, cfg: Jo
 
 
 def _continue_lowest(both: JointCore, batch: list, init: JointStart, cfg: JointSettings,
-                     opts) -> JointCore:
+                     opts) -> tuple:
     """The search's start of the lowest cost, where it ran out of steps below every converged
     start's cost, continued from where it stopped (at most ``CONTINUATIONS`` times, the first
-    exact fit's rule) and put back in its place."""
+    exact fit's rule) and put back in its place.
+
+    Returns:
+        (the outputs, the arrays of each start): ``both`` and ``batch`` with that start's
+        replaced.
+    """
     cost = np.sum(np.asarray(both.resid, dtype=float) ** 2, axis=(1, 2))
     cost = np.where(np.isfinite(cost), cost, np.inf)
     done = np.asarray(both.code._value) == FIT_RESULTS.successful._value
     i = int(np.argmin(cost))
     if done[i] or not np.isfinite(cost[i]):
-        return both
+        return both, batch
     spec = FIT_MODELS[cfg.model]
     out = jax.tree_util.tree_map(lambda v: v[i], both)
     arrays = batch[i]
@@ -188,9 +192,9 @@ def _continue_lowest(both: JointCore, batch: list, init: JointStart, cfg: JointS
                              rtol=cfg.rtol, atol=cfg.atol)
         if out.code != FIT_RESULTS.max_steps_reached:
             break
-    batch[i] = arrays
     return jax.tree_util.tree_map(
-        lambda a, v: np.concatenate([a[:i], np.asarray(v)[None], a[i + 1:]]), both, out)
+        lambda a, v: np.concatenate([a[:i], np.asarray(v)[None], a[i + 1:]]), both, out), \
+        batch[:i] + [arrays] + batch[i + 1:]
 
 
 def _transferred(out: JointCore, init: JointStart) -> list:
