@@ -25,10 +25,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 _SESSION_DIR = "DAMPAX_TEST_SESSION_CACHE_DIR"  # set by the controller, read by its workers
 
+#: the folder this process made (the controller's, or a serial session's): removed when its
+#: session ends (:func:`pytest_sessionfinish`); each run left about 230 MB in the temporary
+#: folder before
+_MADE_HERE = None
 if os.environ.get("PYTEST_XDIST_WORKER") and os.environ.get(_SESSION_DIR):
     os.environ["DAMPAX_CACHE_DIR"] = os.environ[_SESSION_DIR]
 else:
-    os.environ["DAMPAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="dampax-test-cache-")
+    _MADE_HERE = os.environ["DAMPAX_CACHE_DIR"] = tempfile.mkdtemp(prefix="dampax-test-cache-")
     os.environ[_SESSION_DIR] = os.environ["DAMPAX_CACHE_DIR"]
 
 #: the tests' own ``jax.jit`` programs (gradients through the reference, vmapped solves, maps)
@@ -68,6 +72,15 @@ COST_ORDER = (
     "tests/cli/test_reproduce.py", "tests/cli/test_cli.py", "notebooks/01_quickstart.ipynb",
     "notebooks/02_paper_figures.ipynb", "tests/models/test_decay.py",
 )
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """Remove the session's cache folder where this process made it (the workers and the
+    notebooks' kernels have finished by the time the controller's session ends)."""
+    if _MADE_HERE is not None:
+        import shutil
+
+        shutil.rmtree(_MADE_HERE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items):
