@@ -713,6 +713,24 @@ def test_issue25_strongly_damped_traces_fit_with_the_truth_inside(mu, D):
     assert "zero-crossing" not in res.report()
 
 
+def test_an_overdamped_trace_fits_with_the_truth_inside():
+    """Viscous damping twice the critical (b = 4 sqrt(k m)): eq. 3 holds, but the ansatz's
+    oscillation (and the amplitude and phase matched to the start, eqs. 22-23) does not exist.
+    The exact model fits it, with the truth inside its 99 % intervals, and the derived
+    amplitude and phase are the start's undamped ones (x0 = A cos(phi), v0 = -w0 A sin(phi));
+    the fit failed before on "the fitted amplitude or frequency is not a positive finite
+    number" with the truth inside."""
+    b = 4.0 * math.sqrt(30.0)
+    t, x = _issue25_trace(0.0, b, 0.0)
+    res = fit(t, x, oscillator=dp.Oscillator(m=1, k=30), free=("b", "D"))
+    assert res.success and res.model == "reference", res.reason
+    lo, hi = res.conf_interval(0.99)["b"]
+    assert lo < b < hi and res.conf_interval(0.99)["D"][0] <= 0.0
+    p, w0 = res.params, math.sqrt(30.0)
+    assert res.derived["A"] == pytest.approx(math.hypot(p["x0"], p["v0"] / w0), rel=1e-12)
+    assert res.derived["A"] * math.cos(res.derived["phi"]) == pytest.approx(p["x0"], rel=1e-12)
+
+
 def _issue25_trace(mu, b, D):
     """The issue 25 set-up (m = 1 kg, k = 30 N/m, x0 = 0.2 m at rest, 3 s at 500 Hz, 1 mm
     white noise) from the independent scipy integrator with exact stick-slip."""

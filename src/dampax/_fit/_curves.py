@@ -167,11 +167,20 @@ def _matched_args(params: dict, m, g) -> tuple:
 
 
 def _reference_amplitude_phase(params: dict, q, m, g):
-    """(A, phi) of the ansatz matched (eqs. 22-23) to the fitted (x0, v0); NaN if none.
-    A kept program (``_cache.call_cached``), started early by :func:`prepare_amplitude_phase`:
-    an eager solve compiled it on the fit's last step (0.3 s of a cold fit, issue 36)."""
+    """(A, phi) of the ansatz matched (eqs. 22-23) to the fitted (x0, v0); where that ansatz
+    does not exist (an overdamped motion, b >= 2 m w0: eq. 3 holds, the ansatz's oscillation
+    does not), the start's undamped amplitude and phase, x0 = A cos(phi), v0 = -w0 A sin(phi),
+    so that the fit of the exact model is judged on its own (it failed before as "the
+    fitted amplitude ... is not a positive finite number" with the truth inside its
+    intervals). A kept program (``_cache.call_cached``), started early by
+    :func:`prepare_amplitude_phase`: an eager solve compiled it on the fit's last step (0.3 s
+    of a cold fit, issue 36)."""
     A, phi = call_cached("fit-matched", (), _matched, *_matched_args(params, m, g))
-    return float(A), float(phi)
+    A, phi = float(A), float(phi)
+    if not (math.isfinite(A) and A > 0):
+        w0, x0, v0 = float(params["w0"]), float(params["x0"]), float(params["v0"])
+        A, phi = math.hypot(x0, v0 / w0), math.atan2(-v0 / w0, x0)
+    return A, phi
 
 
 def prepare_amplitude_phase(params: dict, m, g) -> None:
