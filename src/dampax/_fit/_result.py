@@ -384,7 +384,10 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
             d_scale=dict(zip(("mu", "b", "D"), damping_d(
                 1.0, 1.0, 1.0, params["w0"], ctx.consts.m, ctx.consts.g), strict=True))
             if "w0" in params else None))
-        converged = converged or "note_steps" in diag
+        if not converged and "note_steps" in diag:  # as good as converged: say so first
+            converged = True
+            text = f"{FIT_RESULTS[FIT_RESULTS.successful]} ({diag['note_steps']})"
+            message = f"{text}; {ctx.stages}" if ctx.stages else text
     elif not converged:
         fails = [f"the optimizer did not converge ({text})"]
     return FitResult(
