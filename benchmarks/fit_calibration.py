@@ -70,6 +70,11 @@ PHI_MAX = 0.95
 HALF_SWINGS = (1.0, 100.0)  # the window: one swing to 50 periods
 SAMPLES = (1000, 4096)
 K3_RANGE = (0.01, 0.2)  # k3 A0^2 / k
+#: ``--wide``: a family beyond the calibrated one (issue 36's check of the general case):
+#: viscous damping to half the critical, Coulomb and drag twice as strong, noise from 1e-4 to
+#: 10 % of A0, 300 to 20,000 samples (the same windows: MAX_SWINGS follows HALF_SWINGS)
+WIDE = {"RATIO_MAX": {"d0": 0.3, "d1": 0.5, "d2": 1.2}, "NOISE_RANGE": (1e-4, 0.1),
+        "SAMPLES": (300, 20000)}
 #: a refusal that names a true reason (the fit with one constant fixed must then work)
 TRUE_REASONS = ("not separately identifiable",)
 #: what the harness can hold at its truth after such a refusal
@@ -455,7 +460,11 @@ def main(argv=None):
     ap.add_argument("--lacking", choices=("k3",), default=None,
                     help="fit the draws with k3 without it (the model lacks a term of the "
                          "data): the settle rule's table")
+    ap.add_argument("--wide", action="store_true",
+                    help="draw from the wider family WIDE (not the calibrated one)")
     args = ap.parse_args(argv)
+    if args.wide:
+        globals().update(WIDE)
     n = 12 if args.quick else args.n
     models = ["reference"] if args.quick else args.models.split(",")
     records = []
