@@ -731,6 +731,32 @@ def test_an_overdamped_trace_fits_with_the_truth_inside():
     assert res.derived["A"] * math.cos(res.derived["phi"]) == pytest.approx(p["x0"], rel=1e-12)
 
 
+def test_the_absurd_check_of_the_exact_model_reads_the_start_amplitude():
+    """The check that fails a parameter run to absurd values (a damping ratio above 10)
+    reads, for the exact model, the amplitude of its fitted start, hypot(x0, v0/w0): the
+    ansatz matched to a start under strong drag (eqs. 22-23) can have an amplitude many
+    times the motion's. The fitted constants and matched amplitude (1.38) of draw 23 of
+    ``fit_calibration.py --wide --seed 7`` (per unit mass, d2 A0/w0 = 1.1), which failed on
+    "d2 A/w0 = 15.5" with its residuals at the noise and the truth inside, with a start of
+    amplitude 0.14 (its own was not recorded; A0 = 0.095): eq. 21 by hand gives d2 A/w0 =
+    1.6 at the start's amplitude."""
+    from dampax._fit._assess import Inputs, Verdict, absurd
+
+    w0, mu, b, D, x0, v0 = 2.4611, 0.0208, 1.683, 26.38, -0.0818, -0.28
+    d0, d1, d2 = 2 * mu * 9.81 / (math.pi * w0), b / 2, 4 * D * w0 / (3 * math.pi)  # eq. 21
+    start = math.hypot(x0, v0 / w0)
+    assert d2 * start / w0 < 10 < d2 * 1.38 / w0
+    t = np.linspace(0.0, 6.0, 50)
+    kw = dict(t=t, x=0.1 * np.cos(w0 * t), curve=None, stderr={}, varied=("mu", "b", "D"),
+              params=dict(mu=mu, b=b, D=D, w0=w0, x0=x0, v0=v0, offset=0.0), an=None,
+              derived=dict(d0=d0, d1=d1, d2=d2, A=1.38), converged=True, message="")
+    none = Verdict((), (), {})
+    found = absurd(Inputs(model="reference", **kw), none)
+    assert found.fails == () and found.diag["d2 A/w0"] == pytest.approx(d2 * start / w0)
+    (reason,) = absurd(Inputs(model="ansatz", **kw), none).fails  # the ansatz's own amplitude
+    assert "d2 A/w0 = 15" in reason, reason
+
+
 def _issue25_trace(mu, b, D):
     """The issue 25 set-up (m = 1 kg, k = 30 N/m, x0 = 0.2 m at rest, 3 s at 500 Hz, 1 mm
     white noise) from the independent scipy integrator with exact stick-slip."""

@@ -250,8 +250,13 @@ def amplitude(a: Inputs, v: Verdict) -> Finding:
 
 
 def absurd(a: Inputs, v: Verdict) -> Finding:
-    """Damping ratios above :data:`ABSURD`, or an amplitude far beyond the data's range."""
+    """Damping ratios above :data:`ABSURD`, or an amplitude far beyond the data's range. For
+    the exact model the amplitude is the start's own, hypot(x0, v0/w0): the ansatz matched
+    to a start under strong drag has an amplitude many times the motion's (14.6x on a draw of
+    ``fit_calibration.py --wide``, d2 A0/w0 = 1.1, which failed with the truth inside)."""
     w0, A = a.params["w0"], a.derived["A"]
+    if a.model == "reference" and math.isfinite(a.params.get("v0", math.nan)):
+        A = math.hypot(a.params["x0"], a.params["v0"] / w0)
     d = a.derived
     ratios = {"d0/(w0 A)": d["d0"] / (w0 * A), "d1/w0": d["d1"] / w0, "d2 A/w0": d["d2"] * A / w0}
     span_x = float(np.ptp(a.x))
