@@ -99,23 +99,6 @@ def _oscillator(args):
     return Oscillator(m=args.m, k=args.k, g=args.g), bool(args.fit_omega0)
 
 
-def preload_matplotlib():
-    """Import what the figure needs (matplotlib's Figure and Agg canvas, about 1 s on a slow
-    2-core machine) in a background thread while the fit computes (XLA runs without Python's
-    lock); the figure's own import then finds the modules loaded. Returns the thread: joined
-    before the figure is drawn, so that no module is imported by both threads at once."""
-    import threading
-
-    def load():
-        with contextlib.suppress(Exception):  # the figure's own import reports a problem
-            import matplotlib.backends.backend_agg  # noqa: F401
-            import matplotlib.figure  # noqa: F401
-
-    thread = threading.Thread(target=load, name="dampax-preload", daemon=True)
-    thread.start()
-    return thread
-
-
 def run(args: argparse.Namespace) -> int:
     """:func:`run_fit`, with the library's argument names in its errors replaced by the
     command's flags (``Window.end`` -> ``--end``, ``LeastSquares.seed`` -> ``--seed``)."""
@@ -157,7 +140,6 @@ def run_fit(args: argparse.Namespace) -> int:
                          "(--model auto or reference) and a trace (the ansatz assumes "
                          "mu_s = mu)")
     start = _parse_start(args.start)
-    preload = preload_matplotlib()
     truth = None
     units = args.units
     try:  # the flags map onto dp.fit's option objects, checked when made
@@ -248,7 +230,6 @@ def run_fit(args: argparse.Namespace) -> int:
                 "intervals": {k: list(v) for k, v in result.conf_interval(args.level).items()}}
         except (ValueError, np.linalg.LinAlgError):
             pass
-    preload.join()
     failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "fit",
                             compiling=clock.text(),
                             data="" if args.example else trace.describe_columns())
