@@ -36,6 +36,7 @@ from ._measures import (
     structure_text,
     worst_swing,
 )
+from ._params import start_amplitude
 from ._profile import (
     PROFILE_FAIL,
     PROFILE_REACH,
@@ -256,7 +257,7 @@ def absurd(a: Inputs, v: Verdict) -> Finding:
     ``fit_calibration.py --wide``, d2 A0/w0 = 1.1, which failed with the truth inside)."""
     w0, A = a.params["w0"], a.derived["A"]
     if a.model == "reference" and math.isfinite(a.params.get("v0", math.nan)):
-        A = math.hypot(a.params["x0"], a.params["v0"] / w0)
+        A = start_amplitude(a.params)
     d = a.derived
     ratios = {"d0/(w0 A)": d["d0"] / (w0 * A), "d1/w0": d["d1"] / w0, "d2 A/w0": d["d2"] * A / w0}
     span_x = float(np.ptp(a.x))

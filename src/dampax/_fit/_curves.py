@@ -41,6 +41,7 @@ from ._params import (
     damping_d,
     envelope_setup,
     phase_rate,
+    start_amplitude,
     trace_setup,
 )
 
@@ -178,8 +179,8 @@ def _reference_amplitude_phase(params: dict, q, m, g):
     A, phi = call_cached("fit-matched", (), _matched, *_matched_args(params, m, g))
     A, phi = float(A), float(phi)
     if not (math.isfinite(A) and A > 0):
-        w0, x0, v0 = float(params["w0"]), float(params["x0"]), float(params["v0"])
-        A, phi = math.hypot(x0, v0 / w0), math.atan2(-v0 / w0, x0)
+        A = start_amplitude(params)
+        phi = math.atan2(-float(params["v0"]) / float(params["w0"]), float(params["x0"]))
     return A, phi
 
 

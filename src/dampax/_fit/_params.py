@@ -301,6 +301,12 @@ def d_to_physical(d0, d1, d2, w0, m, g):
     return constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)
 
 
+def start_amplitude(params) -> float:
+    """The undamped amplitude of a fit's start, hypot(x0, v0/w0) (``params``: a mapping with
+    x0, v0, w0): the size of the motion where the fit starts."""
+    return math.hypot(float(params["x0"]), float(params["v0"]) / float(params["w0"]))
+
+
 def phase_rate(w0, d1):
     """The rate at which the fitted ansatz's phase advances: the viscous damped frequency
     wd = sqrt(w0^2 - d1^2), d1 = b/(2m) (the exact half period pi/wd of a viscous swing,

@@ -19,7 +19,7 @@ from .._solve import solve
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
 from ._intervals import ar1_coefficient
-from ._params import PARAMS
+from ._params import PARAMS, start_amplitude
 from ._pipeline import FULL, INNER, run
 from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
 
@@ -48,7 +48,7 @@ def profile_k3(problem) -> Profile:
 
     base = run(problem, FULL)
     w0 = float(base.params["w0"])
-    amp = float(math.hypot(base.params["x0"], base.params["v0"] / w0))
+    amp = start_amplitude(base.params)
     scale = problem.consts.m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
     inner = problem.starting_at({name: float(base.params[name]) for name in PARAMS}, starts=1)
     cache = {}
