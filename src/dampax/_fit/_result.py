@@ -56,8 +56,11 @@ class FitResult:
         success, message, n_iterations: optimizer outcome.
         chisqr, redchi, aic, bic, ndata, nvarys: fit statistics (lmfit's definitions:
             aic = n ln(chisqr/n) + 2 nvarys, bic = n ln(chisqr/n) + ln(n) nvarys).
-        derived: d0, d1, d2, xc, k, A (ansatz amplitude), phi, halt_time, mu_g (the friction
-            deceleration mu g in position units/s^2), b/m [1/s], D/m [1/position unit].
+        derived: d0, d1, d2, xc, k, A and phi (the ansatz's amplitude and phase, eqs. 22-23,
+            matched to the fitted start; for the exact model of an overdamped motion, where
+            that ansatz does not exist, the start's undamped ones), halt_time, mu_g (the
+            friction deceleration mu g in position units/s^2), b/m [1/s], D/m [1/position
+            unit].
         free, model, loss, optimizer, kind ("trace" or "envelope"), t_start, source.
         success: the fit can be trusted as a fit: the optimizer converged and none of the
             checks of ``_assess.assess`` failed; else ``reason`` says why in one line.
