@@ -261,6 +261,25 @@ def test_a_fitted_mu_above_the_given_mu_s_fails_with_the_reason(mu, mu_s, fails)
         assert re.search(r"fitted mu = .* exceeds the given mu_s", out.reason)
 
 
+def test_the_halt_search_skips_a_motion_that_cannot_be_integrated():
+    """A fitted motion that the reference cannot follow past the data (here a softening
+    spring, k = 1, k3 = -1, whose start x0 = 2 lies beyond the potential's maximum at
+    sqrt(k/|k3|) = 1: ``dp.solve`` raises) has no neighbouring halt to search: the thresholds
+    are NaN. Before, the solver's ValueError ("check the oscillator's parameters") left
+    dp.fit (draw 54 of ``fit_calibration.py --wide --seed 8``, a fit with k3) instead of a
+    failed fit with its reason. A start below the barrier has both thresholds."""
+    from dampax._fit._halts import other_halts
+
+    t = np.linspace(0.0, 10.0, 100)
+    with pytest.raises(ValueError, match="softening spring"):
+        dp.solve(dp.Oscillator(m=1, k=1, mu=0.01, k3=-1.0), 2.0, 0.0, method="reference",
+                 t_end=20.0)
+    p = dict(mu=0.01, b=0.0, D=0.0, w0=1.0, x0=2.0, v0=0.0)
+    assert all(math.isnan(v) for v in other_halts(p, t, 1.0, 9.81, -1.0))
+    below = other_halts(dict(p, x0=0.5), t, 1.0, 9.81, -1.0)
+    assert all(math.isfinite(v) and v > 0 for v in below)
+
+
 # ------------------------------------------------------------------------------------------
 # error maps: the size first
 

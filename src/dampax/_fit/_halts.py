@@ -114,7 +114,7 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
 
     Returns:
         (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
-        point). A motion that does not halt inside the window has one neighbour: the motion
+        point; both where the motion cannot be integrated over twice the window). A motion that does not halt inside the window has one neighbour: the motion
         that halts at the window's last turning point (th_(h-1) = its threshold, th_h NaN);
         none without a turning point inside the window.
     """
@@ -122,7 +122,10 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
 
     p = params if isinstance(params, dict) else params._asdict()
     ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
-    th, halts = thresholds(ns, m, g, k3)
+    try:
+        th, halts = thresholds(ns, m, g, k3)
+    except ValueError:  # the motion fails past the data (a softening spring that lets go):
+        return math.nan, math.nan  # no neighbour to search (it raised out of fit before)
     if th.size == 0:
         return math.nan, math.nan
     if not halts:  # it halts after the window: the neighbour halts at its last turning point
@@ -329,7 +332,10 @@ def with_static_halt(res, m: float, g: float, k3: float, mu_s: float):
     motion (the reference with mu_s, where it halts within twice the window; otherwise the
     value stays the ansatz's estimate for mu_s = mu, which is later)."""
     res = dataclasses.replace(res, fixed={**res.fixed, "mu_s": float(mu_s)})
-    sol, _ = _motion(res, m, g, k3, mu_s)
+    try:
+        sol, _ = _motion(res, m, g, k3, mu_s)
+    except ValueError:  # the motion fails past the data: the estimate stays
+        return res
     halt = float(sol.halt_time)
     if not (bool(np.asarray(sol.halted)) and math.isfinite(halt)):
         return res
