@@ -114,9 +114,10 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
 
     Returns:
         (th_(h-1), th_h): NaN for a neighbour that does not exist (h = 0: no earlier turning
-        point; both where the motion cannot be integrated over twice the window). A motion that does not halt inside the window has one neighbour: the motion
-        that halts at the window's last turning point (th_(h-1) = its threshold, th_h NaN);
-        none without a turning point inside the window.
+        point; both where the motion cannot be integrated over twice the window). A motion
+        that does not halt inside the window has one neighbour: the motion that halts at the
+        window's last turning point (th_(h-1) = its threshold, th_h NaN); none without a
+        turning point inside the window.
     """
     from types import SimpleNamespace
 
