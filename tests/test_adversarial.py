@@ -280,6 +280,44 @@ def test_the_halt_search_skips_a_motion_that_cannot_be_integrated():
     assert all(math.isfinite(v) and v > 0 for v in below)
 
 
+def test_the_motion_that_halts_at_its_first_turning_point_keeps_the_fits_first_swing():
+    """The flat side of mu's profile (fit_calibration.py --wide, seed 9, draw 6, refitted with
+    b and D at their truth: a fit of mu = 0.0116 +- 0.0027 that halts at its second turning
+    point, with the truth 0.065 19 sd away, was a confident wrong answer). Over the first
+    swing eq. 3's friction only moves the centre, so the start of the first-halt basin
+    (``_halts.first_halt_start``: mu doubled past the threshold, x0 and the offset moved by
+    the centre's shift) must give the fit's first swing to rounding and then halt at that
+    turning point, by scipy's integrator with events; every larger mu does too."""
+    from helpers import evaluate, scipy_stick_slip
+
+    from dampax._fit._halts import first_halt, first_halt_start
+    from dampax._fit._params import TraceParams
+
+    p = TraceParams(mu=0.0116046, b=3.28444, D=19.5844, w0=3.54693, offset=0.0429704,
+                    x0=0.0233933, v0=-0.237092)
+    t = np.linspace(0.0, 6.63504, 2000)
+    constants = (1.0, 9.81, 0.0)
+    assert not first_halt(p, t, constants)  # its own motion halts at the second
+    q = first_halt_start(p, t, constants)
+    assert q.mu > 2.0 * p.mu - 1e-12 and q.v0 == p.v0 and q.w0 == p.w0
+
+    def measured(r, mu):
+        seg, turning, rest = scipy_stick_slip(1.0, r.w0 ** 2, mu, r.b, r.D, r.x0, r.v0,
+                                              t[-1])
+        return seg, turning, rest, r.offset + evaluate(seg, rest, t)[0]
+
+    seg, turning, _, x_p = measured(p, p.mu)
+    assert len(turning) >= 2
+    first = t <= turning[0][0]
+    for mu in (q.mu, 3.0 * q.mu):
+        shift = (mu - q.mu) * 9.81 / q.w0 ** 2  # (v0 < 0: the centre moves up with mu)
+        r = q._replace(x0=q.x0 + shift, offset=q.offset - shift)
+        seg, turning, rest, x_q = measured(r, mu)
+        assert rest is not None and len(seg) == 1 and rest[0] == pytest.approx(turning[0][0])
+        np.testing.assert_allclose(x_q[first], x_p[first], rtol=0, atol=1e-9)
+        assert first_halt(r._replace(mu=mu), t, constants)
+
+
 # ------------------------------------------------------------------------------------------
 # error maps: the size first
 

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import count_reads
+from helpers import count_reads, evaluate, scipy_stick_slip
 
 import dampax as dp
 from dampax._cli.fit import add_arguments, run
@@ -508,6 +508,28 @@ def test_degenerate_input_raises_a_named_value_error(case, reason):
             "short": (t[:120], x[:120])}[case]
     with pytest.raises(ValueError, match=reason):
         fit(*data, free=("mu", "D"), model="ansatz")
+
+
+def test_a_short_motion_in_a_long_noisy_record_is_not_refused_as_noise():
+    """A block that halts after one swing in the first 6 % of 10,486 samples, at a noise of
+    7 % of its start (fit_calibration.py --wide, seed 9, draw 6; scipy's integrator): within
+    its samples' noise excursions, far above those of their means over 16 or 64 samples. Pure
+    white noise of the same length and sd stays refused at every scale (20 seeds)."""
+    from dampax._fit._analysis import analyse
+    from dampax._fit._checks import check_trace
+
+    m, k, mu, b, D = 0.46415, 8.92949, 0.06507, 1.52448, 9.09016
+    t = np.linspace(0.0, 6.63504, 10486)
+    seg, _, rest = scipy_stick_slip(m, k, mu, b, D, 0.05005, -0.21979, t[-1] + 1e-9)
+    assert rest is not None and rest[0] < 0.06 * t[-1] and len(seg) == 1
+    clean = evaluate(seg, rest, t)[0] + 0.01541
+    rng = np.random.default_rng(986696436)
+    x = clean + 0.00511 * rng.standard_normal(t.size)
+    check_trace(t, x, analyse(t, x))  # no ValueError
+    for seed in range(20):
+        z = 0.00511 * np.random.default_rng(seed).standard_normal(t.size)
+        with pytest.raises(ValueError, match="no free oscillation above the noise"):
+            check_trace(t, z, analyse(t, z))
 
 
 def test_named_failures_undamped_and_max_steps(synthetic):

@@ -72,14 +72,11 @@ class Inputs(NamedTuple):
         an: the ``Analysis`` of the window (noise, turning points, where the data stop).
         converged: the optimizer converged; ``message``: its message; ``capped``: it stopped
             at its step budget (not on a failure).
-        kind: "trace" (every check) or "envelope" (the optimizer and the standard errors).
-        model: the fit model ("reference" integrates eq. 3 exactly).
+        kind, model: "trace" (every check) or "envelope"; the fit model ("reference": eq. 3).
         jac, rows: the Jacobian (physical parameters) and residuals of the data rows.
         profile: ``profile(name, value, start=None, batch=False)`` -> the chi-square of the
-            fit with that parameter held at that value (the intervals' check; None: skipped);
-            ``chisqr``: the fit's.
-        d_scale: d per unit of mu, b, D at the fitted w0 (eq. 21): the starts of the tests at
-            the bound.
+            fit with that parameter held at that value (None: skipped); ``chisqr``: the fit's.
+        d_scale: d per unit of mu, b, D at the fitted w0 (eq. 21; the tests at the bound).
         search: the batch of starts whose costs tell a local optimum from a model that lacks
             something (``_starts.Starts``; None: none ran).
         exact: the residuals are eq. 3's (an approximate model that answers for the exact
@@ -468,6 +465,9 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
     fail, note = bound_verdict(lr, fitted, diag["interval_scale"])
     if note:
         diag["note_bound"] = note
+    if fail:  # the held fit of the lowest cost: the pipeline continues from it (stage 6b)
+        diag["lower_at_bound"] = min(({"held": k, **x[2]} for k, x in lr.items()),
+                                     key=lambda point: lr[point["held"]][1])
     return Finding(diag=diag, fails=(fail,) if fail else ())
 
 

@@ -55,6 +55,7 @@ from ._core import FIT_RESULTS
 from ._dist import chi2_sf, f_sf
 from ._guess import Analysis, despike
 from ._intervals import ar1_coefficient, hac_covariance
+from ._noise import above_noise, noise_excursion
 
 #: the residuals hold structure beyond AR(1) noise below this p-value of
 #: :func:`residual_structure` (a failure of the exact model "reference", a note otherwise)
@@ -182,26 +183,16 @@ def check_sampling(t: np.ndarray, x: np.ndarray) -> None:
         raise ValueError("x: the trace is constant: nothing oscillates")
 
 
-def noise_excursion(n: int) -> float:
-    """The largest half peak-to-peak, in noise sigmas, that pure white noise of ``n`` samples
-    shows after the running median of :func:`despike`, with a margin: sqrt(2 ln n) + 1.
-
-    The running median of five samples of white noise has a sd of 0.54 sigma, its half range
-    over n samples stays below sqrt(2 ln n) sigma: simulated 99.9 % quantiles are 2.6, 2.5,
-    2.8 and 3.0 sigma for n = 100, 1e3, 1e4 and 1e5 (the bound: 4.0, 4.7, 5.3, 5.8).
-    """
-    return math.sqrt(2.0 * math.log(max(n, 2))) + 1.0
-
-
 def check_trace(t: np.ndarray, x: np.ndarray, an: Analysis) -> None:
     """ValueError when the (sorted, finite) trace holds no free decay to fit.
 
     Refused are only traces that hold no signal or no decay, whatever its damping: constant
     time, a constant trace, a trace within the excursions of pure white noise (half its
-    peak-to-peak below :func:`noise_excursion` noise sigmas, the noise from the second
-    differences), and a trace whose turning points grow (growing or time-reversed data). A
-    trace that halts after one swing is fitted: whether its constants are separately
-    identifiable is the fit's to say (``_assess.assess``).
+    peak-to-peak below ``_noise.noise_excursion`` noise sigmas, the noise from the higher
+    differences, and so at every coarser scale of block means: ``_noise.above_noise``), and
+    a trace whose turning points grow (growing or time-reversed data). A trace that halts
+    after one swing is fitted: whether its constants are separately identifiable is the
+    fit's to say (``_assess.assess``).
 
     Arguments:
         t, x: the fit window.
@@ -211,12 +202,12 @@ def check_trace(t: np.ndarray, x: np.ndarray, an: Analysis) -> None:
         ValueError: constant time, constant trace, pure noise, or an amplitude that grows.
     """
     check_sampling(t, x)
-    half = 0.5 * float(np.ptp(despike(np.asarray(x, dtype=float))))
-    bound = noise_excursion(t.size)
-    if an.noise > 0 and half < bound * an.noise:
+    if an.noise > 0 and not above_noise(x):
+        half = 0.5 * float(np.ptp(despike(np.asarray(x, dtype=float))))
         raise ValueError(f"x: no free oscillation above the noise: the trace's half "
-                         f"peak-to-peak ({half:.3g}) is within {bound:.1f} noise sigmas "
-                         f"(sigma = {an.noise:.3g}), as pure white noise of {t.size} samples")
+                         f"peak-to-peak ({half:.3g}) is within {noise_excursion(t.size):.1f} "
+                         f"noise sigmas (sigma = {an.noise:.3g}), as pure white noise of "
+                         f"{t.size} samples, and so are its means over 4, 16, ... samples")
     # growing (or time-reversed) data: the swings between the turning points grow
     swings = np.abs(np.diff(an.ext_x))
     swings = swings[swings > 2.0 * an.level]  # clear of the noise's reversals

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -97,6 +98,17 @@ def thresholds(res, m: float, g: float, k3: float, mu_s=None) -> tuple[np.ndarra
     return th, halts
 
 
+def _thresholds_of(params, t, m: float, g: float, k3: float) -> tuple[np.ndarray, bool]:
+    """:func:`thresholds` of a fit's parameters (dict or TraceParams) over the window ``t``;
+    none where the motion cannot be integrated over twice the window."""
+    p = params if isinstance(params, dict) else params._asdict()
+    ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
+    try:
+        return thresholds(ns, m, g, k3)
+    except ValueError:  # the motion fails past the data (a softening spring that lets go):
+        return np.zeros(0), False  # no neighbour to search (it raised out of fit before)
+
+
 def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]:
     """The thresholds of mu at which a fit's motion would halt one turning point earlier or
     later (sliding friction, mu_s = mu; the check of ``fit`` for another optimum).
@@ -119,14 +131,7 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
         window's last turning point (th_(h-1) = its threshold, th_h NaN); none without a
         turning point inside the window.
     """
-    from types import SimpleNamespace
-
-    p = params if isinstance(params, dict) else params._asdict()
-    ns = SimpleNamespace(params={k: float(v) for k, v in p.items()}, t=np.asarray(t))
-    try:
-        th, halts = thresholds(ns, m, g, k3)
-    except ValueError:  # the motion fails past the data (a softening spring that lets go):
-        return math.nan, math.nan  # no neighbour to search (it raised out of fit before)
+    th, halts = _thresholds_of(params, t, m, g, k3)
     if th.size == 0:
         return math.nan, math.nan
     if not halts:  # it halts after the window: the neighbour halts at its last turning point
@@ -154,8 +159,10 @@ def search_other_halts(problem, best, last):
         last: the fit's last solve (``_problem.Solved``: its model, scale and options).
 
     Returns:
-        (the optimum, the last solve, {held mu: its cost}, the stages' notes): the held fits
-        of both rounds and the optimum a lower cost replaced, for :func:`other_halt_check`.
+        (the optimum, the last solve, {held mu: (its cost, whether its motion halts at its
+        first turning point with the offset free and no k3: :func:`first_halt`)}, the stages'
+        notes): the held fits of both rounds and the optimum a lower cost replaced, for
+        :func:`other_halt_check`.
     """
     full = problem.holding("mu")
     held = dataclasses.replace(full, settings=full.settings._replace(
@@ -163,6 +170,7 @@ def search_other_halts(problem, best, last):
     c = problem.consts
     constants = (c.m, c.g, 0.0 if c.k3 is None else c.k3)
     name, fs = last.model, last.fs
+    flat = bool(problem.vary.offset) and constants[2] == 0.0  # first halts: mu ~ offset
     others, notes = {}, ()  # every held fit of the search, and an optimum it left
     for _ in range(2):
         prev, nxt = other_halts(best.params, problem.data.t, *constants)
@@ -173,8 +181,14 @@ def search_other_halts(problem, best, last):
         for mu_alt in points:
             if math.isfinite(mu_alt) and mu_alt > 0.0:
                 last = _held_fit(held, full, best, mu_alt, last)
-                others[mu_alt] = float(last.out.chisqr)
+                others[mu_alt] = (float(last.out.chisqr),
+                                  flat and first_halt(last.out.params, problem.data.t, constants))
                 fits.append(last.out)
+        first = first_halt_start(best.params, problem.data.t, constants) if flat else None
+        if first is not None:  # the basin where the profile of mu is flat (held: no jumps)
+            last = _free_fit(full, best, first, name, fs)
+            others[float(first.mu)] = (float(last.out.chisqr), first_halt(
+                last.out.params, problem.data.t, constants))
         lower = [f for f in fits if float(f.chisqr) < float(best.chisqr)]
         starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
         starts += [best.params._replace(mu=v) for v in (1.05 * prev, 0.95 * nxt)
@@ -192,9 +206,37 @@ def search_other_halts(problem, best, last):
         if float(better.chisqr) < float(best.chisqr) * (1.0 - REACHED_RTOL):
             notes += (f"a motion that halts at another turning point fits better (cost "
                       f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
-        others[float(best.params.mu)] = float(best.chisqr)  # the basin left: nearly as good?
+        others[float(best.params.mu)] = (  # the basin left: nearly as good?
+            float(best.chisqr), flat and first_halt(best.params, problem.data.t, constants))
         best = better
     return best, last, others, notes
+
+
+def first_halt(params, t, constants) -> bool:
+    """Whether a fit's motion halts at its first turning point inside the window (:func:
+    `other_halts`: no earlier threshold, a later one). Over that one swing Coulomb friction
+    only moves the centre of the motion, by mu g / w0^2, and the block halts at the turning
+    point for every mu above its threshold: with the offset free (and no k3), every larger mu
+    fits exactly as well, its centre taken up by the offset."""
+    prev, nxt = other_halts(params, t, *constants)
+    return math.isnan(prev) and math.isfinite(nxt)
+
+
+def first_halt_start(params, t, constants):
+    """A start in the basin of the motions that halt at their first turning point, for a fit
+    that halts at its first or second one (None otherwise): mu at twice the larger of its
+    value and the first turning point's threshold (eq. 3: the block halts there for every mu
+    above it), the centre of the first swing, -sign(v) mu g / w0^2, moved by x0 and taken
+    back by the offset, so that the first swing is the fit's own (:func:`first_halt`)."""
+    th, halts = _thresholds_of(params, t, *constants)
+    p = params._asdict()
+    if not (halts and th.size in (1, 2)):
+        return None
+    mu = 2.0 * max(float(th[0]), float(p["mu"]))
+    w0, v0, x0 = float(p["w0"]), float(p["v0"]), float(p["x0"])
+    sign = math.copysign(1.0, v0) if v0 != 0.0 else -math.copysign(1.0, x0)
+    shift = -sign * (mu - float(p["mu"])) * constants[1] / (w0 * w0)
+    return params._replace(mu=mu, x0=x0 + shift, offset=float(p["offset"]) - shift)
 
 
 def _noise_variance(problem, best) -> float:
@@ -270,25 +312,27 @@ def _held_fit(held, full, best, mu_alt: float, last):
 def other_halt_check(res, others: dict):
     """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
     with mu outside its interval (``_static.other_halts``): with mu held at each value of
-    ``others`` and the rest refitted (its cost the value), the likelihood-ratio chi2 against
-    the fit,
-    in the intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``),
-    below :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
-    :data:`~dampax._fit._profile.LR_Z` interval sd: the data hold two answers, and the
-    interval of one of them is no interval. (Widening the intervals to reach the other
-    motion, as ``_profile.bound_verdict`` does for a valley toward the bound, was tried: the
-    cost jumps from one halt to the next, so the rise from one optimum to the other says
-    nothing of the motions beyond it; on fit_calibration.py it turned 5 false failures into
-    successes but made draw 134 of seed 0 a confident wrong answer, 5 half-widths off, and
-    two more wrong.)"""
+    ``others`` and the rest refitted (its cost, and whether that motion halts at its first
+    turning point: :func:`first_halt`), the likelihood-ratio chi2 against the fit, in the
+    intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``), below
+    :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
+    :data:`~dampax._fit._profile.LR_Z` interval sd, or lies above it with a first halt (then
+    every larger mu fits as well: the profile of mu is flat up there): the data hold two
+    answers, and the interval of one of them is no interval. (Widening the intervals to
+    reach the other motion, as ``_profile.bound_verdict`` does for a valley toward the
+    bound, was tried: the cost jumps from one halt to the next, so the rise from one optimum
+    to the other says nothing of the motions beyond it; on fit_calibration.py it turned 5
+    false failures into successes but made draw 134 of seed 0 a confident wrong answer, 5
+    half-widths off, and two more wrong.)"""
 
     sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
     if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
         return res
     s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
     mu = float(res.params["mu"])
-    for mu_alt, cost in others.items():
-        if not abs(mu_alt - mu) > LR_Z * sd:
+    for mu_alt, (cost, first) in others.items():
+        unbounded = first and mu_alt > mu  # every mu above fits as well (first_halt)
+        if not (unbounded or abs(mu_alt - mu) > LR_Z * sd):
             continue
         rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
         if rise < LR_CHI2:
@@ -297,6 +341,13 @@ def other_halt_check(res, others: dict):
                       f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
                       "where the block sticks does not settle mu; fit a longer record or fix "
                       "the offset")
+            if unbounded:
+                reason = (f"the data bound mu only from below: a motion that halts at its first "
+                          f"turning point with mu = {mu_alt:.4g} fits nearly as well "
+                          f"(likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}), and so does "
+                          "every larger mu (over one swing friction only moves the centre, "
+                          "which the offset takes up); fix the offset or fit a record with "
+                          "more swings")
             return dataclasses.replace(res, success=False, reason=reason,
                                        diagnostics={**res.diagnostics,
                                                     "other_halt_mu": mu_alt,
