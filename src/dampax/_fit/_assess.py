@@ -465,9 +465,6 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
     fail, note = bound_verdict(lr, fitted, diag["interval_scale"])
     if note:
         diag["note_bound"] = note
-    if fail:  # the held fit of the lowest cost: the pipeline continues from it (stage 6b)
-        diag["lower_at_bound"] = min(({"held": k, **x[2]} for k, x in lr.items()),
-                                     key=lambda point: lr[point["held"]][1])
     return Finding(diag=diag, fails=(fail,) if fail else ())
 
 

@@ -18,9 +18,6 @@ Stages, in order (:func:`run`):
    neighbouring turning points (``_halts.search_other_halts``);
 6. **assess**: the result and its checks (``_result.build_result``), with the profile refits
    of the intervals' checks (:func:`profile_refit`) where the plan asks for them;
-6b. **from the lower fit at the bound**: where a damping constant held at 0 found a lower
-   cost (the tests at the bound), the fit continues from there and stages 5-6 run again
-   (:func:`from_lower_bound`);
 7. **static halt**: with a given mu_s, the halt of that motion and the rule mu_s >= mu.
 
 :data:`FULL` is ``dp.fit``'s plan; :data:`INNER` the plan of the fits inside a search (k3's
@@ -186,33 +183,6 @@ def neighbouring_halts(problem: Problem, plan: Plan, state: Fit) -> tuple[Fit, d
     return Fit(best, last, state.starts, state.notes + notes, state.search), others
 
 
-def from_lower_bound(problem: Problem, plan: Plan, state: Fit, res: FitResult):
-    """Stage 6b: a fit that failed as a local optimum because a damping constant held at 0
-    and the rest refitted found a lower cost (``_profile.bound_verdict``) continues from that
-    held fit with every constant free (the held one from its bound), is searched for its
-    neighbouring halts again and assessed anew (once: a second local optimum fails).
-
-    Returns:
-        (the new fit, its result), or None where there is nothing to continue from or the
-        continued fit's cost is not lower.
-    """
-    low = res.diagnostics.get("lower_at_bound")
-    if res.success or not low:
-        return None
-    point = {k: float(v) for k, v in low.items() if k != "held"}
-    last = problem.solve(state.best.params._replace(**point, **{low["held"]: 0.0}),
-                         state.last.model, state.last.fs, like=state.last)
-    c0, c1 = float(state.best.chisqr), float(last.out.chisqr)
-    if not c1 < c0:
-        return None
-    note = (f"a local optimum: with {low['held']} held at 0 the cost was lower; continued from "
-            f"there with {low['held']} free ({lower_cost(0.5 * c1, 0.5 * c0)})")
-    state = Fit(last.out, last, state.starts, state.notes + (note,), state.search)
-    state, others = neighbouring_halts(problem, plan, state)
-    out = assess(problem, plan, state)
-    return state, (other_halt_check(out, others) if others and out.success else out)
-
-
 def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, start=None,
                   batch: bool = False, values: bool = False):
     """The cost of the fit with ``name`` held at ``value`` (the intervals' checks), from the
@@ -366,7 +336,6 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     res = assess(problem, plan, state)
     if others and res.success:
         res = other_halt_check(res, others)
-    state, res = from_lower_bound(problem, plan, state, res) or (state, res)
     mu_s, c = problem.consts.mu_s, problem.consts
     if mu_s is not None and plan.static_halt:  # the halt of the motion with static friction
         k3 = 0.0 if c.k3 is None else c.k3
