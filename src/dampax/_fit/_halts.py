@@ -131,7 +131,11 @@ def other_halts(params, t, m: float, g: float, k3: float) -> tuple[float, float]
         window's last turning point (th_(h-1) = its threshold, th_h NaN); none without a
         turning point inside the window.
     """
-    th, halts = _thresholds_of(params, t, m, g, k3)
+    return _neighbours(*_thresholds_of(params, t, m, g, k3))
+
+
+def _neighbours(th: np.ndarray, halts: bool) -> tuple[float, float]:
+    """(th_(h-1), th_h) of :func:`other_halts` from the motion's thresholds."""
     if th.size == 0:
         return math.nan, math.nan
     if not halts:  # it halts after the window: the neighbour halts at its last turning point
@@ -173,7 +177,8 @@ def search_other_halts(problem, best, last):
     flat = bool(problem.vary.offset) and constants[2] == 0.0  # first halts: mu ~ offset
     others, notes = {}, ()  # every held fit of the search, and an optimum it left
     for _ in range(2):
-        prev, nxt = other_halts(best.params, problem.data.t, *constants)
+        motion = _thresholds_of(best.params, problem.data.t, *constants)  # (th, halts)
+        prev, nxt = _neighbours(*motion)
         se = float(best.stderr.mu) if math.isfinite(float(best.stderr.mu)) else 0.0
         points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
                   nxt * (1.0 - 1e-3) - 0.25 * se, 0.95 * nxt, 0.8 * nxt]
@@ -184,7 +189,8 @@ def search_other_halts(problem, best, last):
                 others[mu_alt] = (float(last.out.chisqr),
                                   flat and first_halt(last.out.params, problem.data.t, constants))
                 fits.append(last.out)
-        first = first_halt_start(best.params, problem.data.t, constants) if flat else None
+        first = first_halt_start(best.params, problem.data.t, constants, motion) \
+            if flat else None
         if first is not None:  # the basin where the profile of mu is flat (held: no jumps)
             last = _free_fit(full, best, first, name, fs)
             others[float(first.mu)] = (float(last.out.chisqr), first_halt(
@@ -206,8 +212,8 @@ def search_other_halts(problem, best, last):
         if float(better.chisqr) < float(best.chisqr) * (1.0 - REACHED_RTOL):
             notes += (f"a motion that halts at another turning point fits better (cost "
                       f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
-        others[float(best.params.mu)] = (  # the basin left: nearly as good?
-            float(best.chisqr), flat and first_halt(best.params, problem.data.t, constants))
+        others[float(best.params.mu)] = (  # the basin left: nearly as good? (first_halt)
+            float(best.chisqr), flat and math.isnan(prev) and math.isfinite(nxt))
         best = better
     return best, last, others, notes
 
@@ -222,13 +228,14 @@ def first_halt(params, t, constants) -> bool:
     return math.isnan(prev) and math.isfinite(nxt)
 
 
-def first_halt_start(params, t, constants):
+def first_halt_start(params, t, constants, motion=None):
     """A start in the basin of the motions that halt at their first turning point, for a fit
     that halts at its first or second one (None otherwise): mu at twice the larger of its
     value and the first turning point's threshold (eq. 3: the block halts there for every mu
     above it), the centre of the first swing, -sign(v) mu g / w0^2, moved by x0 and taken
-    back by the offset, so that the first swing is the fit's own (:func:`first_halt`)."""
-    th, halts = _thresholds_of(params, t, *constants)
+    back by the offset, so that the first swing is the fit's own (:func:`first_halt`).
+    ``motion``: the fit's (thresholds, halts) where already computed."""
+    th, halts = motion if motion is not None else _thresholds_of(params, t, *constants)
     p = params._asdict()
     if not (halts and th.size in (1, 2)):
         return None
