@@ -20,8 +20,9 @@ import numpy as np
 from .._oscillator import Oscillator
 from .._solve import prepare_reference, solve
 from ._core import FIT_RESULTS
+from ._params import varied_names
 from ._problem import predicted_start
-from ._profile import LR_CHI2, LR_Z
+from ._profile import LR_CHI2, LR_Z, Optimum, widening_toward
 from ._starts import REACHED_RTOL
 from ._text import lower_cost
 
@@ -164,9 +165,9 @@ def search_other_halts(problem, best, last):
 
     Returns:
         (the optimum, the last solve, {held mu: (its cost, whether its motion halts at its
-        first turning point with the offset free and no k3: :func:`first_halt`)}, the stages'
-        notes): the held fits of both rounds and the optimum a lower cost replaced, for
-        :func:`other_halt_check`.
+        first turning point with the offset free: :func:`first_halt`, {name: value} of its
+        varied parameters)}, the stages' notes): the held fits of both rounds and the
+        optimum a lower cost replaced, for :func:`other_halt_check`.
     """
     full = problem.holding("mu")
     held = dataclasses.replace(full, settings=full.settings._replace(
@@ -174,27 +175,36 @@ def search_other_halts(problem, best, last):
     c = problem.consts
     constants = (c.m, c.g, 0.0 if c.k3 is None else c.k3)
     name, fs = last.model, last.fs
-    flat = bool(problem.vary.offset) and constants[2] == 0.0  # first halts: mu ~ offset
+    # first halts: mu ~ offset (exactly without k3; with k3 nearly, its cubic force the only
+    # thing that tells mu from the offset over one swing: wide draw 41, 12 half-widths off)
+    flat = bool(problem.vary.offset)
     others, notes = {}, ()  # every held fit of the search, and an optimum it left
     for _ in range(2):
         motion = _thresholds_of(best.params, problem.data.t, *constants)  # (th, halts)
         prev, nxt = _neighbours(*motion)
+        mu = float(best.params.mu)
         se = float(best.stderr.mu) if math.isfinite(float(best.stderr.mu)) else 0.0
         points = [prev * (1.0 + 1e-3) + 0.25 * se, 1.05 * prev, 1.25 * prev,
                   nxt * (1.0 - 1e-3) - 0.25 * se, 0.95 * nxt, 0.8 * nxt]
         fits = []
         for mu_alt in points:
             if math.isfinite(mu_alt) and mu_alt > 0.0:
-                last = _held_fit(held, full, best, mu_alt, last)
+                # above mu a motion that halts at its first turning point keeps the fit's
+                # first swing (wide draw 41: the optimum on that threshold, the linearised
+                # start 94 noise variances up at 1.05 mu, the first swing's 1.0)
+                swing = first_halt_start(best.params, problem.data.t, constants, motion,
+                                         mu=mu_alt) if flat and mu_alt > mu else None
+                last = _held_fit(held, full, best, mu_alt, last, swing)
                 others[mu_alt] = (float(last.out.chisqr),
-                                  flat and first_halt(last.out.params, problem.data.t, constants))
+                                  flat and first_halt(last.out.params, problem.data.t, constants),
+                                  _values(last.out, problem))
                 fits.append(last.out)
         first = first_halt_start(best.params, problem.data.t, constants, motion) \
             if flat else None
         if first is not None:  # the basin where the profile of mu is flat (held: no jumps)
             last = _free_fit(full, best, first, name, fs)
             others[float(first.mu)] = (float(last.out.chisqr), first_halt(
-                last.out.params, problem.data.t, constants))
+                last.out.params, problem.data.t, constants), _values(last.out, problem))
         lower = [f for f in fits if float(f.chisqr) < float(best.chisqr)]
         starts = [min(lower, key=lambda f: float(f.chisqr)).params] if lower else []
         starts += [best.params._replace(mu=v) for v in (1.05 * prev, 0.95 * nxt)
@@ -213,9 +223,15 @@ def search_other_halts(problem, best, last):
             notes += (f"a motion that halts at another turning point fits better (cost "
                       f"{lower_cost(0.5 * float(better.chisqr), 0.5 * float(best.chisqr))})",)
         others[float(best.params.mu)] = (  # the basin left: nearly as good? (first_halt)
-            float(best.chisqr), flat and math.isnan(prev) and math.isfinite(nxt))
+            float(best.chisqr), flat and math.isnan(prev) and math.isfinite(nxt),
+            _values(best, problem))
         best = better
     return best, last, others, notes
+
+
+def _values(out, problem) -> dict:
+    """{name: value} of a fit's varied parameters."""
+    return {k: float(getattr(out.params, k)) for k in varied_names(problem.vary)}
 
 
 def first_halt(params, t, constants) -> bool:
@@ -228,18 +244,18 @@ def first_halt(params, t, constants) -> bool:
     return math.isnan(prev) and math.isfinite(nxt)
 
 
-def first_halt_start(params, t, constants, motion=None):
+def first_halt_start(params, t, constants, motion=None, mu=None):
     """A start in the basin of the motions that halt at their first turning point, for a fit
-    that halts at its first or second one (None otherwise): mu at twice the larger of its
-    value and the first turning point's threshold (eq. 3: the block halts there for every mu
-    above it), the centre of the first swing, -sign(v) mu g / w0^2, moved by x0 and taken
-    back by the offset, so that the first swing is the fit's own (:func:`first_halt`).
-    ``motion``: the fit's (thresholds, halts) where already computed."""
+    that halts at its first or second one (None otherwise): mu at ``mu``, by default twice
+    the larger of its value and the first turning point's threshold (eq. 3: the block halts
+    there for every mu above it), the centre of the first swing, -sign(v) mu g / w0^2, moved
+    by x0 and taken back by the offset, so that the first swing is the fit's own
+    (:func:`first_halt`). ``motion``: the fit's (thresholds, halts) where already computed."""
     th, halts = motion if motion is not None else _thresholds_of(params, t, *constants)
     p = params._asdict()
     if not (halts and th.size in (1, 2)):
         return None
-    mu = 2.0 * max(float(th[0]), float(p["mu"]))
+    mu = 2.0 * max(float(th[0]), float(p["mu"])) if mu is None else float(mu)
     w0, v0, x0 = float(p["w0"]), float(p["v0"]), float(p["x0"])
     sign = math.copysign(1.0, v0) if v0 != 0.0 else -math.copysign(1.0, x0)
     shift = -sign * (mu - float(p["mu"])) * constants[1] / (w0 * w0)
@@ -285,10 +301,13 @@ def _free_fit(problem, best, start, name: str, fs: float):
     return last
 
 
-def _held_fit(held, full, best, mu_alt: float, last):
+def _held_fit(held, full, best, mu_alt: float, last, swing=None):
     """The fit with mu held at ``mu_alt``: :data:`HALT_STEPS` steps (``held``; 16 where it is
     then more than :data:`GIVE_UP_RISE` noise variances up: :func:`_far`) from the
-    linearised profile. Where its cost is within :data:`NEAR_RISE` noise variances of the
+    linearised profile, and where that is not near the optimum's cost, from ``swing`` too
+    (a start that keeps the fit's first swing: :func:`first_halt_start`; the linearised
+    profile follows the optimum's side of a halt's threshold, not the motion beyond it), the
+    lower cost kept. Where its cost is within :data:`NEAR_RISE` noise variances of the
     optimum's, the held optimum may fit nearly as well: a fit that ran out of steps is
     continued with the whole budget (``full``), and a motion that :func:`other_halt_check`
     weighs (mu more than LR_Z standard errors away) is also fitted from the optimum's own
@@ -301,6 +320,10 @@ def _held_fit(held, full, best, mu_alt: float, last):
     name, fs = last.model, last.fs
     last = held.solve(predicted_start(best, "mu", mu_alt), name, fs, like=last,
                       give_up=_far(full, best))
+    if swing is not None and not _near(last.out, best, full):
+        other = held.solve(swing, name, fs, like=last, give_up=_far(full, best))
+        if float(other.out.chisqr) < float(last.out.chisqr):
+            last = other
     out = last.out
     if not _near(out, best, full):
         return last
@@ -330,18 +353,23 @@ def other_halt_check(res, others: dict):
     bound, was tried: the cost jumps from one halt to the next, so the rise from one optimum
     to the other says nothing of the motions beyond it; on fit_calibration.py it turned 5
     false failures into successes but made draw 134 of seed 0 a confident wrong answer, 5
-    half-widths off, and two more wrong.)"""
+    half-widths off, and two more wrong.) Where the first-halt side's held fits rise by
+    more (no halt changes between the fit and them), the intervals are widened to the
+    nearest (:func:`widened_to_first_halts`)."""
 
     sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
     if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
         return res
     s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
     mu = float(res.params["mu"])
-    for mu_alt, (cost, first) in others.items():
+    flat = []  # the first-halt side: (rise, the held fit's values)
+    for mu_alt, (cost, first, point) in others.items():
         unbounded = first and mu_alt > mu  # every mu above fits as well (first_halt)
         if not (unbounded or abs(mu_alt - mu) > LR_Z * sd):
             continue
         rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
+        if unbounded and rise >= LR_CHI2:
+            flat.append((mu_alt, rise, point))
         if rise < LR_CHI2:
             reason = (f"two motions fit nearly as well: this one and one that halts at another "
                       f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
@@ -359,7 +387,37 @@ def other_halt_check(res, others: dict):
                                        diagnostics={**res.diagnostics,
                                                     "other_halt_mu": mu_alt,
                                                     "other_halt_chi2": rise})
-    return res
+    return widened_to_first_halts(res, [p[1:] for p in sorted(flat)[:1]])
+
+
+def widened_to_first_halts(res, points):
+    """The intervals widened to reach the held fits of the first-halt side of mu
+    (``points``: (likelihood-ratio chi2, {name: value})), as ``_profile.bound_verdict`` does
+    for a valley toward the bound (``_profile.widening_toward``): above the threshold of the
+    first halt the motion and its halt stay the same, so mu's profile is continuous there and
+    flat or nearly (the offset takes up the centre that friction moves; only k3 or the motion
+    before the first turning point tells them apart), far from the quadratic of the
+    linearised intervals (wide draw 41 at 2,000 samples: the truth 26 interval sd above
+    mu at a rise below 6; the held fit at 1.05 mu 6.8). Each held fit's values lie inside the
+    profile-likelihood intervals at every level beyond its chi2; the nearest one is taken
+    (the profile between the fit and it interpolated as a quadratic, as in
+    ``_profile.profile_ratios``: a farther one, at a larger chi2, speaks of levels beyond
+    it, and the profile up to it is not quadratic)."""
+    if not points:
+        return res
+    fitted = Optimum(res.params, res.stderr, res.hac_stderr, float(res.chisqr), math.nan)
+    scale = {k: tuple(v) for k, v in res.diagnostics.get("interval_scale", {}).items()}
+    for chi2, point in points:
+        for name, w in widening_toward(fitted, point, chi2).items():
+            old = scale.get(name, (1.0, 1.0))
+            scale[name] = (max(old[0], w[0]), max(old[1], w[1]))
+    if scale == res.diagnostics.get("interval_scale", {}):
+        return res
+    note = ("the motion halts at or near its first turning point, where friction only moves "
+            "the centre (taken up by the offset): mu's profile above is nearly flat, and the "
+            "intervals are widened to reach the fits with mu held there (profile likelihood)")
+    return dataclasses.replace(res, diagnostics={**res.diagnostics, "interval_scale": scale,
+                                                 "note_first_halt": note})
 
 
 def above_mu_s(res, mu_s: float):
