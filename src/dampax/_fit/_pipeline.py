@@ -65,6 +65,7 @@ class Plan(NamedTuple):
     profile_checks: bool = True  # the intervals' profile refits in stage 6
     refuse_unidentifiable: bool = True  # a ValueError where the split is not determined
     static_halt: bool = True  # stage 7
+    halt_check: bool = True  # stage 5's check (else its held fits kept in ``other_halts``)
     approximation_may_answer: bool = False  # stage 2b
 
 
@@ -358,7 +359,8 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     state, others = neighbouring_halts(problem, plan, state)
     res = assess(problem, plan, state)
     if others and res.success:
-        res = other_halt_check(res, others)
+        res = other_halt_check(res, others) if plan.halt_check else \
+            dataclasses.replace(res, other_halts=others)
     mu_s, c = problem.consts.mu_s, problem.consts
     if mu_s is not None and plan.static_halt:  # the halt of the motion with static friction
         k3 = 0.0 if c.k3 is None else c.k3

@@ -119,6 +119,9 @@ class FitResult:
     profiled: dict = field(default_factory=dict)
     resid_rows: np.ndarray | None = None
     extra_cov: np.ndarray | None = None
+    #: the neighbouring-halt search's held fits ({mu: (cost, first halt, values)}), for a
+    #: check made later (``_halts.other_halt_check``: the k3 profile's, with k3's uncertainty)
+    other_halts: dict = field(default_factory=dict)
 
     def _hac(self):
         """(HAC covariance over ``varied``, bandwidth) of ``_intervals.hac_covariance``."""
