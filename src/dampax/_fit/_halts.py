@@ -22,7 +22,7 @@ from .._solve import prepare_reference, solve
 from ._core import FIT_RESULTS
 from ._params import varied_names
 from ._problem import predicted_start
-from ._profile import LR_CHI2, LR_Z, Optimum, widening_toward
+from ._profile import LR_CHI2, LR_Z, Optimum, widen
 from ._starts import REACHED_RTOL
 from ._text import lower_cost
 
@@ -393,7 +393,7 @@ def other_halt_check(res, others: dict):
 def widened_to_first_halts(res, points):
     """The intervals widened to reach the held fits of the first-halt side of mu
     (``points``: (likelihood-ratio chi2, {name: value})), as ``_profile.bound_verdict`` does
-    for a valley toward the bound (``_profile.widening_toward``): above the threshold of the
+    for a valley toward the bound (``_profile.widen``): above the threshold of the
     first halt the motion and its halt stay the same, so mu's profile is continuous there and
     flat or nearly (the offset takes up the centre that friction moves; only k3 or the motion
     before the first turning point tells them apart), far from the quadratic of the
@@ -407,10 +407,7 @@ def widened_to_first_halts(res, points):
         return res
     fitted = Optimum(res.params, res.stderr, res.hac_stderr, float(res.chisqr), math.nan)
     scale = {k: tuple(v) for k, v in res.diagnostics.get("interval_scale", {}).items()}
-    for chi2, point in points:
-        for name, w in widening_toward(fitted, point, chi2).items():
-            old = scale.get(name, (1.0, 1.0))
-            scale[name] = (max(old[0], w[0]), max(old[1], w[1]))
+    widen(scale, fitted, points)
     if scale == res.diagnostics.get("interval_scale", {}):
         return res
     note = ("the motion halts at or near its first turning point, where friction only moves "

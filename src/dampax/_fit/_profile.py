@@ -163,6 +163,16 @@ def widening_toward(fitted: Optimum, point: dict, chi2: float) -> dict:
     return out
 
 
+def widen(scale: dict, fitted: Optimum, points) -> None:
+    """``scale`` ({name: (below, above)}, updated in place) widened to reach each of
+    ``points`` ((likelihood-ratio chi2, {name: value}) of held fits: :func:`widening_toward`),
+    the larger factor of each side kept."""
+    for chi2, point in points:
+        for name, w in widening_toward(fitted, point, chi2).items():
+            old = scale.get(name, (1.0, 1.0))
+            scale[name] = (max(old[0], w[0]), max(old[1], w[1]))
+
+
 def bound_verdict(lr: dict, fitted: Optimum, scale: dict) -> tuple[str, str]:
     """The tests at the bound (:func:`bound_tests`' ``lr``) read: a held fit with a lower
     cost than the fit's is a local optimum (the failure); one whose cost rises by less than
@@ -180,10 +190,7 @@ def bound_verdict(lr: dict, fitted: Optimum, scale: dict) -> tuple[str, str]:
     if not c > 0.0:
         return (f"a local optimum: with {k} held at 0 and the rest refitted the cost is lower "
                 f"(likelihood-ratio chi2 {c:.2g})"), ""
-    for chi2, _, _, point in weak:  # the larger factor of each side kept
-        for name, w in widening_toward(fitted, point, chi2).items():
-            old = scale.get(name, (1.0, 1.0))
-            scale[name] = (max(old[0], w[0]), max(old[1], w[1]))
+    widen(scale, fitted, [(chi2, point) for chi2, _, _, point in weak])
     return "", (f"{k} is weakly separated from the other damping terms: its normal interval "
                 f"excluded 0 by {z:.2g} sd, but with {k} held at 0 and the rest refitted the "
                 f"cost rises by a likelihood-ratio chi2 of only {c:.2g} (< {LR_CHI2:.2f}, 1 %); "
