@@ -342,9 +342,10 @@ def _held_fit(held, full, best, mu_alt: float, last, swing=None):
 def other_halt_check(res, others: dict):
     """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
     with mu outside its interval (``_static.other_halts``): with mu held at each value of
-    ``others`` and the rest refitted (its cost, and whether that motion halts at its first
-    turning point: :func:`first_halt`), the likelihood-ratio chi2 against the fit, in the
-    intervals' own noise variance (s2 (sd/stderr)^2, as ``_profile.bound_tests``), below
+    ``others`` and the rest refitted (its cost, whether that motion halts at its first
+    turning point: :func:`first_halt`, and its values), the likelihood-ratio chi2 against
+    the fit, in the intervals' own noise variance (s2 (sd/stderr)^2, as
+    ``_profile.bound_tests``), below
     :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
     :data:`~dampax._fit._profile.LR_Z` interval sd, or lies above it with a first halt (then
     every larger mu fits as well: the profile of mu is flat up there): the data hold two
