@@ -137,19 +137,28 @@ def _sinusoid_frequency(t, y, lo, hi):
     """Angular frequency in [lo, hi] of the least-squares c + (a + a' s) cos(w s) +
     (b + b' s) sin(w s) (a scan on a log grid, then a finer one around the best)."""
     s = t - t[0]
-    span = max(float(s[-1]), 1e-300)
+    u = s / max(float(s[-1]), 1e-300)
 
-    def rss(w):
-        cw, sw = np.cos(w * s), np.sin(w * s)
-        X = np.stack([np.ones_like(s), cw, sw, (s / span) * cw, (s / span) * sw], axis=1)
-        coef, *_ = np.linalg.lstsq(X, y, rcond=None)
-        r = y - X @ coef
-        return float(r @ r)
+    def rss(ws):
+        # the residual sums of squares at the frequencies ws, a block of them at a time (the
+        # normal equations of the five columns, well scaled; the residual itself formed, not
+        # y.y - coef.X'y): one batched solve instead of an SVD per frequency
+        out = []
+        for w in np.split(ws, range(32, ws.size, 32)):
+            cw, sw = np.cos(w[:, None] * s), np.sin(w[:, None] * s)
+            X = np.stack([np.broadcast_to(1.0, cw.shape), cw, sw, u * cw, u * sw], axis=1)
+            try:
+                coef = np.linalg.solve(X @ X.transpose(0, 2, 1), (X @ y)[..., None])[..., 0]
+            except np.linalg.LinAlgError:  # a singular block: each frequency on its own
+                coef = np.stack([np.linalg.lstsq(Xk.T, y, rcond=None)[0] for Xk in X])
+            r = y - np.einsum("kjn,kj->kn", X, coef)
+            out.append(np.einsum("kn,kn->k", r, r))
+        return np.concatenate(out)
 
     grid = np.exp(np.linspace(math.log(lo), math.log(hi), 160))
-    best = grid[int(np.argmin([rss(w) for w in grid]))]
+    best = grid[int(np.argmin(rss(grid)))]
     fine = np.linspace(best / 1.03, best * 1.03, 61)
-    return float(fine[int(np.argmin([rss(w) for w in fine]))])
+    return float(fine[int(np.argmin(rss(fine)))])
 
 
 def _merge_wiggles(y, idx, t, half):
