@@ -64,18 +64,15 @@ class Analysis:
     whole: Analysis | None = None
 
 
-def _noise_sigma(x: np.ndarray) -> float:
+def noise_sigma(x: np.ndarray) -> float:
     """sigma of the white part of the noise: the MAD of the k-th differences (var =
     C(2k, k) sigma^2), the smallest over k = 2..5 (a smooth signal adds (w dt)^k A to the
     k-th differences, which the higher orders shed where the sampling is coarse)."""
     if x.size < 8:
         return 0.0
-    best = math.inf
-    d = np.asarray(x, dtype=float)
-    for k in range(1, 6):
+    best, d = math.inf, np.diff(np.asarray(x, dtype=float))
+    for k in range(2, 6):
         d = np.diff(d)
-        if k < 2:
-            continue
         s = float(MAD * np.median(np.abs(d - np.median(d))) / math.sqrt(math.comb(2 * k, k)))
         best = min(best, s)
     return best
@@ -134,31 +131,25 @@ def zigzag(y: np.ndarray, h: float):
 
 
 def _sinusoid_frequency(t, y, lo, hi):
-    """Angular frequency in [lo, hi] of the least-squares c + (a + a' s) cos(w s) +
-    (b + b' s) sin(w s) (a scan on a log grid, then a finer one around the best)."""
-    s = t - t[0]
-    u = s / max(float(s[-1]), 1e-300)
+    """Angular frequency in [lo, hi] of the least-squares c + (a + a' s) cos(w s) + (b + b' s)
+    sin(w s): a log grid, then a finer one around the best (normal equations, 32 at a time)."""
+    s, u = t - t[0], (t - t[0]) / max(float(t[-1] - t[0]), 1e-300)
 
-    def rss(ws):
-        # the residual sums of squares at the frequencies ws, a block of them at a time (the
-        # normal equations of the five columns, well scaled; the residual itself formed, not
-        # y.y - coef.X'y): one batched solve instead of an SVD per frequency
+    def best(ws):
         out = []
         for w in np.split(ws, range(32, ws.size, 32)):
             cw, sw = np.cos(w[:, None] * s), np.sin(w[:, None] * s)
             X = np.stack([np.broadcast_to(1.0, cw.shape), cw, sw, u * cw, u * sw], axis=1)
+            G, r = X @ X.transpose(0, 2, 1), (X @ y)[..., None]
             try:
-                coef = np.linalg.solve(X @ X.transpose(0, 2, 1), (X @ y)[..., None])[..., 0]
-            except np.linalg.LinAlgError:  # a singular block: each frequency on its own
-                coef = np.stack([np.linalg.lstsq(Xk.T, y, rcond=None)[0] for Xk in X])
-            r = y - np.einsum("kjn,kj->kn", X, coef)
-            out.append(np.einsum("kn,kn->k", r, r))
-        return np.concatenate(out)
+                coef = np.linalg.solve(G, r)
+            except np.linalg.LinAlgError:  # singular (coincident times): least squares
+                coef = np.linalg.pinv(G) @ r
+            out.append(np.sum((y - np.sum(X * coef, axis=1)) ** 2, axis=1))
+        return float(ws[int(np.argmin(np.concatenate(out)))])
 
-    grid = np.exp(np.linspace(math.log(lo), math.log(hi), 160))
-    best = grid[int(np.argmin(rss(grid)))]
-    fine = np.linspace(best / 1.03, best * 1.03, 61)
-    return float(fine[int(np.argmin(rss(fine)))])
+    w = best(np.exp(np.linspace(math.log(lo), math.log(hi), 160)))
+    return best(np.linspace(w / 1.03, w * 1.03, 61))
 
 
 def _merge_wiggles(y, idx, t, half):
@@ -369,7 +360,7 @@ def _scan_arrays(t: np.ndarray, x: np.ndarray, omega0: float | None) -> Analysis
     Returns:
         An :class:`Analysis`.
     """
-    noise = _noise_sigma(x)
+    noise = noise_sigma(x)
     y = despike(x)
     half_range = 0.5 * float(np.ptp(y))
     level = max(8.0 * noise, 0.05 * half_range)

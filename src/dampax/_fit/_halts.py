@@ -172,8 +172,7 @@ def search_other_halts(problem, best, last):
     full = problem.holding("mu")
     held = dataclasses.replace(full, settings=full.settings._replace(
         max_steps=min(full.steps, HALT_STEPS)))
-    c = problem.consts
-    constants = (c.m, c.g, 0.0 if c.k3 is None else c.k3)
+    constants = problem.consts.motion
     name, fs = last.model, last.fs
     # first halts: mu ~ offset (exactly without k3; with k3 nearly, its cubic force the only
     # thing that tells mu from the offset over one swing: wide draw 41, 12 half-widths off)

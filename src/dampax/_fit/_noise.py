@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from ._analysis import _noise_sigma, despike
+from ._analysis import despike, noise_sigma
 
 #: the coarsest scale tried keeps at least this many block means
 MIN_BLOCKS = 64
@@ -43,7 +43,7 @@ def excursions(x: np.ndarray) -> list[tuple[int, float, float]]:
 
     At block widths w = 1, 4, 16, ... (at least :data:`MIN_BLOCKS` blocks), the half
     peak-to-peak of the block means (after :func:`despike`) and the noise sigma of those means
-    from their own higher differences (``_analysis._noise_sigma``: a median, which the few
+    from their own higher differences (``_analysis.noise_sigma``: a median, which the few
     blocks where a short motion curves do not move; correlated noise shows there as it is at
     that scale, not as its white part).
 
@@ -54,7 +54,7 @@ def excursions(x: np.ndarray) -> list[tuple[int, float, float]]:
     out, w = [], 1
     while x.size // w >= MIN_BLOCKS or w == 1:
         xb = block_means(x, w)
-        sigma = _noise_sigma(xb)
+        sigma = noise_sigma(xb)
         out.append((w, 0.5 * float(np.ptp(despike(xb))), noise_excursion(xb.size) * sigma))
         w *= SCALE_STEP
     return out

@@ -147,6 +147,11 @@ class Constants(NamedTuple):
     k3: Any = None
     mu_s: Any = None
 
+    @property
+    def motion(self) -> tuple:
+        """(m, g, k3) of the motion's solves (eq. 3; k3 = 0.0 for the linear spring)."""
+        return self.m, self.g, 0.0 if self.k3 is None else self.k3
+
 
 class Setup(NamedTuple):
     """Reference point (theta = 0 at p0) and scales of the internal coordinates of one fit.

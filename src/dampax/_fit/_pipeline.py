@@ -228,8 +228,7 @@ def _swing_start(problem: Problem, state: Fit, name: str, value):
     if not (name == "mu" and problem.vary.offset and FIT_MODELS[state.last.model].integrates
             and float(value) > float(best.mu)):
         return None
-    return first_halt_start(best, problem.data.t, (c.m, c.g, 0.0 if c.k3 is None else c.k3),
-                            mu=float(value))
+    return first_halt_start(best, problem.data.t, c.motion, mu=float(value))
 
 
 #: a free damping constant within this many standard errors of 0 is not told from its bound
@@ -331,7 +330,7 @@ def prepare_programs(problem: Problem, plan: Plan) -> None:
     problem.solve(problem.guess, first, math.inf, prepare=True)
     if plan.neighbouring_halts and FIT_MODELS[s.model].integrates and problem.vary.mu and \
             c.mu_s is None and s.loss == "linear":
-        prepare_motion(problem.guess, problem.data.t, c.m, c.g, 0.0 if c.k3 is None else c.k3)
+        prepare_motion(problem.guess, problem.data.t, *c.motion)
     prepare_envelope(problem.data.t)
     if FIT_MODELS[s.model].integrates:  # the report's matched amplitude and phase
         prepare_amplitude_phase(problem.guess._asdict(), c.m, c.g)
@@ -363,6 +362,5 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
             dataclasses.replace(res, other_halts=others)
     mu_s, c = problem.consts.mu_s, problem.consts
     if mu_s is not None and plan.static_halt:  # the halt of the motion with static friction
-        k3 = 0.0 if c.k3 is None else c.k3
-        res = above_mu_s(with_static_halt(res, c.m, c.g, k3, mu_s), mu_s)
+        res = above_mu_s(with_static_halt(res, *c.motion, mu_s), mu_s)
     return res

@@ -79,12 +79,6 @@ def screen(res, m: float, g: float, k3: float) -> list[tuple[float, int, float]]
     return sorted(out)
 
 
-def _constants(problem) -> tuple[float, float, float]:
-    """(m, g, k3) of the problem (k3 = 0 for the linear spring)."""
-    c = problem.consts
-    return c.m, c.g, 0.0 if c.k3 is None else float(c.k3)
-
-
 def _cost(res) -> float:
     return float(res.chisqr) if res is not None and np.isfinite(res.chisqr) else math.inf
 
@@ -105,7 +99,7 @@ def _at(problem, value, start, inner: bool = True):
 
 def _search(problem, base):
     """Steps 2-4 of the module's search: (the best fit, its mu_s or None, fits made)."""
-    m, g, k3 = _constants(problem)
+    m, g, k3 = problem.consts.motion
     best, best_value, done = base, None, {}
     for _, j, value in screen(base, m, g, k3)[:REFINE]:
         res = done[j] = _at(problem, value, base)
@@ -143,7 +137,7 @@ def fit_mu_s(problem):
         (1-based), the fits made, and the rms and the model's position at the window's end
         of the sliding-friction fit (mu_s = mu).
     """
-    m, g, k3 = _constants(problem)
+    m, g, k3 = problem.consts.motion
     # the search's fits are inner fits (no refusal, no profile of the intervals): the chosen
     # one is fitted again at the end with every check of a plain fit
     base = run(problem, INNER)
