@@ -32,7 +32,7 @@ from ._curves import model_curve as model_curve
 from ._curves import reference_solution as reference_solution
 from ._curves import swing_budget as swing_budget
 from ._linalg import tall_lstsq, tall_svd
-from ._lm import LMSolution, levenberg_marquardt, rows_and_jacobian
+from ._lm import LMSolution, levenberg_marquardt, optax_minimise, rows_and_jacobian
 from ._params import (
     Damping,
     Setup,
@@ -135,47 +135,6 @@ def _clamp_flat(theta, args: ResidualArgs, model: FitModel):
 # optimisers
 
 
-def _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol):
-    """Minimise loss_fn with optax adam (decaying rate) or L-BFGS; (theta, code, steps)."""
-    import optax  # (imported here: a tenth of a second that the default optimizer never uses)
-
-    lbfgs = optimizer == "lbfgs"
-    if lbfgs:
-        opt = optax.lbfgs()
-        value_and_grad = optax.value_and_grad_from_state(loss_fn)
-    else:
-        opt = optax.adam(optax.exponential_decay(0.02, max_steps, 1e-3))
-        value_and_grad = jax.value_and_grad(loss_fn)
-
-    def cond(c):
-        k, _, _, _, done = c
-        return (k < max_steps) & ~done
-
-    def body(c):
-        k, theta, state, prev, _ = c
-        if lbfgs:
-            value, grad = value_and_grad(theta, state=state)
-            updates, state = opt.update(grad, state, theta, value=value, grad=grad,
-                                        value_fn=loss_fn)
-        else:
-            value, grad = value_and_grad(theta)
-            updates, state = opt.update(grad, state, theta)
-        theta = optax.apply_updates(theta, updates)
-        small = jnp.max(jnp.abs(updates)) <= atol + rtol * jnp.max(jnp.abs(theta))
-        flat_loss = jnp.abs(prev - value) <= rtol * jnp.abs(value) + 1e-300
-        return k + 1, theta, state, value, small & flat_loss & jnp.isfinite(value)
-
-    init = (jnp.array(0), theta0, opt.init(theta0), jnp.array(jnp.inf, dtype=theta0.dtype),
-            jnp.array(False))
-    k, theta, _, _, done = jax.lax.while_loop(cond, body, init)
-    if lbfgs:
-        code = result_where(done, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached)
-    else:  # adam: a finished schedule counts as converged
-        code = result_where(jnp.isfinite(loss_fn(theta)), FIT_RESULTS.successful,
-                            FIT_RESULTS.failed)
-    return theta, code, k
-
-
 def _lm_code(sol: LMSolution) -> FIT_RESULTS:
     """The :class:`FIT_RESULTS` member of a Levenberg-Marquardt solution."""
     return result_where(sol.converged, FIT_RESULTS.successful, result_where(
@@ -210,6 +169,15 @@ def _log_coordinates(args: ResidualArgs, model: FitModel) -> _LogBounds:
                       flat(on_damping(model.coords, lo, -jnp.inf)),
                       flat(on_damping(model.coords, Damping(True, True, True), False)),
                       flat(args.vary))
+
+
+def _start(args: ResidualArgs, model: FitModel, at_bound):
+    """theta0: p0 (a damping constant's floor where p0 is below it); ``at_bound``: a varied
+    damping constant at 0 one unit above its lower bound (the floor stalls
+    Levenberg-Marquardt's log-step: wide draw 2, ``_pipeline.from_the_bound``)."""
+    b = _log_coordinates(args, model)
+    low = at_bound & b.is_log & b.vary & (flat(args.setup.ref) <= 0.0)
+    return jnp.where(low, b.lo + 1.0, 0.0).astype(args.setup.sx.dtype)
 
 
 def _between_rounds(b: _LogBounds, theta, scale, r, J):
@@ -384,11 +352,14 @@ class Tuning(NamedTuple):
     units (inf: the linear loss), Levenberg-Marquardt's step ``budget`` (at most
     ``CoreOptions.max_steps``; None: that) and ``give_up``, a chi-square (data units) above
     which the fit stops after ``_lm.GIVE_UP_AFTER`` steps (None or inf: never), both
-    honoured by the models of one round (``FitModel.lm_rounds``)."""
+    honoured by the models of one round (``FitModel.lm_rounds``); ``at_bound``: a varied
+    damping constant started at 0 starts at its lower bound (a continuation from a fit with
+    it held at 0), not at its small floor (the log-parameter's reference: its start)."""
 
     f_scale: Any
     budget: Any = None
     give_up: Any = None
+    at_bound: Any = False
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
@@ -409,11 +380,11 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         A :class:`CoreResult`.
     """
     model, optimizer, max_steps, rtol, atol, opts = options
-    f_scale, budget, give_up = tuning
+    f_scale, budget, give_up, at_bound = tuning
     spec = FIT_MODELS[model]
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
-    theta0 = jnp.zeros(len(p0), dtype=st.sx.dtype)
+    theta0 = _start(args, spec, at_bound)
     raw = functools.partial(_residual_fn, model=spec, opts=opts)
     fn = _materialised(raw, args)  # (reverse mode for optax: J built forward, transposed)
     final = None
@@ -424,7 +395,9 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         def loss_fn(th):
             return 0.5 * jnp.sum(fn(th, args) ** 2)
 
-        theta, code, steps = _optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol)
+        theta, steps, ok = optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol)
+        code = result_where(ok, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached if
+                            optimizer == "lbfgs" else FIT_RESULTS.failed)
 
     theta = _clamp_flat(theta, args, spec)
     npad = t.shape[0]
@@ -482,12 +455,13 @@ def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | N
     ``static``: only start compiling that program in the background
     (``_cache.prepare_cached_tree``; returns None)."""
     prepare = static.pop("prepare", False)
-    f_scale, budget, give_up = tuning if isinstance(tuning, Tuning) else Tuning(tuning)
+    f_scale, budget, give_up, at_bound = tuning if isinstance(tuning, Tuning) else \
+        Tuning(tuning)
     args = (t, x, weight, p0, vary, consts, Tuning(
         f_scale, static["max_steps"] if budget is None else budget,
-        jnp.inf if give_up is None else give_up))
+        jnp.inf if give_up is None else give_up, at_bound))
     options = CoreOptions(**static)
-    types = (float, float, float, float, bool, float, Tuning(float, int, float))
+    types = (float, float, float, float, bool, float, Tuning(float, int, float, bool))
     concrete = is_concrete(args)
     to_array = host_array if concrete else jnp.asarray
     args = jax.tree_util.tree_map(

@@ -34,6 +34,8 @@ The iteration (optimistix 0.1: ``AbstractGaussNewton.step`` with ``ClassicalTrus
 The returned point is the last accepted one, with its residuals and Jacobian (the fit's
 statistics reuse them). ``budget`` (traced) stops earlier than the loop's static
 ``max_steps``: one compiled fit serves every budget.
+
+:func:`optax_minimise` runs the optax optimizers (adam, L-BFGS) on the fit's sum of squares.
 """
 
 from __future__ import annotations
@@ -204,3 +206,40 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
     s = jax.lax.while_loop(cond, body, init)
     finite = jnp.all(jnp.isfinite(s.y))
     return LMSolution(s.y, s.done & finite & ~s.stopped, finite, s.k, s.r, s.J)
+
+
+def optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol):
+    """Minimise loss_fn with optax adam (decaying rate) or L-BFGS; (theta, steps, ok): ok
+    L-BFGS converged, adam's loss finite (its finished schedule counts as converged)."""
+    import optax  # (imported here: a tenth of a second that the default optimizer never uses)
+
+    lbfgs = optimizer == "lbfgs"
+    if lbfgs:
+        opt = optax.lbfgs()
+        value_and_grad = optax.value_and_grad_from_state(loss_fn)
+    else:
+        opt = optax.adam(optax.exponential_decay(0.02, max_steps, 1e-3))
+        value_and_grad = jax.value_and_grad(loss_fn)
+
+    def cond(c):
+        k, _, _, _, done = c
+        return (k < max_steps) & ~done
+
+    def body(c):
+        k, theta, state, prev, _ = c
+        if lbfgs:
+            value, grad = value_and_grad(theta, state=state)
+            updates, state = opt.update(grad, state, theta, value=value, grad=grad,
+                                        value_fn=loss_fn)
+        else:
+            value, grad = value_and_grad(theta)
+            updates, state = opt.update(grad, state, theta)
+        theta = optax.apply_updates(theta, updates)
+        small = jnp.max(jnp.abs(updates)) <= atol + rtol * jnp.max(jnp.abs(theta))
+        flat_loss = jnp.abs(prev - value) <= rtol * jnp.abs(value) + 1e-300
+        return k + 1, theta, state, value, small & flat_loss & jnp.isfinite(value)
+
+    init = (jnp.array(0), theta0, opt.init(theta0), jnp.array(jnp.inf, dtype=theta0.dtype),
+            jnp.array(False))
+    k, theta, _, _, done = jax.lax.while_loop(cond, body, init)
+    return theta, k, done if lbfgs else jnp.isfinite(loss_fn(theta))

@@ -134,7 +134,8 @@ class Problem:
 
     def solve(self, p_start: TraceParams, model: str, fs: float, *,
               like: Solved | None = None, budget: int | None = None,
-              give_up: float | None = None, prepare: bool = False) -> Solved | None:
+              give_up: float | None = None, prepare: bool = False,
+              at_bound: bool = False) -> Solved | None:
         """Optimise from ``p_start`` with ``model`` (the jitted core, ``_core.run_core``).
 
         Arguments:
@@ -148,6 +149,8 @@ class Problem:
             give_up: a chi-square above which the fit stops after ``_lm.GIVE_UP_AFTER``
                 steps, not converged (the exact model; None: never).
             prepare: only start compiling the fit's program in the background (None).
+            at_bound: a varied damping constant that ``p_start`` holds at 0 starts at its
+                lower bound, not its floor (``_core.Tuning``).
 
         Returns:
             :class:`Solved`, or None where ``prepare``.
@@ -160,7 +163,7 @@ class Problem:
         cap = max(budget, MAX_STEPS[s.optimizer]) if s.optimizer == "lm" and \
             FIT_MODELS[model].lm_rounds == 1 else budget
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
-                       self.consts, Tuning(fs, budget, give_up), model=model,
+                       self.consts, Tuning(fs, budget, give_up, at_bound), model=model,
                        optimizer=s.optimizer, max_steps=cap, rtol=float(s.rtol),
                        atol=float(s.atol), opts=opts, prepare=prepare)
         return None if prepare else Solved(out, model, fs, opts)
