@@ -131,7 +131,7 @@ def test_a_lower_cost_at_the_bound_is_where_the_fit_continues():
     exact model's fit stopped at mu = 8.6e-7, 0.45 of its floor, where the log-step of
     Levenberg-Marquardt stalls, and the test at the bound found mu held at 0 lower (chi2 -23):
     reported as a failure. Now the fit continues from that held fit with mu free and started
-    at its lower bound (``_core.Tuning.at_bound``). Here draw 2's motion at 2,000 samples and
+    at its lower bound (``_core.Tuning.at_bound``). Here draw 2's motion at 1,000 samples and
     white noise, from scipy's integrator: the free fit started at mu's floor stalls above the
     cost of mu held at 0; the continuation reaches that cost with mu at 0, b and D within 3
     standard errors of the truth."""
@@ -143,7 +143,7 @@ def test_a_lower_cost_at_the_bound_is_where_the_fit_continues():
 
     m, k, b, D = 4.322520219963828, 30.96234455962546, 9.047853784625625, 57.17972706345852
     x0, v0, offset = 0.0013496502553528849, 0.04484604229153602, 0.00580550564521066
-    t = np.linspace(0.0, 18.154317365471556, 2000)
+    t = np.linspace(0.0, 18.154317365471556, 1000)
     seg, _, rest = scipy_stick_slip(m, k, 0.0, b, D, x0, v0, t[-1])
     x = offset + evaluate(seg, rest, t)[0] + 5e-6 * np.random.default_rng(2).standard_normal(
         t.size)
