@@ -441,6 +441,15 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
                       coords=to_model(unflat(theta, spec.coords), st, vary), jac=Jp, resid=r)
 
 
+def program_consts(consts, model: str):
+    """``consts`` as the compiled fits of ``model`` take them: eq. 3 integrated with the linear
+    spring (k3 None) is k3 = 0, so its programs are those of a held or profiled k3 (one
+    compiled fit for both; the closed form's k3 has terms of its own)."""
+    if FIT_MODELS[model].integrates and consts.k3 is None:
+        return consts._replace(k3=0.0)
+    return consts
+
+
 def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | None:
     """:func:`core` with every input as a (strongly typed) JAX array, so that every fit of
     the same shapes shares one compiled function. ``static``: the fields of
@@ -457,7 +466,7 @@ def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | N
     prepare = static.pop("prepare", False)
     f_scale, budget, give_up, at_bound = tuning if isinstance(tuning, Tuning) else \
         Tuning(tuning)
-    args = (t, x, weight, p0, vary, consts, Tuning(
+    args = (t, x, weight, p0, vary, program_consts(consts, static["model"]), Tuning(
         f_scale, static["max_steps"] if budget is None else budget,
         jnp.inf if give_up is None else give_up, at_bound))
     options = CoreOptions(**static)

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached_tree, prepare_cached_tree
-from ._core import FIT_RESULTS, CoreOptions, Tuning, core
+from ._core import FIT_RESULTS, CoreOptions, Tuning, core, program_consts
 from ._params import PARAMS, TraceParams, as_arrays
 
 #: samples of the thinned trace of the batch (its padded length): the smallest of these that
@@ -162,7 +162,7 @@ def _program(problem, model: str, f_scale: float, vary, opts) -> _Program:
     return _Program(sorted(static.items()),
                     functools.partial(_batch, options=CoreOptions(**static)),
                     (jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt)),
-                    (as_arrays(vary, bool), as_arrays(problem.consts),
+                    (as_arrays(vary, bool), as_arrays(program_consts(problem.consts, model)),
                      jnp.asarray(f_scale, dtype=float)), stride)
 
 
