@@ -135,6 +135,18 @@ def _clamp_flat(theta, args: ResidualArgs, model: FitModel):
 # optimisers
 
 
+def _optax_fit(fn, theta0, args: ResidualArgs, options: CoreOptions):
+    """(theta, code, steps) of optax's adam or L-BFGS on the (robust) sum of squares."""
+    _, optimizer, max_steps, rtol, atol, _ = options
+
+    def loss_fn(th):
+        return 0.5 * jnp.sum(fn(th, args) ** 2)
+
+    theta, steps, ok = optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol)
+    return theta, result_where(ok, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached if
+                               optimizer == "lbfgs" else FIT_RESULTS.failed), steps
+
+
 def _lm_code(sol: LMSolution) -> FIT_RESULTS:
     """The :class:`FIT_RESULTS` member of a Levenberg-Marquardt solution."""
     return result_where(sol.converged, FIT_RESULTS.successful, result_where(
@@ -392,12 +404,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         theta, code, steps, final = _lm_rounds(raw, theta0, args, spec, options, *(
             (budget, give_up) if spec.lm_rounds == 1 else ()))
     else:
-        def loss_fn(th):
-            return 0.5 * jnp.sum(fn(th, args) ** 2)
-
-        theta, steps, ok = optax_minimise(loss_fn, theta0, optimizer, max_steps, rtol, atol)
-        code = result_where(ok, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached if
-                            optimizer == "lbfgs" else FIT_RESULTS.failed)
+        theta, code, steps = _optax_fit(fn, theta0, args, options)
 
     theta = _clamp_flat(theta, args, spec)
     npad = t.shape[0]
