@@ -453,7 +453,7 @@ def program_consts(consts, model: str):
     spring (k3 None) is k3 = 0, so its programs are those of a held or profiled k3 (one
     compiled fit for both; the closed form's k3 has terms of its own)."""
     if FIT_MODELS[model].integrates and consts.k3 is None:
-        return consts._replace(k3=0.0)
+        return consts._replace(k3=consts.motion[2])
     return consts
 
 

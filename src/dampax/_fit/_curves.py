@@ -113,9 +113,8 @@ def reference_solution(q: TraceCoords, consts: Constants, span, opts: ReferenceO
     """The reference solution (DOP853, exact stick-slip) of eq. 3 from (x0, v0 = y) over the
     window's span; with static friction ``consts.mu_s`` when it is not None."""
 
-    m = consts.m
-    k3 = 0.0 if consts.k3 is None else consts.k3
-    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=consts.g, k3=k3,
+    m, g, k3 = consts.motion
+    osc = Oscillator(m=m, k=m * q.w0 * q.w0, mu=q.mu, b=q.b, D=q.D, g=g, k3=k3,
                      mu_s=consts.mu_s)
     return solve(osc, q.x0, q.y, method="reference", t_end=span * (1.0 + 1e-6) + 1e-9,
                  rtol=opts.rtol, atol=opts.atol, max_swings=opts.max_swings, adjoint=adjoint)
