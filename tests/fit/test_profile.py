@@ -165,3 +165,35 @@ def test_a_lower_cost_at_the_bound_is_where_the_fit_continues():
     for name in ("b", "D"):
         value, se = float(getattr(out.params, name)), float(getattr(out.stderr, name))
         assert abs(value - getattr(truth, name)) < 3.0 * se, (name, value, se)
+
+
+def test_the_motions_of_a_search_share_one_compiled_program(caplog):
+    """The halt search's motions (``_halts.turning_points``: a fit's parameters over twice its
+    window) with other damping constants use one compiled reference program: the swing
+    budget comes from the window and the frequency, not from mu's bound on the swings before
+    the halt (which gave every mu its own program, compiled on a cold fit's critical path).
+    Their turning points are scipy's (DOP853 with a v = 0 event)."""
+    import logging
+    from types import SimpleNamespace
+
+    from helpers import scipy_stick_slip
+
+    from dampax._fit import _halts
+
+    m, g, w0, span = 0.5, 9.81, 9.0, 61.0  # about 350 half-swings in twice the window
+    t = np.linspace(0.0, span, 50)
+    motions = []
+    caplog.set_level(logging.DEBUG)
+    for mu in (0.004, 0.002):  # halt bounds of 111 and 220 half-swings: budgets 128 and 256
+        p = dict(mu=mu, b=0.002, D=0.0, w0=w0, x0=0.1, v0=0.3, offset=0.0)
+        motions.append((p, _halts.turning_points(SimpleNamespace(params=p, t=t), m, g, 0.0)))
+    compiled = [r for r in caplog.records
+                if "Finished XLA compilation of jit(reference)" in r.getMessage()]
+    assert len(compiled) <= 1, [r.getMessage() for r in compiled]
+    for p, (tau, x, _, halts) in motions:
+        _, turning, rest = scipy_stick_slip(m, m * w0**2, p["mu"], p["b"], p["D"], p["x0"],
+                                            p["v0"], 2.0 * span, g=g)
+        want = np.array([tt for tt, _ in turning if tt <= span])
+        assert rest is not None and halts == (rest[0] <= span) and tau.size == want.size > 10
+        np.testing.assert_allclose(tau, want, rtol=0, atol=1e-8)
+        np.testing.assert_allclose(x, [xx for tt, xx in turning if tt <= span], atol=1e-9)

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from .._oscillator import Oscillator
-from .._solve import prepare_reference, solve
+from .._solve import default_swings, prepare_reference, solve
 from ._core import FIT_RESULTS
 from ._params import varied_names
 from ._problem import predicted_start
@@ -51,11 +51,25 @@ def _motion_start(p: dict, t, m: float, g: float, k3: float, mu_s=None):
     return osc, p["x0"], p["v0"], float(t[-1] - t[0])
 
 
+def _motion_swings(osc, x0, v0, span: float) -> int | None:
+    """The swing budget of a fit's motion over twice its window: from the window and the
+    frequency only (``default_swings(..., until_halt=False)``), so that the motions of every
+    mu, b and D of a fit and its searches share one compiled program (the budget from the
+    halt's bound gave each its own: two more programs, 1.3 s of a cold fit on its critical
+    path); None (the solve's own budget) beyond ``MAX_SWINGS``."""
+    try:
+        return default_swings(osc, x0, v0, 2.0 * span, until_halt=False)
+    except ValueError:
+        return None
+
+
 def _motion(res, m: float, g: float, k3: float, mu_s=None):
     """The reference solution of a fit's motion from its start over twice its window (one
-    compiled program for every call of a search), and the window's span."""
+    compiled program for every call of a search: :func:`_motion_swings`), and the window's
+    span."""
     osc, x0, v0, span = _motion_start(res.params, res.t, m, g, k3, mu_s)
-    return solve(osc, x0, v0, method="reference", t_end=2.0 * span), span
+    return solve(osc, x0, v0, method="reference", t_end=2.0 * span,
+                 max_swings=_motion_swings(osc, x0, v0, span)), span
 
 
 def prepare_motion(params, t, m: float, g: float, k3: float) -> None:
@@ -64,7 +78,8 @@ def prepare_motion(params, t, m: float, g: float, k3: float) -> None:
     (``_solve.prepare_reference``)."""
     p = {k: float(v) for k, v in params._asdict().items()}
     osc, x0, v0, span = _motion_start(p, np.asarray(t), m, g, k3)
-    prepare_reference(osc, x0, v0, t_end=2.0 * span)
+    prepare_reference(osc, x0, v0, t_end=2.0 * span,
+                      max_swings=_motion_swings(osc, x0, v0, span))
 
 
 def turning_points(res, m: float, g: float, k3: float, mu_s=None):

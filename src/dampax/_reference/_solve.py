@@ -92,10 +92,12 @@ def halt_swings(osc, x0, v0) -> np.ndarray:
         return np.where((friction > 0) & np.isfinite(bound), bound, np.inf)
 
 
-def default_swings(osc, x0, v0, t_end) -> int:
+def default_swings(osc, x0, v0, t_end, *, until_halt: bool = True) -> int:
     """max_swings for a concrete window: the swings of the fastest motion in [0, t_end]
     (w_hi t_end / pi, w_hi the frequency bound of `_engine`) with a margin, rounded up; at most
     those before the halt (:func:`halt_swings`), so a t_end long past the halt costs nothing.
+    ``until_halt=False`` leaves that bound out: the budget then depends on the window and the
+    frequency only, not on the damping (one compiled program for the motions of a search).
 
     Raises:
         ValueError: naming t_end when the window needs more than :data:`MAX_SWINGS` swings
@@ -108,7 +110,8 @@ def default_swings(osc, x0, v0, t_end) -> int:
     with np.errstate(all="ignore"):
         w_hi = w0 * np.sqrt(1.0 + 6.0 * k3 * energy / (k * k))
         swings = np.asarray(t_end, dtype=float) * w_hi / math.pi
-        swings = np.minimum(swings, halt_swings(osc, x0, v0))
+        if until_halt:
+            swings = np.minimum(swings, halt_swings(osc, x0, v0))
     swings = np.where(np.isfinite(swings), swings, 0.0)
     need = 1.1 * float(np.max(swings)) + 4
     if need > MAX_SWINGS:
