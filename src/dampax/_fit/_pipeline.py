@@ -53,7 +53,7 @@ from ._halts import (
 from ._measures import k3_hint
 from ._params import varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
-from ._result import FitContext, FitResult, build_result
+from ._result import FitContext, FitResult, build_result, data_rows
 from ._starts import prepare_starts, run_starts
 from ._text import lower_cost
 
@@ -178,14 +178,11 @@ def _descending(problem: Problem, out) -> bool:
     """Whether one more Gauss-Newton step from the fit ``out`` (a CoreResult) would lower its
     cost by more than NEWTON_TOL noise variances (``_checks.newton_step``, as the
     assessment's step-budget check)."""
-    if out.jac is None or out.resid is None:
+    jac, rows = data_rows(out, problem.vary, problem.n)
+    if jac is None or rows is None:
         return True
-    names = varied_names(problem.vary)
-    idx = [i for i, on in enumerate(problem.vary._asdict().values()) if on]
-    params = out.params._asdict()
-    dec, _ = newton_step(np.asarray(out.jac, dtype=float)[:problem.n][:, idx],
-                         np.asarray(out.resid, dtype=float)[:problem.n],
-                         [float(params[n]) for n in names], names)
+    names, params = varied_names(problem.vary), out.params._asdict()
+    dec, _ = newton_step(jac, rows, [float(params[n]) for n in names], names)
     return dec > NEWTON_TOL
 
 

@@ -355,6 +355,15 @@ class ArrayFit(NamedTuple):
     resid: jax.Array | None = None
 
 
+def data_rows(out: CoreResult, vary, n: int):
+    """(jac, rows) of a fit on its window's ``n`` samples: the Jacobian's columns those of the
+    varied parameters (in the order of their fields), None where the fit returned none."""
+    idx = [i for i, on in enumerate(vary._asdict().values()) if on]
+    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
+    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
+    return jac, rows
+
+
 def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     """The :class:`FitResult` of the core's output ``out`` for the fit described by ``ctx``."""
     mask = ctx.vary._asdict()
@@ -377,8 +386,7 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     derived, envelope, fixed = derive(params, out.coords, ctx)
     converged = bool(out.code == FIT_RESULTS.successful)
     capped = bool(out.code == FIT_RESULTS.max_steps_reached)
-    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
-    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
+    jac, rows = data_rows(out, ctx.vary, n)
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":
 
