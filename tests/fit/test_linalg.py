@@ -128,3 +128,37 @@ def test_a_zero_width_interval_fails_the_fit():
     dead[:, 1] = 0.0
     (reason,) = standard_errors(Inputs(jac=dead, **kw), None).fails
     assert reason.startswith("the interval of v0 has no width"), reason
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_a_fit_holds_blas_to_one_thread_and_restores_it(monkeypatch):
+    """dp.fit's host-side linear algebra runs with one BLAS thread (OpenBLAS's idle worker
+    would spin on the core XLA needs: ``_linalg.one_blas_thread``); the caller's setting is
+    back afterwards, also when the fit raises."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import dampax as dp
+    from dampax._fit import _api
+
+    def threads():
+        return {d["filepath"]: d["num_threads"] for d in threadpool_info()
+                if d["user_api"] == "blas"}
+
+    seen = []
+
+    def run(problem, plan):
+        seen.append(threads())
+        raise _Stop
+
+    monkeypatch.setattr(_api, "run", run)
+    t = np.linspace(0.0, 10.0, 600)
+    x = 0.05 * np.exp(-0.1 * t) * np.cos(6.0 * t)
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = threads()
+        with pytest.raises(_Stop):
+            dp.fit(t, x, oscillator=dp.Oscillator(m=1.0, k=36.0), model="ansatz")
+        assert threads() == before
+    assert seen and set(seen[0]) == set(before) and set(seen[0].values()) == {1}

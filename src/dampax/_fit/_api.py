@@ -29,6 +29,7 @@ from ._core import (
     swing_budget,
 )
 from ._guess import analyse, guess_envelope
+from ._linalg import one_blas_thread
 from ._options import Window, options
 from ._params import (
     CANDIDATES,
@@ -99,6 +100,7 @@ def _check_max_steps(max_steps):
     return int(max_steps)
 
 
+@one_blas_thread
 def fit(trace_or_t, x, settings: Settings) -> FitResult:
     """Fit one trace with the caller's checked settings (the implementation of
     :func:`dampax.fit` for a single trace; its docstring describes the fit).

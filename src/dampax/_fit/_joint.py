@@ -48,6 +48,7 @@ from ._joint_problem import SHARED
 from ._joint_result import JointResult
 from ._joint_search import _optimise
 from ._joint_stages import JointSettings, _joint_start, _single_fits
+from ._linalg import one_blas_thread
 from ._options import LeastSquares, Window
 from ._params import DAMPING, check_choice, check_free, oscillator_values
 from ._problem import units_of
@@ -138,6 +139,7 @@ def check_shared(shared, free, *, fit_omega0: bool, k3) -> tuple[tuple, tuple]:
     return tuple(n for n in SHARED if n in shared), free
 
 
+@one_blas_thread
 def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: str = "auto",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               loss: str = "linear", optimizer: str = "lm", max_steps: int | None = None,

@@ -12,8 +12,11 @@ of the p x p factor then gives the singular values and right vectors of the whol
 
 from __future__ import annotations
 
+import functools
+
 import jax.numpy as jnp
 from jax import vmap
+from threadpoolctl import threadpool_limits
 
 #: rows per block of the tall-skinny QR (at least p; any size gives the same R up to signs)
 BLOCK = 64
@@ -67,3 +70,23 @@ def tall_lstsq(A, b):
     cut = jnp.finfo(A.dtype).eps * max(n, p) * s[0]
     inv = jnp.where(s > cut, 1.0 / jnp.where(s > 0, s, 1.0), 0.0)
     return vt.T @ (inv * (u.T @ c))
+
+
+def one_blas_thread(fn):
+    """``fn`` with the BLAS libraries of the process (numpy's and scipy's OpenBLAS) held to one
+    thread while it runs, restored after (``threadpoolctl``).
+
+    A fit's host-side linear algebra is on n x 7 matrices: a second BLAS thread gains nothing
+    there, and after each call OpenBLAS's idle worker spins on a core for a while. On a
+    2-core machine that spinning took the core XLA's programs run and load on: 21-25 % of
+    the CPU samples of a repeated ``dampax fit --example``, which ran 0.4 s faster (3.2-3.4
+    -> 2.8-3.0 s) and a warm default fit 0.43 -> 0.27-0.35 s with one BLAS thread
+    (benchmarks/README.md, issue 36). Calls from other threads during ``fn`` also see one
+    BLAS thread.
+    """
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+
+    return wrapper

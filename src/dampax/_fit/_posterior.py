@@ -56,6 +56,7 @@ import numpy as np
 from ._core import FIT_MODELS, MODELS, ReferenceOptions, reference_solution, swing_budget
 from ._entry import fit_flat
 from ._joint_result import JointResult
+from ._linalg import one_blas_thread
 from ._options import LeastSquares, Window, options
 from ._params import (
     DAMPING,
@@ -388,6 +389,7 @@ def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> 
                      stride=stride, narrow=narrow)
 
 
+@one_blas_thread
 def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: str = "auto",
               fit_omega0: bool | None = None, offset: bool = True, start="auto", end=None,
               num_samples: int = 1000, num_chains: int = 4, num_warmup: int = 500,
