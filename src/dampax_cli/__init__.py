@@ -36,15 +36,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.quiet:  # XLA's own (C++) warnings, read when JAX loads
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
-    # one BLAS thread unless the user says otherwise, read when numpy and scipy load their
-    # OpenBLAS: the command's host linear algebra is small, and after each call OpenBLAS's idle
-    # worker spins on a core, here the one that XLA's programs run and load on (12-25 % of the
-    # CPU of a repeated `dampax fit --example`; dampax._fit._linalg.one_blas_thread)
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-    # Python's cyclic collector every 100,000 allocations instead of 700: tracing and the
-    # fit's results make many short-lived objects and few cycles (a repeated `dampax fit
-    # --example` 5 % faster; the command's memory is JAX's and XLA's, not these objects')
-    gc.set_threshold(100_000, 50, 1000)
     from dampax._cli import run_parsed
 
     return run_parsed(args)
@@ -53,7 +44,16 @@ def main(argv: list[str] | None = None) -> int:
 def console() -> None:
     """The ``dampax`` console script: :func:`main`, then the end of the process without
     Python's finalization (:func:`leave`). ``--help``, ``--version`` and syntax errors exit
-    through argparse as usual."""
+    through argparse as usual. The process's own settings (not :func:`main`'s, which a
+    Python caller may run): one BLAS thread unless ``OPENBLAS_NUM_THREADS`` says otherwise
+    (read when numpy and scipy load OpenBLAS: the command's host linear algebra is small, and
+    after each call OpenBLAS's idle worker spins on a core, the one XLA's programs run and load
+    on: 12-25 % of the CPU of a repeated ``dampax fit --example``;
+    ``dampax._fit._linalg.one_blas_thread``), and Python's cyclic collector every 100,000
+    allocations instead of 700 (tracing and a fit's results make many short-lived objects and
+    few cycles: the example 5 % faster)."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    gc.set_threshold(100_000, 50, 1000)
     leave(main())
 
 

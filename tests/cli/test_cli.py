@@ -200,6 +200,30 @@ def test_console_script_leaves_with_the_status_and_every_line():
     assert proc.stderr.count("\n") == 1
 
 
+def test_console_script_holds_blas_to_one_thread_unless_told():
+    """The console script's process runs numpy's BLAS on one thread (OpenBLAS's idle worker
+    would spin on the core XLA needs) and collects cycles every 100,000 allocations; a user's
+    OPENBLAS_NUM_THREADS stands. Read from the library itself (threadpoolctl) in the process
+    of ``dampax_cli.console`` with its command replaced."""
+    code = ("import gc, dampax_cli\n"
+            "def main():\n"
+            "    import numpy\n"
+            "    from threadpoolctl import threadpool_info\n"
+            "    print(sorted({d['num_threads'] for d in threadpool_info()"
+            " if d['user_api'] == 'blas'}), gc.get_threshold()[0])\n"
+            "    return 0\n"
+            "dampax_cli.main = main\n"
+            "dampax_cli.console()\n")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    for given, expected in ((None, 1), ("2", 2)):
+        if given is not None:
+            env["OPENBLAS_NUM_THREADS"] = given
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              timeout=60, env=env)
+        assert proc.returncode == 0, proc.stderr
+        assert proc.stdout.split() == [f"[{expected}]", "100000"], (given, proc.stdout)
+
+
 @pytest.mark.parametrize("argv, flag", [
     (["solve", "--plot", "/proc/dampax-test.png"], "--plot"),
     (["sensitivity", "--plot", "/proc/dampax-test.png"], "--plot"),

@@ -205,7 +205,9 @@ def test_a_fit_that_runs_out_of_steps_continues_while_its_step_still_descends():
     integrator, white noise): the exact model's fit runs out of its step budget twice. One
     more round (the stage before) failed it, "did not converge", with the truth inside its
     intervals; now the rounds go on while a Gauss-Newton step would still lower the cost, and
-    the fit converges with mu, b, D and w0 inside their 99 % intervals."""
+    the fit converges with mu, b, D and w0 inside their 99 % intervals. Its verdict: w0's
+    interval (6.8 +- 10 rad/s at 99 %) reaches 0, the window does not determine the frequency,
+    and the fit says so (``_assess.standard_errors``)."""
     from helpers import evaluate, scipy_stick_slip
 
     w0, mu, b, D, x0, v0, off = 8.00894, 0.168136, 4.45732, 15.0433, -0.052828, 0.744582, 0.04129
@@ -216,8 +218,39 @@ def test_a_fit_that_runs_out_of_steps_continues_while_its_step_still_descends():
     res = dp.fit(t, x, free=("mu", "b", "D"), offset=False, fit_omega0=True,
                  oscillator=dp.Oscillator(m=1.0, k=1.0),
                  solver=dp.LeastSquares(p0={"offset": off}))
-    assert res.success, res.reason
+    assert not res.success and res.reason.startswith("the 99 % interval of w0 = "), res.reason
     assert "the step budget ran out: continued" in res.message
+    assert "did not converge" not in res.reason
     ci = res.conf_interval(0.99)
     for name, truth in dict(mu=mu, b=b, D=D, w0=w0).items():
         assert ci[name][0] <= truth <= ci[name][1], (name, truth, ci[name])
+
+
+@pytest.mark.parametrize("spread, fails", [(10.0, True), (0.01, False)])
+def test_a_w0_interval_that_reaches_zero_fails_the_fit(spread, fails):
+    """A fitted w0 whose 99 % interval reaches 0 fails the fit (wide seed 11 draw 54: 1.7 half
+    swings, w0 1.99 +- 45 rad/s, mu 16 sd off the truth, was a success): a Jacobian whose w0
+    column is nearly that of x0, scaled so that numpy's least-squares standard error of w0
+    (white residuals: what the HAC interval reduces to) is ``spread`` times w0."""
+    from dampax._fit._assess import Inputs, standard_errors
+
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 10.0, 2000)
+    names = ("mu", "w0", "offset", "x0")
+    base = np.stack([np.exp(-0.1 * t) * np.sin(3.0 * t), t * np.sin(3.0 * t),
+                     np.ones_like(t), np.cos(3.0 * t)], axis=1)
+    rows = rng.standard_normal(t.size)
+    J = base.copy()
+    J[:, 3] = J[:, 1] + 1e-3 * rng.standard_normal(t.size)  # x0's column nearly w0's
+    cov = np.mean(rows**2) * np.linalg.inv(J.T @ J)
+    J[:, 1] *= np.sqrt(cov[1, 1]) / spread  # sd(w0) = spread * w0 with w0 = 1
+    sd_w0 = np.sqrt(np.mean(rows**2) * np.linalg.inv(J.T @ J)[1, 1])
+    assert sd_w0 == pytest.approx(spread, rel=1e-6)
+    params = {"mu": 0.01, "w0": 1.0, "offset": 0.0, "x0": 0.1}
+    a = Inputs(t=t, x=rows, curve=np.zeros_like(t), params=params,
+               stderr=dict.fromkeys(names, 1.0), varied=names, derived={}, an=None,
+               converged=True, message="", jac=J, rows=rows)
+    found = standard_errors(a, None).fails
+    assert bool(found) == fails, found
+    if fails:
+        assert found[0].startswith("the 99 % interval of w0 = 1 +- ") and "reaches 0" in found[0]
