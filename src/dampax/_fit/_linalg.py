@@ -79,10 +79,10 @@ def one_blas_thread(fn):
     A fit's host-side linear algebra is on n x 7 matrices: a second BLAS thread gains nothing
     there, and after each call OpenBLAS's idle worker spins on a core for a while. On a
     2-core machine that spinning took the core XLA's programs run and load on: 21-25 % of
-    the CPU samples of a repeated ``dampax fit --example``, which ran 0.4 s faster (3.2-3.4
-    -> 2.8-3.0 s) and a warm default fit 0.43 -> 0.27-0.35 s with one BLAS thread
-    (benchmarks/README.md, issue 36). Calls from other threads during ``fn`` also see one
-    BLAS thread.
+    the CPU samples of a repeated ``dampax fit --example`` (3.19 -> 2.78 s with one BLAS
+    thread, the console script's setting) and a warm default fit 0.40-0.47 -> 0.27-0.36 s
+    (benchmarks/README.md, issue 36, twentieth session). Calls from other threads during
+    ``fn`` also see one BLAS thread.
     """
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
