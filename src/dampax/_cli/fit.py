@@ -74,6 +74,8 @@ EXAMPLE_RANKING_STARTS = 1
 def _cli_words(text: str) -> str:
     """A library message with the Python argument names replaced by the command's flags."""
     for api, flag in (("fit_omega0=True", "--fit-omega0"), ("fit_omega0=False", "--k"),
+                      ("the stiffness (the oscillator's k)", "the stiffness (--m and --k)"),
+                      ("hold k3 (k3=...)", "drop k3 from --free"),
                       ("fit_omega0", "--fit-omega0"), ("loss=", "--loss "),
                       ("load_trace(rate=...), ", ""),
                       ("load_trace(time=..., position=...), ", ""),
