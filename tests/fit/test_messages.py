@@ -105,4 +105,3 @@ def test_residual_structure_equals_a_least_squares_fit_per_block():
         assert got["p_local"] == pytest.approx(min(1.0, J * chi2_sf(float(q[k]), 3)), rel=1e-9)
         assert got["q_share"] == pytest.approx(q[k] / q.sum(), rel=1e-9)
         assert got["worst"] == (t[edges[k]], t[edges[k + 1] - 1])
-
