@@ -474,10 +474,12 @@ def test_errormap_plots_option(tmp_path, capsys):
 
 def test_import_dampax_leaves_the_optional_stacks_out():
     """``import dampax`` (and the command line's module) import neither the fitting stack nor
-    plotting, netCDF or sampling libraries: ``dampax solve`` does not pay for them (issue 26).
+    plotting, netCDF or sampling libraries: ``dampax solve`` does not pay for them (issue 26),
+    nor the fused GPU kernel and Pallas's Triton backend off a GPU (50-100 ms of every import).
     The lazy names still resolve, with ``from dampax import fit``, and ``dir()`` lists them."""
     heavy = ("dampax._fit", "dampax._studies._global", "dampax._studies._maps", "optimistix",
-             "optax", "lineax", "blackjax", "matplotlib", "xarray", "arviz", "scipy")
+             "optax", "lineax", "blackjax", "matplotlib", "xarray", "arviz", "scipy",
+             "dampax._reference._kernel", "jax.experimental.pallas.triton")
     code = ("import sys, dampax, dampax._cli; "
             f"print(sorted(m for m in sys.modules if m.split('.')[0] in {heavy!r} "
             f"or m in {heavy!r})); "

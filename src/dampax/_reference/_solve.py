@@ -11,12 +11,29 @@ import numpy as np
 
 from .._models._solution import RESULTS
 from .._oscillator import Oscillator, check_finite, check_real, is_concrete
-from . import _kernel as kernel_module
 from ._diffrax import integrate as integrate_diffrax
 from ._engine import _KINDS, integrate
-from ._kernel import available as kernel_native
-from ._kernel import packed, self_check
 from ._solution import ReferenceSolution, from_engine, sample_single, with_samples
+
+
+def _kernel():
+    """The fused kernel's module (`_kernel`), imported where it is first needed: importing
+    Pallas and its Triton backend costs 50-100 ms of every ``import dampax``, and off a CUDA
+    GPU only ``engine="pallas"`` uses it."""
+    from . import _kernel as module
+
+    return module
+
+
+def kernel_native() -> bool:
+    """Whether the fused kernel runs natively here (`_kernel.available`: a CUDA GPU); its
+    module is imported only where JAX's backend is a GPU."""
+    try:
+        gpu = jax.default_backend() == "gpu"
+    except Exception:  # noqa: BLE001 - no backend at all: the XLA engine
+        return False
+    return gpu and _kernel().available()
+
 
 # Default t_end in undamped periods: 25 periods are about 50 swings.
 DEFAULT_PERIODS = 25.0
@@ -174,7 +191,8 @@ def _kernel_solve(kw: tuple):
 
     @jax.custom_vjp
     def solve(osc, x0, v0, t_end, ts):
-        return packed(interpret=not kernel_native(), **opts)(osc, x0, v0, t_end, ts)
+        return _kernel().packed(interpret=not kernel_native(), **opts)(osc, x0, v0, t_end,
+                                                                       ts)
 
     def forward(*args):
         return solve(*args), args
@@ -277,7 +295,7 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
         raise ValueError(f"solver must be 'dop853' (Hairer's 8th-order pair), got {solver!r}")
     if engine not in ENGINE_NAMES:
         raise ValueError(f"engine must be one of {ENGINE_NAMES}, got {engine!r}")
-    if engine == "pallas" and kernel_module.pl is None:
+    if engine == "pallas" and _kernel().pl is None:
         raise ValueError("engine='pallas' needs jax.experimental.pallas, which this jax lacks")
     if engine == "diffrax":
         try:
@@ -326,7 +344,7 @@ def resolve_engine(engine: str, adjoint: str = "recursive", inputs=()) -> str:
     if engine != "auto":
         return engine
     if adjoint == "recursive" and not differentiated(inputs) and kernel_native() and \
-            self_check(_solve_jit):
+            _kernel().self_check(_solve_jit):
         return "pallas"
     return "dampax"
 
