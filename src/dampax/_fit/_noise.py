@@ -5,6 +5,10 @@ A decay that moves for a small part of a long, noisy record (a block that halts 
 swing in the first 6 % of the window, at a noise of 7 % of its amplitude) hides within the
 excursions of its samples' noise, yet stands far above it once w samples are averaged: the
 noise of a mean of w falls as 1/sqrt(w) while a swing many samples long keeps its size.
+
+Also the noise's scale itself (:func:`noise_sigma`, the white part from high differences) and
+the running median that removes glitches (:func:`despike`), which the trace's analysis
+(``_analysis``) reads too.
 """
 
 from __future__ import annotations
@@ -13,7 +17,31 @@ import math
 
 import numpy as np
 
-from ._analysis import despike, noise_sigma
+from ._params import MAD
+
+
+def despike(x: np.ndarray, width: int = 5) -> np.ndarray:
+    """Running median over ``width`` samples: removes glitches of one or two samples."""
+    if x.size < 3 * width:
+        return x
+    half = width // 2
+    padded = np.concatenate([np.full(half, x[0]), x, np.full(half, x[-1])])
+    return np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=1)
+
+
+def noise_sigma(x: np.ndarray) -> float:
+    """sigma of the white part of the noise: the MAD of the k-th differences (var =
+    C(2k, k) sigma^2), the smallest over k = 2..5 (a smooth signal adds (w dt)^k A to the
+    k-th differences, which the higher orders shed where the sampling is coarse)."""
+    if x.size < 8:
+        return 0.0
+    best, d = math.inf, np.diff(np.asarray(x, dtype=float))
+    for k in range(2, 6):
+        d = np.diff(d)
+        s = float(MAD * np.median(np.abs(d - np.median(d))) / math.sqrt(math.comb(2 * k, k)))
+        best = min(best, s)
+    return best
+
 
 #: the coarsest scale tried keeps at least this many block means
 MIN_BLOCKS = 64
