@@ -904,6 +904,31 @@ def test_a_failed_search_goes_on_at_the_bound():
         assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
 
 
+@pytest.mark.parametrize("seed", [3, 11])
+def test_a_failed_search_goes_on_around_its_optimum(seed):
+    """Coulomb, viscous and quadratic damping, three swings to a halt in a 13.5 s record, m
+    and k given (fit_calibration.py --wide, seed 15, draw 23, at 8,192 samples; scipy's
+    integrator): with these two noise draws the search stopped 4-8 % above the truth's cost
+    with structured residuals and failed as a local optimum. Where no constant held at 0
+    costs less, a batch of the exact model's starts around that optimum now finds the lower
+    one: a success at the truth's cost, the truth inside the 99 % intervals. (The outcome is
+    checked, not the path: where rounding leads the first search to that optimum, so much
+    the better. The programs are those of the test above: the same length and budget.)"""
+    m, k, mu, b, D = (0.688796033867291, 5.056415462940492, 0.002873406060234811,
+                      0.3930501811954637, 12.296345709215224)
+    t = np.linspace(0.0, 13.544916158423005, 8192)
+    seg, _, rest = scipy_stick_slip(m, k, mu, b, D, 0.1014656209054682, 0.16858019473758476,
+                                    t[-1] + 1e-9, rtol=1e-11, atol=1e-13)
+    clean = evaluate(seg, rest, t)[0] - 0.0049239600123297325
+    x = clean + 0.0007343012444295956 * np.random.default_rng(seed).standard_normal(t.size)
+    res = fit(t, x, oscillator=dp.Oscillator(m=m, k=k), free=("mu", "b", "D"))
+    assert res.success, res.reason
+    assert np.sum(res.residuals ** 2) <= np.sum((x - clean) ** 2)
+    ci = res.conf_interval(0.99)
+    for name, value in (("mu", mu), ("b", b), ("D", D)):
+        assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
+
+
 def test_issue25_generated_family_sample(benchmark_module):
     """A fixed-seed sample of the generated family (benchmarks/fit_calibration.py: scipy DOP853
     with exact stick-slip, random damping ratios, phase, AR(1) or white noise, windows of a few
