@@ -18,6 +18,11 @@ Stages, in order (:func:`run`):
    neighbouring turning points (``_halts.search_other_halts``);
 6. **assess**: the result and its checks (``_result.build_result``), with the profile refits
    of the intervals' checks (:func:`profile_refit`) where the plan asks for them;
+6b. **from the bound**: where a test at the bound (a damping constant held at 0) cost less,
+   the fit again from there (:func:`from_the_bound`);
+6c. **search on**: where the fit failed with structured residuals, each free damping constant
+   held at 0, then a batch of the exact model's starts around the optimum, the neighbouring
+   halts of a lower cost searched again (:func:`search_on`);
 7. **static halt**: with a given mu_s, the halt of that motion and the rule mu_s >= mu.
 
 :data:`FULL` is ``dp.fit``'s plan; :data:`INNER` the plan of the fits inside a search (k3's
@@ -387,9 +392,13 @@ def search_on(problem: Problem, plan: Plan, state: Fit, res: FitResult) -> tuple
     seed 13: quadratic drag alone, fitted as b 0.34 kg/s with D 2.5 times the truth at 2.2
     times the truth's cost), else a batch of the exact model's starts around the fit's own
     optimum (seed 15 draw 23: 6 % above the truth's cost, its batch around the guess spent).
-    (the moved fit, its neighbouring halts: stage 5 again), or None where nothing cost less.
     The settle rule keeps reading the first search (``Fit.search``): a batch around a local
-    optimum settles there by design."""
+    optimum settles there by design.
+
+    Returns:
+        (the moved fit, its neighbouring halts: stage 5 again), or None where nothing cost
+        less (or the fit did not fail with structured residuals).
+    """
     s, spec = problem.settings, FIT_MODELS[problem.settings.model]
     if res.success or not plan.profile_checks or s.loss != "linear" or \
             not res.diagnostics.get("residual_p", 1.0) < STRUCTURE_P:
