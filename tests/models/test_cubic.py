@@ -377,6 +377,26 @@ def test_a_k3_at_the_edge_of_its_search_stands_where_its_interval_is_finite():
         assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
 
 
+@pytest.mark.parametrize("second", [0.17, -0.26, None])
+def test_k3_search_finds_a_lower_second_basin(second):
+    """S(e) with two basins (where w0 is fitted, a hardening spring's rising frequency can be
+    taken up by a higher w0 with k3 near 0: fit_calibration.py seed 21, draws 156 and 192):
+    Brent's minimum near 0 is replaced by the lower basin's minimum, found by the coarse scan
+    and searched within one grid step, to its known place (1e-3); with one basin it stays."""
+    from dampax._fit._stiffness import _lower_basin
+
+    calls = []
+
+    def cost(e):
+        calls.append(e)
+        near = (e - 0.002) ** 2 + 1.0
+        return near if second is None else min(near, 40.0 * (e - second) ** 2 + 0.5)
+
+    got = _lower_basin(cost, 0.002)
+    assert abs(got - (0.002 if second is None else second)) < 1e-3, got
+    assert len(calls) < 60
+
+
 @pytest.mark.parametrize("e_best, sd_e", [(0.3, math.inf), (-0.1, math.inf), (0.3, 0.5),
                                           (-0.3, 0.0), (0.05, 0.01)])
 def test_an_unbounded_k3_fails_the_fit(e_best, sd_e):
