@@ -97,8 +97,9 @@ def _lower_basin(cost, e_best: float) -> float:
     search (:data:`K3_GRID` points) finds a point lower, whose neighbourhood is then searched
     (bounded Brent within one grid step). S can have two basins where w0 is fitted: a
     hardening spring's rising frequency taken up by a higher w0 with k3 near 0 (fit_calibration
-    .py seed 21, draws 156 and 192: k3 a fifth and a twelfth of the truth, w0 9 and 7 sd high,
-    6 and 103 noise variances above the truth's cost, reported as successes)."""
+    .py seed 21, draw 192: k3 a fifth of the truth, w0 7 sd high, 103 noise variances above the
+    truth's cost, reported as a success). Not where the fits at every k3 sit in the other basin
+    (draw 156: S one valley, w0 9 sd high at each k3; benchmarks/README.md)."""
     from scipy.optimize import minimize_scalar
 
     grid = np.linspace(-K3_REACH, K3_REACH, K3_GRID)
