@@ -377,6 +377,28 @@ def test_a_k3_at_the_edge_of_its_search_stands_where_its_interval_is_finite():
         assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
 
 
+def test_the_k3_profile_starts_w0_below_the_linear_springs_frequency():
+    """fit_calibration.py seed 21 draw 156's constants (scipy's integrator, 800 samples):
+    20 half swings of a hardening spring (k3 A^2/(m w0^2) = 0.025) with Coulomb friction,
+    viscous and quadratic drag, per unit mass (w0 fitted), mu, b, D and k3 free. The linear
+    spring's fit puts w0 0.8 % high (the hardening's mean rise); fits at fixed k3 started there
+    stayed in that basin at every k3 (k3 1.25 +- 2.2 against 17.3, reported as a success).
+    Started from w0 less the rise k3 gives (``_stiffness.hardening_shift``), the profile
+    finds the truth's basin: k3 and w0 inside their 99 % intervals, the cost at the noise."""
+    m, k, mu, b, D, k3 = 0.34214559, 5.85045172, 0.016235003, 0.20252623, 2.6152368, 5.9263226
+    span, offset, noise = 14.861209768, -0.013132673, 0.00029852246
+    seg, _, rest = scipy_stick_slip(m, k, mu, b, D, 0.11581464, 0.45134859, span, k3=k3)
+    t = np.linspace(0.0, span, 800)
+    clean = evaluate(seg, rest, t)[0] + offset
+    x = clean + np.random.default_rng(1).normal(0.0, noise, t.size)
+    res = dp.fit(t, x, free=("mu", "b", "D", "k3"), solver=dp.LeastSquares(starts=1))
+    ci = res.conf_interval(0.99)
+    for name, value in dict(k3=k3 / m, w0=math.sqrt(k / m)).items():
+        assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
+    # a fit at the truth's cost or below, not one that trades k3 for w0 at a higher cost
+    assert np.sum(res.residuals ** 2) < np.sum((x - clean) ** 2) + 2.0 * noise ** 2
+
+
 @pytest.mark.parametrize("second", [0.17, -0.26, None])
 def test_k3_search_finds_a_lower_second_basin(second):
     """S(e) with two basins (where w0 is fitted, a hardening spring's rising frequency can be
