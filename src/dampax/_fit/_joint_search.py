@@ -30,7 +30,7 @@ from ._joint_stages import (
     _start_params,
 )
 from ._measures import SETTLE_RTOL, settled_starts
-from ._params import DAMPING, PARAMS, damping_d
+from ._params import DAMPING, PARAMS, d_per_unit
 from ._profile import transferred_start
 from ._starts import BATCH_LANES, REACHED_RTOL, Starts
 
@@ -214,8 +214,7 @@ def _transferred(out: JointCore, init: JointStart) -> list:
         return []
     P = np.asarray(out.P, dtype=float)
     w0 = vals.get("w0", float(np.median(P[:, PARAMS.index("w0")])))
-    per_unit = damping_d(1.0, 1.0, 1.0, w0, data.consts.m, data.consts.g)
-    d_scale = {n: float(d) for n, d in zip(DAMPING, per_unit, strict=True)}
+    d_scale = d_per_unit(w0, data.consts.m, data.consts.g)
     amplitude = float(np.median(np.hypot(P[:, PARAMS.index("x0")],
                                          P[:, PARAMS.index("v0")] / P[:, PARAMS.index("w0")])))
     out_starts = []

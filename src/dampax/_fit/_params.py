@@ -301,6 +301,12 @@ def damping_d(mu, b, D, w0, m, g):
     return damping_from_constants(mu, b, D, w0=w0, m=m, g=g)
 
 
+def d_per_unit(w0, m, g) -> dict:
+    """{mu, b, D: d of eq. 21 per unit of that constant} at a (fitted) w0 (floats)."""
+    return {n: float(d) for n, d in zip(DAMPING, damping_d(1.0, 1.0, 1.0, w0, m, g),
+                                        strict=True)}
+
+
 def d_to_physical(d0, d1, d2, w0, m, g):
     """Inverse of eq. 21, (mu, b, D) from (d0, d1, d2): ``_oscillator.constants_from_damping``."""
     return constants_from_damping(d0, d1, d2, w0=w0, m=m, g=g)

@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+from ._params import DAMPING, d_per_unit, start_amplitude
+
 #: with a parameter held 2 interval sd from its value and the others refitted, the cost rises
 #: c times what the intervals assume (c = 1 where the model is linear in its parameters): the
 #: bound of the interval on that side lies at 1/sqrt(c) of the reported distance, and for
@@ -80,6 +82,24 @@ def transferred_start(name: str, params: dict, others, d_scale: dict, amplitude:
     a = 0.5 * amplitude
     rate = params[name] * d_scale[name] * a ** _POWER[name] / len(others)
     return {o: params[o] + rate / (a ** _POWER[o] * d_scale[o]) for o in others}
+
+
+def shared_start(params, free, consts):
+    """The centre of a batch of starts around a fit (``params``, TraceParams; ``consts``: its
+    Constants) with each free damping constant that sits at its bound 0 (below 1e-3 of its
+    share) moved to an equal share of the decay rate that all of them give at the mean
+    amplitude A/2 (the reverse of :func:`transferred_start`): a jitter around the fit's own
+    values (factors of exp(1.5 z)) never leaves the bound in the optimizer's log coordinates
+    (fit_calibration.py seed 22 draw 84: b at 4e-9 with D large, 67 noise variances above the
+    truth's cost)."""
+    p = {k: float(v) for k, v in params._asdict().items()}
+    a, scale = 0.5 * start_amplitude(p), d_per_unit(p["w0"], consts.m, consts.g)
+    names = [n for n in free if n in DAMPING and scale[n] > 0.0]
+    if len(names) < 2 or not (a > 0.0 and math.isfinite(a)):
+        return params
+    rate = sum(p[n] * scale[n] * a ** _POWER[n] for n in names) / len(names)
+    share = {n: rate / (scale[n] * a ** _POWER[n]) for n in names}
+    return params._replace(**{n: share[n] for n in names if p[n] < 1e-3 * share[n]})
 
 
 def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,

@@ -23,7 +23,7 @@ from ._assess import Inputs, assess
 from ._context import FitContext, envelope_derived, trace_derived
 from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
 from ._dist import norm_ppf
-from ._params import DAMPING, check_choice, damping_d, varied_names
+from ._params import DAMPING, check_choice, d_per_unit, varied_names
 from ._report import fit_report
 
 
@@ -395,8 +395,7 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
             varied=varied_names(ctx.vary), derived=derived, an=ctx.analysis,
             converged=converged, message=text, kind=kind, model=ctx.model, jac=jac, rows=rows,
             capped=capped, profile=ctx.profile, chisqr=chisqr, search=ctx.search, exact=ctx.exact,
-            d_scale=dict(zip(("mu", "b", "D"), damping_d(
-                1.0, 1.0, 1.0, params["w0"], ctx.consts.m, ctx.consts.g), strict=True))
+            d_scale=d_per_unit(params["w0"], ctx.consts.m, ctx.consts.g)
             if "w0" in params else None))
         if not converged and "note_steps" in diag:  # as good as converged: say so first
             converged = True
