@@ -84,14 +84,20 @@ def transferred_start(name: str, params: dict, others, d_scale: dict, amplitude:
     return {o: params[o] + rate / (a ** _POWER[o] * d_scale[o]) for o in others}
 
 
+#: a damping constant below this fraction of its share of the decay sits at its bound for a
+#: batch of starts around the fit: the batch's jitter (factors exp(1.5 z), exp(4.5) = 90 at
+#: 3 sigma) does not reach its share from there (:func:`shared_start`)
+AT_BOUND_SHARE = 1e-3
+
+
 def shared_start(params, free, consts):
     """The centre of a batch of starts around a fit (``params``, TraceParams; ``consts``: its
-    Constants) with each free damping constant that sits at its bound 0 (below 1e-3 of its
-    share) moved to an equal share of the decay rate that all of them give at the mean
-    amplitude A/2 (the reverse of :func:`transferred_start`): a jitter around the fit's own
-    values (factors of exp(1.5 z)) never leaves the bound in the optimizer's log coordinates
-    (fit_calibration.py seed 22 draw 84: b at 4e-9 with D large, 67 noise variances above the
-    truth's cost)."""
+    Constants) with each free damping constant that sits at its bound 0 (below
+    :data:`AT_BOUND_SHARE` of its share) moved to an equal share of the decay rate that all of
+    them give at the mean amplitude A/2 (the reverse of :func:`transferred_start`): a jitter
+    around the fit's own values (factors of exp(1.5 z)) never leaves the bound in the
+    optimizer's log coordinates (fit_calibration.py seed 22 draw 84: b at 4e-9 with D large, 67
+    noise variances above the truth's cost)."""
     p = {k: float(v) for k, v in params._asdict().items()}
     a, scale = 0.5 * start_amplitude(p), d_per_unit(p["w0"], consts.m, consts.g)
     names = [n for n in free if n in DAMPING and scale[n] > 0.0]
@@ -99,7 +105,7 @@ def shared_start(params, free, consts):
         return params
     rate = sum(p[n] * scale[n] * a ** _POWER[n] for n in names) / len(names)
     share = {n: rate / (scale[n] * a ** _POWER[n]) for n in names}
-    return params._replace(**{n: share[n] for n in names if p[n] < 1e-3 * share[n]})
+    return params._replace(**{n: share[n] for n in names if p[n] < AT_BOUND_SHARE * share[n]})
 
 
 def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,

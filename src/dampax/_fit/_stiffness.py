@@ -103,16 +103,15 @@ def _finite_cost(chisqr) -> float:
 
 def hardening_shift(problem, amp: float) -> float:
     """c of the cubic spring's frequency w0 (1 + c e) at e = k3 A^2/(m w0^2) (A = ``amp``),
-    averaged as a least-squares fit of the linear spring weighs it: the frequency at
-    amplitude a is w0 (1 + 3/8 e (a/A)^2) to first order (docs/cubic_stiffness.md's Lindstedt
-    series), each half swing's
-    phase weighted by its amplitude squared, c = 3/8 <a^4>/(<a^2> A^2) over the window's
-    turning points. A linear spring's w0 takes up the hardening's mean rise; the fits at
-    fixed k3 start from it and from it less this rise, and keep the lower cost: from the
-    first alone they stayed in its basin (fit_calibration.py seed 21, draw 156: w0 9 sd high
-    at every k3, k3 a twelfth of the truth), from the second alone draw 160 (k3 A^2/(m w0^2)
-    = 0.076, ten swings of Coulomb friction) fell into another (536 noise variances above
-    the truth's cost)."""
+    averaged as a least-squares fit of the linear spring weighs it: the frequency at amplitude
+    a is w0 (1 + 3/8 e (a/A)^2) to first order (docs/cubic_stiffness.md's Lindstedt series),
+    each half swing's phase weighted by its amplitude squared, c = 3/8 <a^4>/(<a^2> A^2) over
+    the window's turning points (3/8 without them). A linear spring's w0 takes up the
+    hardening's mean rise; the fits at fixed k3 start from it and from it less this rise, and
+    keep the lower cost: from the first alone they stayed in its basin (fit_calibration.py seed
+    21, draw 156: w0 9 sd high at every k3, k3 a twelfth of the truth), from the second alone
+    draw 160 (k3 A^2/(m w0^2) = 0.076, ten swings of Coulomb friction) fell into another (536
+    noise variances above the truth's cost)."""
     a = np.asarray(problem.data.analysis.ext_x, dtype=float)
     a2 = np.mean(a * a) if a.size else 0.0
     if not (a2 > 0 and amp > 0):
