@@ -49,9 +49,9 @@ class Profile(NamedTuple):
 
 def profile_k3(problem) -> Profile:
     """The linear-spring fit (the plain plan), then S(e) minimised by Brent's method from
-    fits at fixed k3 started at its optimum (and with w0 less the rise k3 gives:
-    :func:`hardening_shift`; one start each: the global starts were spent on
-    the linear fit; the exact model's directly, without its approximate start), and e's
+    fits at fixed k3 started at its optimum and from it with w0 less the rise k3 gives
+    (:func:`hardening_shift`), the lower kept (no batch of starts: the global starts were spent
+    on the linear fit; the exact model's directly, without its approximate start), and e's
     standard error from the curvature of S at the minimum."""
     from scipy.optimize import minimize_scalar
 
@@ -125,8 +125,9 @@ def _lower_basin(cost, e_best: float) -> float:
     (bounded Brent within one grid step). S can have two basins where w0 is fitted: a
     hardening spring's rising frequency taken up by a higher w0 with k3 near 0 (fit_calibration
     .py seed 21, draw 192: k3 a fifth of the truth, w0 7 sd high, 103 noise variances above the
-    truth's cost, reported as a success). Not where the fits at every k3 sit in the other basin
-    (draw 156: S one valley, w0 9 sd high at each k3; benchmarks/README.md)."""
+    truth's cost, reported as a success). Where the fits at every k3 sit in the other basin
+    (draw 156: S one valley, w0 9 sd high at each k3) the scan cannot help: their second start
+    (:func:`hardening_shift`) does."""
     from scipy.optimize import minimize_scalar
 
     grid = np.linspace(-K3_REACH, K3_REACH, K3_GRID)
