@@ -22,7 +22,7 @@ from .._solve import default_swings, prepare_reference, solve
 from ._core import FIT_RESULTS
 from ._params import varied_names
 from ._problem import predicted_start
-from ._profile import LR_CHI2, LR_Z, Optimum, widen
+from ._profile import LR_Z
 from ._starts import REACHED_RTOL
 from ._text import lower_cost
 
@@ -184,9 +184,7 @@ def search_other_halts(problem, best, last):
         varied parameters)}, the stages' notes): the held fits of both rounds and the
         optimum a lower cost replaced, for :func:`other_halt_check`.
     """
-    full = problem.holding("mu")
-    held = dataclasses.replace(full, settings=full.settings._replace(
-        max_steps=min(full.steps, HALT_STEPS)))
+    held, full = _holding_mu(problem)
     constants = problem.consts.motion
     name, fs = last.model, last.fs
     # first halts: mu ~ offset (exactly without k3; with k3 nearly, its cubic force the only
@@ -241,6 +239,50 @@ def search_other_halts(problem, best, last):
             _values(best, problem))
         best = better
     return best, last, others, notes
+
+
+def _holding_mu(problem):
+    """(the problem with mu held and :data:`HALT_STEPS` steps, with mu held and the whole
+    budget): the held fits' problems of :func:`_held_fit`."""
+    full = problem.holding("mu")
+    return dataclasses.replace(full, settings=full.settings._replace(
+        max_steps=min(full.steps, HALT_STEPS))), full
+
+
+def mu_profile(problem, best, last):
+    """mu's profile past the neighbouring halts, for ``_profile.other_halt_check`` to follow
+    out: a function of mu that fits with mu held there and the rest refitted
+    (:func:`_held_fit`, as the search's held fits), each from the last one's solve.
+
+    Arguments:
+        problem, best, last: the fit's problem, optimum and last solve, as for
+            :func:`search_other_halts`.
+
+    Returns:
+        (mu, near) -> (its cost, whether its motion halts at its first turning point with the
+        offset free: :func:`first_halt`, {name: value} of its varied parameters); ``near``
+        ({name: value} of a held fit nearer mu, or None) is a second start, the lower cost
+        kept: the linearised start of the search's held fits reaches another valley far out
+        (seed 0 draw 134: 216 noise variances up at 14 interval sd, where the profile lies at
+        4).
+    """
+    held, full = _holding_mu(problem)
+    flat, constants, solved = bool(problem.vary.offset), problem.consts.motion, [last]
+
+    def at(mu: float, near: dict | None = None):
+        solved[0] = _held_fit(held, full, best, mu, solved[0])
+        if near:  # and from a held fit's values nearer mu (the profile continued)
+            name, fs = solved[0].model, solved[0].fs
+            start = best.params._replace(**{**near, "mu": mu})
+            other = held.solve(start, name, fs, like=solved[0], give_up=_far(full, best))
+            if _unfinished(other.out) and _near(other.out, best, full):
+                other = full.solve(other.out.params, name, fs, like=other)
+            if float(other.out.chisqr) < float(solved[0].out.chisqr):
+                solved[0] = other
+        out = solved[0].out
+        return (float(out.chisqr), flat and first_halt(out.params, problem.data.t, constants),
+                _values(out, problem))
+    return at
 
 
 def _values(out, problem) -> dict:
@@ -351,85 +393,6 @@ def _held_fit(held, full, best, mu_alt: float, last, swing=None):
         if float(plain.out.chisqr) < float(last.out.chisqr):
             last = plain
     return last
-
-
-def other_halt_check(res, others: dict):
-    """Fail a fit when a motion that halts at a neighbouring turning point fits nearly as well
-    with mu outside its interval (``_static.other_halts``): with mu held at each value of
-    ``others`` and the rest refitted (its cost, whether that motion halts at its first
-    turning point: :func:`first_halt`, and its values), the likelihood-ratio chi2 against
-    the fit, in the intervals' own noise variance (s2 (sd/stderr)^2, as
-    ``_profile.bound_tests``), below
-    :data:`~dampax._fit._profile.LR_CHI2` (1 %) while mu differs by more than
-    :data:`~dampax._fit._profile.LR_Z` interval sd, or lies above it with a first halt (then
-    every larger mu fits as well: the profile of mu is flat up there): the data hold two
-    answers, and the interval of one of them is no interval. (Widening the intervals to
-    reach the other motion, as ``_profile.bound_verdict`` does for a valley toward the
-    bound, was tried: the cost jumps from one halt to the next, so the rise from one optimum
-    to the other says nothing of the motions beyond it; on fit_calibration.py it turned 5
-    false failures into successes but made draw 134 of seed 0 a confident wrong answer, 5
-    half-widths off, and two more wrong.) Where the first-halt side's held fits rise by
-    more (no halt changes between the fit and them), the intervals are widened to the
-    nearest (:func:`widened_to_first_halts`)."""
-
-    sd, se = res.hac_stderr.get("mu", math.nan), res.stderr.get("mu", math.nan)
-    if not (math.isfinite(sd) and sd > 0 and math.isfinite(se) and se > 0):
-        return res
-    s2 = float(res.chisqr) / max(res.ndata - res.nvarys, 1)
-    mu = float(res.params["mu"])
-    flat = []  # the first-halt side: (rise, the held fit's values)
-    for mu_alt, (cost, first, point) in others.items():
-        unbounded = first and mu_alt > mu  # every mu above fits as well (first_halt)
-        if not (unbounded or abs(mu_alt - mu) > LR_Z * sd):
-            continue
-        rise = (cost - float(res.chisqr)) / (s2 * (sd / se) ** 2)
-        if unbounded and rise >= LR_CHI2:
-            flat.append((mu_alt, rise, point))
-        if rise < LR_CHI2:
-            reason = (f"two motions fit nearly as well: this one and one that halts at another "
-                      f"turning point with mu = {mu_alt:.4g} ({abs(mu_alt - mu) / sd:.0f} "
-                      f"interval sd away; likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}): "
-                      "where the block sticks does not settle mu; fit a longer record or fix "
-                      "the offset")
-            if unbounded:
-                reason = (f"the data bound mu only from below: a motion that halts at its first "
-                          f"turning point with mu = {mu_alt:.4g} fits nearly as well "
-                          f"(likelihood-ratio chi2 {rise:.2g} < {LR_CHI2:.2f}), and so does "
-                          "every larger mu (over one swing friction only moves the centre, "
-                          "which the offset takes up); fix the offset or fit a record with "
-                          "more swings")
-            return dataclasses.replace(res, success=False, reason=reason,
-                                       diagnostics={**res.diagnostics,
-                                                    "other_halt_mu": mu_alt,
-                                                    "other_halt_chi2": rise})
-    return widened_to_first_halts(res, [p[1:] for p in sorted(flat)[:1]])
-
-
-def widened_to_first_halts(res, points):
-    """The intervals widened to reach the held fits of the first-halt side of mu
-    (``points``: (likelihood-ratio chi2, {name: value})), as ``_profile.bound_verdict`` does
-    for a valley toward the bound (``_profile.widen``): above the threshold of the
-    first halt the motion and its halt stay the same, so mu's profile is continuous there and
-    flat or nearly (the offset takes up the centre that friction moves; only k3 or the motion
-    before the first turning point tells them apart), far from the quadratic of the
-    linearised intervals (wide draw 41 at 2,000 samples: the truth 26 interval sd above
-    mu at a rise below 6; the held fit at 1.05 mu 6.8). Each held fit's values lie inside the
-    profile-likelihood intervals at every level beyond its chi2; the nearest one is taken
-    (the profile between the fit and it interpolated as a quadratic, as in
-    ``_profile.profile_ratios``: a farther one, at a larger chi2, speaks of levels beyond
-    it, and the profile up to it is not quadratic)."""
-    if not points:
-        return res
-    fitted = Optimum(res.params, res.stderr, res.hac_stderr, float(res.chisqr), math.nan)
-    scale = {k: tuple(v) for k, v in res.diagnostics.get("interval_scale", {}).items()}
-    widen(scale, fitted, points)
-    if scale == res.diagnostics.get("interval_scale", {}):
-        return res
-    note = ("the motion halts at or near its first turning point, where friction only moves "
-            "the centre (taken up by the offset): mu's profile above is nearly flat, and the "
-            "intervals are widened to reach the fits with mu held there (profile likelihood)")
-    return dataclasses.replace(res, diagnostics={**res.diagnostics, "interval_scale": scale,
-                                                 "note_first_halt": note})
 
 
 def above_mu_s(res, mu_s: float):

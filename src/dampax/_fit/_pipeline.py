@@ -50,7 +50,7 @@ from ._curves import prepare_amplitude_phase
 from ._halts import (
     above_mu_s,
     first_halt_start,
-    other_halt_check,
+    mu_profile,
     prepare_motion,
     search_other_halts,
     with_static_halt,
@@ -58,7 +58,7 @@ from ._halts import (
 from ._measures import k3_hint
 from ._params import DAMPING, varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
-from ._profile import shared_start
+from ._profile import other_halt_check, shared_start
 from ._result import FitContext, FitResult, build_result, data_rows
 from ._starts import prepare_starts, run_starts
 from ._text import lower_cost
@@ -492,8 +492,8 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     if moved is not None:
         state, res = moved, assess(problem, plan, moved)
     if others and res.success:
-        res = other_halt_check(res, others) if plan.halt_check else \
-            dataclasses.replace(res, other_halts=others)
+        res = other_halt_check(res, others, mu_profile(problem, state.best, state.last)) \
+            if plan.halt_check else dataclasses.replace(res, other_halts=others)
     mu_s, c = problem.consts.mu_s, problem.consts
     if mu_s is not None and plan.static_halt:  # the halt of the motion with static friction
         res = above_mu_s(with_static_halt(res, *c.motion, mu_s), mu_s)

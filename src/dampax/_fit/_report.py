@@ -146,7 +146,7 @@ def _correlations(res, min_correl: float) -> list:
 def _notes(res) -> list:
     """[[Warning]] about the data and [[Note]] of the checks."""
     lines = [f"[[Warning]] {note}" for note in res.warnings]
-    for key in ("note_decay", "note_bound", "note_first_halt", "note"):
+    for key in ("note_decay", "note_bound", "note_first_halt", "note_other_halt", "note"):
         if key in res.diagnostics:
             lines.append(f"[[Note]] {res.diagnostics[key]}")
     return lines

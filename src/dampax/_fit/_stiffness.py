@@ -18,11 +18,10 @@ from .._oscillator import Oscillator
 from .._solve import solve
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
-from ._halts import other_halt_check
 from ._intervals import ar1_coefficient
 from ._params import PARAMS, start_amplitude
 from ._pipeline import DIRECT_INNER, FULL, INNER, run
-from ._profile import PROFILE_FAIL, PROFILE_REACH, profile_side
+from ._profile import PROFILE_FAIL, PROFILE_REACH, other_halt_check, profile_side
 
 #: the reach of k3's search: e = k3 A^2/(m w0^2) within +- this (docs/cubic_stiffness.md)
 K3_REACH = 0.3
