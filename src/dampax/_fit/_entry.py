@@ -69,13 +69,16 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
     did not converge, a parameter ran to absurd values, the model stops moving before (or
     after) the data, a standard error is not finite, the intervals do not hold (the cost is not
     quadratic over them), two motions that halt at different turning points fit nearly as
-    well, or, for the exact model "reference", the residuals hold structure that AR(1) noise
-    cannot produce and its search of starts does not settle (``_checks``: tests with known
-    null distributions, none on zero crossings). Where a damping constant held at 0 costs
-    nearly as little (a likelihood ratio below chi2(1)'s 1 % point) although its interval
-    excludes 0, the fit succeeds with every interval widened to reach that held fit
-    (``diagnostics["note_bound"]``). ``adequate`` says separately whether the model describes
-    the data. Input
+    well and mu's profile between or beyond them stays below chi2(1)'s 1 % point (two
+    answers), or, for the exact model "reference", the residuals hold structure that AR(1)
+    noise cannot produce and its search of starts does not settle (``_checks``: tests with
+    known null distributions, none on zero crossings). Where a damping constant held at 0
+    costs nearly as little (a likelihood ratio below chi2(1)'s 1 % point) although its
+    interval excludes 0, the fit succeeds with every interval widened to reach that held fit
+    (``diagnostics["note_bound"]``); where a motion halting at a neighbouring turning point
+    does, mu's profile is followed out past it until a held fit rises above that point, and
+    the intervals are widened to reach it (``diagnostics["note_other_halt"]``). ``adequate``
+    says separately whether the model describes the data. Input
     without a free decay in it (constant, pure noise, growing or time-reversed, constant time)
     raises ValueError; a trace that halts after one swing is fitted.
 
