@@ -13,7 +13,9 @@ from scipy.stats import norm
 import dampax as dp
 from dampax._fit._intervals import normal_intervals
 from dampax._fit._profile import (
+    BOUND_Z,
     LR_CHI2,
+    LR_Z,
     Optimum,
     bound_tests,
     bound_verdict,
@@ -23,7 +25,7 @@ from dampax._fit._profile import (
 NAMES = ("mu", "b", "offset")
 
 
-def _linear_problem(rho: float, seed: int = 0):
+def _linear_problem(rho: float, seed: int = 0, theta=(0.8, 0.6, 0.1)):
     """y = X theta + noise with two correlated columns (correlation ``rho``): its fit, and its
     profile (the least-squares refit with one parameter held), both by numpy's lstsq."""
     rng = np.random.default_rng(seed)
@@ -31,7 +33,7 @@ def _linear_problem(rho: float, seed: int = 0):
     z1 = rng.standard_normal(n)
     z2 = rho * z1 + math.sqrt(1 - rho**2) * rng.standard_normal(n)
     X = np.column_stack([z1, z2, np.ones(n)])
-    y = X @ np.array([0.8, 0.6, 0.1]) + 0.5 * rng.standard_normal(n)
+    y = X @ np.array(theta) + 0.5 * rng.standard_normal(n)
     theta, *_ = np.linalg.lstsq(X, y, rcond=None)
     chisqr = float(np.sum((y - X @ theta) ** 2))
     s2 = chisqr / (n - 3)
@@ -64,6 +66,28 @@ def test_the_bound_test_of_a_linear_model_is_the_wald_test(rho):
         assert widening_toward(fitted, point, chi2) == {}
     scale = {}
     assert bound_verdict(lr, fitted, scale) == ("", "") and scale == {}
+
+
+def test_a_constant_whose_99_interval_reaches_0_is_held_at_0_too():
+    """A constant 2 sd from 0 (its 90 % interval excludes 0, its 99 % one does not) is held at
+    0 as well: on a linear model the likelihood ratio is z^2 and nothing widens; where the
+    held fit moves another constant beyond its reach at that chi2 (a second basin of a
+    nonlinear cost: fit_calibration.py seed 22 draw 38, mu 8 interval sd up with b held at
+    0), the intervals are widened to reach it, with a note that says it is no valley."""
+    fitted, profile = _linear_problem(0.0, theta=(0.8, 0.05, 0.1))
+    z = fitted.params["b"] / fitted.sd["b"]
+    assert BOUND_Z < z < LR_Z  # the precondition (this seed)
+    lr = bound_tests(profile, fitted, ["mu", "b"])
+    assert lr["b"][1] == pytest.approx(z * z, rel=1e-9)
+    assert bound_verdict(lr, fitted, {}) == ("", "")
+    p, sd = fitted.params, fitted.sd
+    point = {"mu": p["mu"] + 8.0 * sd["mu"], "b": 0.0, "offset": p["offset"]}
+    scale = {}
+    fail, note = bound_verdict({"b": (z, 5.7, point)}, fitted, scale)
+    assert fail == "" and "inside its 99 % interval" in note and "chi2 of 5.7" in note
+    assert scale == {"mu": pytest.approx((1.0, 8.0 / math.sqrt(5.7)))}
+    ci = normal_intervals(p, sd, 0.99, nonneg=("mu", "b"), scale=scale)
+    assert ci["mu"][1] > point["mu"]
 
 
 def test_a_valley_toward_the_bound_widens_the_intervals_to_its_point():
