@@ -296,7 +296,8 @@ def searched(problem, best, k3: float):
     # with the search of the motions that halt at a neighbouring turning point (wide draws
     # 23, 24: one swing, mu 4.4 and 4.7 half-widths off, reported as successes)
     again = run(problem.starting_at({name: float(best.params[name]) for name in PARAMS})
-                .with_consts(k3=k3), INNER._replace(neighbouring_halts=True, halt_check=False))
+                .with_consts(k3=k3), INNER._replace(neighbouring_halts=True, halt_check=False,
+                                                    profile_checks=True))
     if float(again.chisqr) <= float(best.chisqr) * (1.0 + 1e-6):
         return again, again.other_halts
     # the search's own optimum, a little higher, is one of the held fits: where its mu lies
