@@ -272,11 +272,8 @@ def mu_profile(problem, best, last):
     def at(mu: float, near: dict | None = None):
         solved[0] = _held_fit(held, full, best, mu, solved[0])
         if near:  # and from a held fit's values nearer mu (the profile continued)
-            name, fs = solved[0].model, solved[0].fs
-            start = best.params._replace(**{**near, "mu": mu})
-            other = held.solve(start, name, fs, like=solved[0], give_up=_far(full, best))
-            if _unfinished(other.out) and _near(other.out, best, full):
-                other = full.solve(other.out.params, name, fs, like=other)
+            other = _free_fit(full, best, best.params._replace(**{**near, "mu": mu}),
+                              solved[0].model, solved[0].fs, like=solved[0])
             if float(other.out.chisqr) < float(solved[0].out.chisqr):
                 solved[0] = other
         out = solved[0].out
@@ -339,18 +336,19 @@ def _unfinished(out) -> bool:
     return int(np.asarray(out.code._value)) != int(FIT_RESULTS.successful._value)
 
 
-def _free_fit(problem, best, start, name: str, fs: float):
+def _free_fit(problem, best, start, name: str, fs: float, like=None):
     """A free fit of the search from ``start``: :data:`HALT_STEPS` steps (16 where it is then
     more than :data:`GIVE_UP_RISE` noise variances up: :func:`_far`), continued with the
     whole budget only where its cost is then within :data:`NEAR_RISE` noise variances of the
     optimum's (the rule of :func:`_held_fit`: a fit still far above after that many steps is
     crossing the jumps of the halt, and the optimizer only goes downhill). On the example
-    trace such a start ran all 256 steps to a cost 9,000 times the optimum's.
+    trace such a start ran all 256 steps to a cost 9,000 times the optimum's. ``like``: a
+    solve whose integrator options it keeps (None: the options of the start's w0).
 
     Returns:
         The last solve (``_problem.Solved``).
     """
-    last = problem.solve(start, name, fs, budget=min(problem.steps, HALT_STEPS),
+    last = problem.solve(start, name, fs, like=like, budget=min(problem.steps, HALT_STEPS),
                          give_up=_far(problem, best))
     if _unfinished(last.out) and _near(last.out, best, problem):
         last = problem.solve(last.out.params, name, fs, like=last)
