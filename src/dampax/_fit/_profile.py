@@ -455,17 +455,14 @@ def followed_out(rises: dict, mu: float, sd: float, follow) -> bool:
 
 def widened_to_profile(res, rises: dict):
     """The intervals widened to reach every held fit of mu's followed profile below the 1 %
-    point (:func:`followed_out`; :func:`widening_toward` at each one's chi2), with a note."""
-    fitted = Optimum(res.params, res.stderr, res.hac_stderr, float(res.chisqr), math.nan)
-    scale = {k: tuple(v) for k, v in res.diagnostics.get("interval_scale", {}).items()}
-    widen(scale, fitted, [(r[0], r[2]) for r in rises.values() if r[0] < LR_CHI2])
+    point (:func:`followed_out`; :func:`widening_toward` at each one's chi2), with a note (a
+    held fit below it more than LR_Z sd away always widens mu's side)."""
     reach = [m for m, r in rises.items() if r[0] < LR_CHI2]
-    note = (f"a motion that halts at another turning point fits nearly as well: mu's profile "
-            f"was followed past it (held fits from mu = {min(reach):.4g} to {max(reach):.4g} "
-            f"lie below the 1 % point, one beyond rises above it), and the intervals are "
-            "widened to reach them (profile likelihood)")
-    return dataclasses.replace(res, diagnostics={**res.diagnostics, "interval_scale": scale,
-                                                 "note_other_halt": note})
+    return _widened(res, [(rises[m][0], rises[m][2]) for m in reach], "note_other_halt", (
+        f"a motion that halts at another turning point fits nearly as well: mu's profile was "
+        f"followed past it (held fits from mu = {min(reach):.4g} to {max(reach):.4g} lie below "
+        "the 1 % point, one beyond rises above it), and the intervals are widened to reach "
+        "them (profile likelihood)"))
 
 
 def widened_to_first_halts(res, points):
@@ -481,15 +478,20 @@ def widened_to_first_halts(res, points):
     (the profile between the fit and it interpolated as a quadratic, as in
     ``_profile.profile_ratios``: a farther one, at a larger chi2, speaks of levels beyond
     it, and the profile up to it is not quadratic)."""
-    if not points:
-        return res
+    return _widened(res, points, "note_first_halt", (
+        "the motion halts at or near its first turning point, where friction only moves the "
+        "centre (taken up by the offset): mu's profile above is nearly flat, and the intervals "
+        "are widened to reach the fits with mu held there (profile likelihood)"))
+
+
+def _widened(res, points, key: str, note: str):
+    """``res`` with its intervals widened to reach ``points`` ((likelihood-ratio chi2,
+    {name: value}) of held fits: :func:`widen`) and ``note`` under ``diagnostics[key]``;
+    ``res`` itself where no side widens."""
     fitted = Optimum(res.params, res.stderr, res.hac_stderr, float(res.chisqr), math.nan)
     scale = {k: tuple(v) for k, v in res.diagnostics.get("interval_scale", {}).items()}
     widen(scale, fitted, points)
     if scale == res.diagnostics.get("interval_scale", {}):
         return res
-    note = ("the motion halts at or near its first turning point, where friction only moves "
-            "the centre (taken up by the offset): mu's profile above is nearly flat, and the "
-            "intervals are widened to reach the fits with mu held there (profile likelihood)")
     return dataclasses.replace(res, diagnostics={**res.diagnostics, "interval_scale": scale,
-                                                 "note_first_halt": note})
+                                                 key: note})

@@ -63,7 +63,7 @@ def profile_k3(problem) -> Profile:
     # the exact model's fits start from the linear spring's exact optimum, not from the
     # approximate model's (the ansatz's k3 phase integral costs some 26 evaluations per sample
     # and step: 34 s of a 35 s fit of 15,274 samples, 1,010 s for the whole profile)
-    plan = DIRECT_INNER if FIT_MODELS[problem.settings.model].integrates else INNER
+    plan = _fixed_k3_plan(problem)
     cache = {}
     shift = hardening_shift(problem, amp) if "w0" in base.varied else 0.0
 
@@ -95,6 +95,12 @@ def profile_k3(problem) -> Profile:
     sd_e = math.sqrt(2.0 * sigma2 / curv) if curv > 0 else math.inf
     return Profile(base, at, cost, lambda: len(cache), scale, e_best, h, s0, sigma2, sd_e,
                    rho)
+
+
+def _fixed_k3_plan(problem):
+    """The plan of a fit at fixed k3 with one start: the exact model directly (without its
+    approximate start) where it integrates."""
+    return DIRECT_INNER if FIT_MODELS[problem.settings.model].integrates else INNER
 
 
 def _finite_cost(chisqr) -> float:
@@ -265,7 +271,7 @@ def held_mu(problem, best):
         (mu, near) -> (its cost, whether its motion halts at its first turning point with
         the offset free: ``_halts.first_halt``, {name: value} of its parameters).
     """
-    plan = DIRECT_INNER if FIT_MODELS[problem.settings.model].integrates else INNER
+    plan = _fixed_k3_plan(problem)
     start = {name: float(best.params[name]) for name in PARAMS if name in best.params}
     flat = bool(problem.vary.offset)
 
