@@ -45,6 +45,7 @@ import dampax as dp
 M, T_END, SAMPLES = 1.0, 5.0, 1000
 RTOL, ATOL = 1e-10, 1e-12
 G = 9.81
+PARTS = ("reference", "maps", "ansatz", "peer")
 
 
 def random_problem(n, seed=0):
@@ -149,6 +150,8 @@ def main(argv=None) -> int:
     p.add_argument("--peer-n", type=int, nargs="+", default=None,
                    help="trajectories of the diffrax peer (default: those of --n)")
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS,
+                   help="what to measure (default: all; the peer needs the reference)")
     p.add_argument("--json", help="also write the figures to this file")
     p.add_argument("--cpu", action="store_true",
                    help="measure on the CPU (small sizes: a check of this script)")
@@ -183,7 +186,7 @@ def main(argv=None) -> int:
     results["auto_engine"] = chosen
     ref, xla = reference_program(ts), reference_program(ts, "dampax")
     ref_x = {}
-    for n in args.n:
+    for n in args.n if "reference" in args.parts else ():
         prob = random_problem(n)
         first, best, out = timed(lambda prob=prob: ref(*prob), args.repeat)
         ref_x[n] = np.asarray(out[:64])
@@ -198,35 +201,39 @@ def main(argv=None) -> int:
     # 2. error maps
     kw = dict(d0_ratio=np.linspace(0.0, 0.1, 16), d2_ratio=np.linspace(0.0, 0.75, 16),
               phi0=np.linspace(0.0, 7 * np.pi / 8, 8), progress=False)
-    for chunk in [None] + list(args.chunks):
+    for chunk in [None] + list(args.chunks) if "maps" in args.parts else ():
         first, best, ds = timed(lambda chunk=chunk: dp.error_map(**kw, chunk_size=chunk),
                                 args.repeat)
         label = f"chosen: {ds.attrs['chunk_size']}" if chunk is None else str(chunk)
         report(f"default error map (16 x 16 x 8), chunk_size {label}", first, best)
-    big = dict(kw, d0_ratio=np.linspace(0.0, 0.1, args.big),
-               d2_ratio=np.linspace(0.0, 0.75, args.big))
-    first, best, ds = timed(lambda: dp.error_map(**big), max(1, args.repeat - 2))
-    report(f"error map {args.big} x {args.big} x 8, chunk_size chosen: "
-           f"{ds.attrs['chunk_size']}", first, best)
+    if "maps" in args.parts and args.big:
+        big = dict(kw, d0_ratio=np.linspace(0.0, 0.1, args.big),
+                   d2_ratio=np.linspace(0.0, 0.75, args.big))
+        first, best, ds = timed(lambda: dp.error_map(**big), max(1, args.repeat - 2))
+        report(f"error map {args.big} x {args.big} x 8, chunk_size chosen: "
+               f"{ds.attrs['chunk_size']}", first, best)
 
     # 3. the analytic x(ts) against writing as many numbers
-    n = max(args.n)
-    prob = random_problem(n)
-    first, best, _ = timed(lambda: ansatz_program(ts)(*prob), args.repeat)
-    report(f"matched ansatz x(ts), {n} x {SAMPLES}", first, best, n)
-    lim_first, lim_best, _ = timed(lambda: write_limit_program(ts)(prob[4], prob[0]),
-                                   args.repeat)
-    gbytes = n * SAMPLES * 8 / 1e9
-    report(f"limit: writing {n} x {SAMPLES} float64", lim_first, lim_best, n,
-           f" ({gbytes / lim_best:.3g} GB/s; the ansatz at {gbytes / best:.3g} GB/s, "
-           f"{best / lim_best:.2g}x the limit)")
+    if "ansatz" in args.parts:
+        n = max(args.n)
+        prob = random_problem(n)
+        first, best, _ = timed(lambda: ansatz_program(ts)(*prob), args.repeat)
+        report(f"matched ansatz x(ts), {n} x {SAMPLES}", first, best, n)
+        lim_first, lim_best, _ = timed(lambda: write_limit_program(ts)(prob[4], prob[0]),
+                                       args.repeat)
+        gbytes = n * SAMPLES * 8 / 1e9
+        report(f"limit: writing {n} x {SAMPLES} float64", lim_first, lim_best, n,
+               f" ({gbytes / lim_best:.3g} GB/s; the ansatz at {gbytes / best:.3g} GB/s, "
+               f"{best / lim_best:.2g}x the limit)")
 
     # 4. the peer
-    try:
-        import diffrax
-    except ImportError:
-        print("  diffrax not installed: no peer (pip install diffrax)")
-    else:
+    diffrax = None
+    if "peer" in args.parts:
+        try:
+            import diffrax
+        except ImportError:
+            print("  diffrax not installed: no peer (pip install diffrax)")
+    if diffrax is not None:
         peer = diffrax_program(ts, max_swings=16)
         for n in args.peer_n or args.n:
             prob = random_problem(n)

@@ -17,6 +17,7 @@ together.
 import os
 import sys
 import tempfile
+from importlib import metadata
 from pathlib import Path
 
 # the tests live in one folder per layer (models/, reference/, studies/, fit/, cli/); their
@@ -39,9 +40,11 @@ else:
 #: compile with XLA's loop-fusion emitter, as dampax's kept programs do on a CPU
 #: (``dampax._cache.CPU_COMPILER_OPTIONS``): more than half of the suite's time is XLA
 #: compiling, and this takes a third off the largest programs (benchmarks/README.md, eleventh
-#: session). Set before JAX starts its backend; a flag the user set is kept.
+#: session). Set before JAX starts its backend; a flag the user set is kept. jaxlib 0.11
+#: removed the flag, and XLA aborts the process on a flag it does not know: not set there.
 FUSION_FLAG = "--xla_cpu_use_fusion_emitters=false"
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+_JAXLIB = tuple(int(p) for p in metadata.version("jaxlib").split(".")[:2])
+if _JAXLIB < (0, 11) and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {FUSION_FLAG}".strip()
 
 import pytest  # noqa: E402

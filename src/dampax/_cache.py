@@ -114,13 +114,16 @@ _MIN_COMPILE_S = 0.5
 #: 0.1 s of a warm fit): ``DAMPAX_FAST_COMPILE=0`` keeps XLA's defaults for many warm fits
 #: (benchmarks/README.md, issue 36, eighth session).
 CPU_COMPILER_OPTIONS = (("xla_cpu_use_fusion_emitters", False),)
+#: set when this jaxlib's XLA refused :data:`CPU_COMPILER_OPTIONS` (jaxlib 0.11 removed the
+#: option: "No such compile option"); programs are then compiled with XLA's defaults
+_REFUSED = threading.Event()
 
 
 def compiler_options() -> dict | None:
     """The XLA options dampax compiles its programs with: :data:`CPU_COMPILER_OPTIONS` on a
-    CPU unless ``DAMPAX_FAST_COMPILE`` is 0 (or off/false/no), XLA's defaults otherwise
-    (None)."""
-    if os.environ.get("DAMPAX_FAST_COMPILE", "1").strip().lower() in _OFF:
+    CPU unless ``DAMPAX_FAST_COMPILE`` is 0 (or off/false/no) or this XLA does not know
+    them, XLA's defaults otherwise (None)."""
+    if _REFUSED.is_set() or os.environ.get("DAMPAX_FAST_COMPILE", "1").strip().lower() in _OFF:
         return None
     return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
 
@@ -169,7 +172,14 @@ def _end_turn() -> None:
 def _compile(lowered):
     """``lowered.compile()`` with :func:`compiler_options`; the tracing turn passes on."""
     _end_turn()
-    return lowered.compile(compiler_options())
+    options = compiler_options()
+    try:
+        return lowered.compile(options)
+    except jax.errors.JaxRuntimeError as err:
+        if not options or "No such compile option" not in str(err):
+            raise
+        _REFUSED.set()
+        return lowered.compile()
 
 
 def enable_compilation_cache() -> Path | None:
