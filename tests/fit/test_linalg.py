@@ -74,6 +74,32 @@ def test_gram_inverse_of_a_nearly_collinear_jacobian():
     assert np.all(np.isnan(gram_inverse(J)))
 
 
+def test_the_sandwich_of_a_nearly_collinear_jacobian_is_its_exact_value():
+    """The HAC covariance of a J built from its SVD with cond(J) = 1e9 (two damping constants
+    at 0 gave 1.3e-8 on an undamped trace) against the exact T diag(1/s^2) S_T diag(1/s^2)
+    T^T, S_T formed from the orthogonal Q diag(s) (the prewhitened sandwich, L = 0; the
+    kernel's floor is still taken in the parameters): variances within 1e-6, the same with J
+    moved by 4e-16 (a GPU's rounding). As H^-1 S H^-1 in the parameters the product cancels
+    terms 1e18 times its result: variances wrong by orders of magnitude, or <= 0 (the undamped
+    fit failed with "no width" on an H200, twenty-fourth session)."""
+    from dampax._fit._intervals import hac_covariance, score_matrix
+
+    rng = np.random.default_rng(6)
+    n, p = 3000, 4
+    Q = np.linalg.qr(rng.standard_normal((n, p)))[0]
+    V = np.linalg.qr(rng.standard_normal((p, p)))[0]
+    s = np.array([1.0, 0.3, 1e-4, 1e-9])
+    D = np.array([1.0, 1e3, 1e-3, 1.0])
+    J = Q @ np.diag(s) @ V.T * D
+    r = 0.01 * rng.standard_normal(n)
+    T = V / D[:, None]  # J T = Q diag(s)
+    St, _ = score_matrix(Q * s, r, period_samples=50.0, lags=0)
+    exact = T @ (St / np.outer(s**2, s**2)) @ T.T
+    for moved in (J, J * (1.0 + 4e-16 * rng.standard_normal(J.shape))):
+        cov, _ = hac_covariance(moved, r, period_samples=50.0, lags=0)
+        np.testing.assert_allclose(np.diag(cov), np.diag(exact), rtol=1e-6)
+
+
 def test_the_kernel_never_narrows_the_prewhitened_sandwich():
     """White noise on a least-squares fit of a sinusoid and an offset (1,000 samples, 4
     periods), with the Bartlett kernel forced to a quarter of the window (what a Ljung-Box

@@ -154,14 +154,32 @@ def ar1_coefficient(r: np.ndarray, *, clip: tuple[float, float] = (-0.99, 0.999)
     return min(max(phi, clip[0]), clip[1])
 
 
+def gram_basis(J: np.ndarray):
+    """(T, w): J^T J = T^-T diag(1/w) T^-1 from the singular values of the column-scaled J:
+    T = diag(1/d) V (d the column norms, V the right singular vectors of J/d), so that the
+    columns of J T are orthogonal with squared norms 1/w. w is 0 for singular values below
+    eps max(n, p) s_max (the least-squares cut: no inverse, as a pseudo-inverse); NaN where
+    J is not finite."""
+    J = np.asarray(J, dtype=float)
+    p = J.shape[1]
+    if not np.all(np.isfinite(J)):
+        return np.full((p, p), np.nan), np.full(p, np.nan)
+    d = np.sqrt(np.einsum("ij,ij->j", J, J))
+    d = np.where(d > 0, d, 1.0)
+    R = np.linalg.qr(J / d, mode="r") if J.shape[0] > p else J / d
+    _, s, vt = np.linalg.svd(R, full_matrices=False)
+    cut = np.finfo(float).eps * max(J.shape) * (s[0] if s.size else 0.0)
+    w = np.where(s > cut, 1.0 / np.where(s > 0, s, 1.0) ** 2, 0.0)
+    return vt.T / d[:, None], w
+
+
 def gram_inverse(J: np.ndarray) -> np.ndarray:
-    """(J^T J)^-1 from the singular values of the column-scaled J, never by forming J^T J
-    (which squares the condition number: a fit whose damping constants sit at 0 has columns
-    that agree to 1e-8, cond(J^T J) ~ 1e16, where the pseudo-inverse of J^T J dropped that
+    """(J^T J)^-1 = T diag(w) T^T from :func:`gram_basis`, never by forming J^T J (which
+    squares the condition number: a fit whose damping constants sit at 0 has columns that
+    agree to 1e-8, cond(J^T J) ~ 1e16, where the pseudo-inverse of J^T J dropped that
     direction or flipped its sign by the last bits of the data, issue 34). Singular values
-    below eps max(n, p) s_max (the least-squares cut) and zero columns get no inverse (0, as
-    a pseudo-inverse); NaN where J is not finite (a Jacobian with NaN gives no interval, a
-    named failure).
+    below the least-squares cut and zero columns get no inverse (0, as a pseudo-inverse); NaN
+    where J is not finite (a Jacobian with NaN gives no interval, a named failure).
 
     Arguments:
         J: (n, p) Jacobian, rows of the data only.
@@ -169,22 +187,12 @@ def gram_inverse(J: np.ndarray) -> np.ndarray:
     Returns:
         (p, p) symmetric matrix.
     """
-    J = np.asarray(J, dtype=float)
-    p = J.shape[1]
-    if not np.all(np.isfinite(J)):
-        return np.full((p, p), np.nan)
-    d = np.sqrt(np.einsum("ij,ij->j", J, J))
-    d = np.where(d > 0, d, 1.0)
-    R = np.linalg.qr(J / d, mode="r") if J.shape[0] > p else J / d
-    _, s, vt = np.linalg.svd(R, full_matrices=False)
-    cut = np.finfo(float).eps * max(J.shape) * (s[0] if s.size else 0.0)
-    inv = np.where(s > cut, 1.0 / np.where(s > 0, s, 1.0), 0.0)
-    w = vt * inv[:, None]
-    return (w.T @ w) / np.outer(d, d)
+    T, w = gram_basis(J)
+    return (T * w) @ T.T
 
 
 def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
-                 lags: int | None = None):
+                 lags: int | None = None, basis: np.ndarray | None = None):
     """(S, L): the middle of the AR(1)-prewhitened HAC sandwich (:func:`hac_covariance`):
     S = K^T A^T Cov(e) A K from the scores K_t e_t of the prewhitened residuals, with the
     Bartlett kernel of bandwidth L only where those are not white.
@@ -195,6 +203,8 @@ def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
         period_samples: samples per oscillation period (sets the bandwidth's floor).
         lags: bandwidth L (default: 0 where the prewhitened residuals are white, else
             :func:`bandwidth`).
+        basis: T^T S T instead (:func:`hac_covariance`): the sum formed from the scores in
+            that basis, the bandwidth and :func:`_at_least`'s floor from the parameters'.
     """
     r = np.asarray(r, dtype=float)
     phi = ar1_coefficient(r)
@@ -213,7 +223,10 @@ def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     L = min(L, g.shape[0] - 1)
     G = _autocov(g, L)
     S = bartlett_sum(G)
-    return (S if L == 0 else _at_least(S, G[0])), L
+    floor = np.zeros_like(S) if L == 0 else _at_least(S, G[0]) - S  # what the kernel may not take
+    if basis is None:
+        return S + floor, L
+    return bartlett_sum(_autocov(g @ basis, L)) + basis.T @ floor @ basis, L
 
 
 def bartlett_sum(G: np.ndarray) -> np.ndarray:
@@ -258,6 +271,14 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     adds to the prewhitened sandwich, never takes from it (:func:`_at_least`): the same bias
     hits a white trace that the test rejects by chance.
 
+    The sandwich is formed in the orthogonal basis of :func:`gram_basis` (cov = T (S_T / (s^2
+    s^2^T)) T^T, S_T from the scores g T), not as H^-1 S H^-1 in the parameters: where two
+    columns agree to 1e-8 (damping constants at 0) that product cancels terms 1e16 times its
+    result, and a variance took any value from 2.9 to 49 (or <= 0, "no width", on a GPU) with
+    the Jacobian moved by 4e-16 (benchmarks/README.md, twenty-fourth session). The same
+    covariance in exact arithmetic: the bandwidth and :func:`_at_least`'s positive part stay
+    those of the parameters (taken in T's basis, the kernel's intervals moved by up to 49 %).
+
     Arguments:
         J: residual Jacobian (n x p) at the optimum, rows of the data only.
         r: residuals (n).
@@ -269,9 +290,9 @@ def hac_covariance(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
         # a fit without a finite Jacobian (it diverged): no interval
         return np.full((J.shape[1], J.shape[1]), np.nan), 0
-    S, L = score_matrix(J, r, period_samples=period_samples, lags=lags)
-    Hinv = gram_inverse(J)
-    cov = Hinv @ S @ Hinv
+    T, w = gram_basis(J)
+    S, L = score_matrix(J, r, period_samples=period_samples, lags=lags, basis=T)
+    cov = T @ (S * np.outer(w, w)) @ T.T
     return 0.5 * (cov + cov.T), L
 
 

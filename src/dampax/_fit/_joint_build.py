@@ -17,7 +17,7 @@ from ._core import (
     CoreResult,
 )
 from ._guess import analyse
-from ._intervals import gram_inverse
+from ._intervals import gram_basis
 from ._joint_problem import (
     JointArrays,
     JointCore,
@@ -93,7 +93,7 @@ class JointStatistics(NamedTuple):
     sd: np.ndarray
 
 
-def _score_sum(out: JointCore, J, r, ns, singles) -> np.ndarray:
+def _score_sum(out: JointCore, J, r, ns, singles, basis) -> np.ndarray:
     """S of the HAC sandwich: the runs' score covariances summed (NaN where a run has under
     3 samples or a non-finite row).
 
@@ -102,6 +102,8 @@ def _score_sum(out: JointCore, J, r, ns, singles) -> np.ndarray:
         J, r: the weighted Jacobian and residual rows (N, n_pad, size), (N, n_pad).
         ns: each run's number of samples.
         singles: the runs' single fits (their sampling steps).
+        basis: T of ``_intervals.gram_basis`` (S in its basis, T^T S T: the sandwich's
+            stable form, as ``_intervals.hac_covariance`` takes it).
 
     Returns:
         S, (size, size).
@@ -116,7 +118,7 @@ def _score_sum(out: JointCore, J, r, ns, singles) -> np.ndarray:
         if ns[j] < 3 or not (np.all(np.isfinite(Jj)) and np.all(np.isfinite(rj))):
             S += np.nan
             continue
-        S += score_covariance(Jj, rj, period)
+        S += score_covariance(Jj, rj, period, basis)
     return S
 
 
@@ -139,10 +141,11 @@ def _statistics(out: JointCore, a: JointArrays, singles) -> JointStatistics:
     rd = np.concatenate([r[j, :ns[j]] for j in range(len(ns))])
     n, k = rd.size, J.shape[2]
     chisqr = float(rd @ rd)
-    Hinv = gram_inverse(Jd)
+    T, w = gram_basis(Jd)
+    Hinv = (T * w) @ T.T
     s2 = chisqr / max(n - k, 1)
     delta = s2 * Hinv
-    hac = Hinv @ _score_sum(out, J, r, ns, singles) @ Hinv
+    hac = T @ (_score_sum(out, J, r, ns, singles, T) * np.outer(w, w)) @ T.T
     hac = 0.5 * (hac + hac.T)
     active = np.einsum("ij,ij->j", Jd, Jd) > 0
     sd = np.where(active, np.sqrt(np.clip(np.diag(delta), 0.0, None)), np.nan)

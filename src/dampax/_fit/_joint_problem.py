@@ -390,14 +390,16 @@ def best_start(out: JointCore) -> int:
 # intervals: the runs' score covariances summed
 
 
-def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float) -> np.ndarray:
+def score_covariance(J: np.ndarray, r: np.ndarray, period_samples: float,
+                     basis: np.ndarray | None = None) -> np.ndarray:
     """S of the AR(1)-prewhitened HAC sandwich of one run (``_intervals.score_matrix``,
     whose H^-1 S H^-1 ``_intervals.hac_covariance`` completes).
 
     Arguments:
         J, r: the run's rows of the joint Jacobian (n x p) and its residuals (n).
         period_samples: samples per oscillation period.
+        basis: T^T S T in the joint Jacobian's orthogonal basis (``_intervals.gram_basis``).
     """
     return _intervals.score_matrix(np.ascontiguousarray(J), r,
-                                   period_samples=period_samples)[0]
+                                   period_samples=period_samples, basis=basis)[0]
 
