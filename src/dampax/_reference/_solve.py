@@ -331,22 +331,47 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
             raise ValueError(f"ts must be a 1-D array of sample times, got shape {ts.shape}")
     return dict(t_end=t_end, rtol=rtol, atol=atol, max_swings=max_swings,
                 max_steps_per_swing=max_steps_per_swing, ts=ts, adjoint=adjoint,
-                engine=resolve_engine(engine, adjoint, (osc, x0, v0, t_end, ts)))
+                engine=resolve_engine(engine, adjoint, (osc, x0, v0, t_end, ts),
+                                      trajectories((osc, x0, v0, t_end))))
 
 
-def resolve_engine(engine: str, adjoint: str = "recursive", inputs=()) -> str:
+#: "auto" takes the fused kernel for at most this many trajectories in one solve (vmapped
+#: solves counted together): on an H200 (jax 0.11.2, 1,000 samples, 5 s) the kernel took
+#: 4.0-4.6 ms for 1,024-8,192 trajectories where the XLA engine took 7.7-8.6 ms, 10.9 ms
+#: against 13.4 at 32,768, the same 20.7 ms at 65,536, and 39.9 against 29.7 ms at 131,072
+#: (78.6 against 51.1 at 262,144): above, the XLA engine (benchmarks/README.md, issue 35)
+KERNEL_MAX_TRAJECTORIES = 65_536
+
+
+def resolve_engine(engine: str, adjoint: str = "recursive", inputs=(),
+                   trajectories: int = 1) -> str:
     """The engine that runs for ``engine`` (a name of :data:`ENGINE_NAMES`): "auto" is the
     fused kernel ("pallas") on a CUDA GPU for a solve that is not differentiated (no input is
     an autodiff tracer: derivatives of every order and mode stay with the XLA engine, as
-    before) with the reverse-mode adjoint, once the kernel has passed its self-check in this
-    process (`_kernel.self_check`); "dampax" (the XLA engine) otherwise. Other names are
-    returned as they are."""
+    before) with the reverse-mode adjoint, of at most :data:`KERNEL_MAX_TRAJECTORIES`
+    ``trajectories``, once the kernel has passed its self-check in this process
+    (`_kernel.self_check`); "dampax" (the XLA engine) otherwise. Other names are returned as
+    they are."""
     if engine != "auto":
         return engine
-    if adjoint == "recursive" and not differentiated(inputs) and kernel_native() and \
-            _kernel().self_check(_solve_jit):
+    if adjoint == "recursive" and trajectories <= KERNEL_MAX_TRAJECTORIES and \
+            not differentiated(inputs) and kernel_native() and _kernel().self_check(_solve_jit):
         return "pallas"
     return "dampax"
+
+
+def trajectories(tree) -> int:
+    """How many trajectories a solve of these inputs integrates: the largest size among the
+    leaves, each with the batch axes of the vmaps around the call (a vmapped solve joins one
+    launch of the kernel)."""
+    most = 1
+    for leaf in jax.tree_util.tree_leaves(tree):
+        for _ in range(32):  # the vmaps stacked on the value, innermost first
+            if not (isinstance(leaf, jax.core.Tracer) and hasattr(leaf, "batch_dim")):
+                break
+            leaf = leaf.val  # the value with this vmap's axis
+        most = max(most, math.prod(np.shape(leaf)))
+    return most
 
 
 def differentiated(tree) -> bool:
