@@ -6,7 +6,7 @@ them (issue 12). Here the argument is reduced by multiples of pi/2 (subtracted i
 parts, as Cephes does) and the functions are polynomials on [-pi/4, pi/4], which the compiler
 vectorizes:
 
-- :func:`sincos`: (sin u, cos u) within 2 ulp of the true values for |u| < 8e8 rad;
+- :func:`sincos`: (sin u, cos u) within 2 ulp of the true values for |u| < 4.2e8 rad;
   beyond, and for inf/NaN, ``jnp.sin``/``jnp.cos`` themselves (a branch taken only when some
   argument of the call is that large). Derivatives are exact: d sin = cos, d cos = -sin, from
   the same values.
@@ -21,10 +21,11 @@ import jax
 import jax.numpy as jnp
 
 # pi/2 in three parts (25, 24 and 53 significant bits): n times each of the first two is exact
-# for |n| < 2^28 (|u| < 4.2e8), and the reduced angle stays within 2 ulp up to 8e8 (tested in
-# tests/models/test_lean_ansatz.py with arguments to 7.9e8)
+# for |n| < 2^28 (|u| < 4.2e8), with or without fused multiply-adds. Beyond, only a compiler
+# that fuses u - n p0 into one exact multiply-add keeps the reduced angle right (XLA on a CPU
+# does, to 8e8; an H200 did not: 3.8e8 ulp at u = -6.2e8, as numpy's replay without them)
 _PIO2 = (1.570796310901641845703125, 1.589325471229585673428e-8, 6.12323399573676588614e-17)
-_SINCOS_MAX = 8e8  # |u| beyond (|n| >= 2^29): jnp.sin and jnp.cos, the reduction is inexact
+_SINCOS_MAX = 4.2e8  # |u| beyond (|n| near 2^28): jnp.sin and jnp.cos
 
 # Cephes sin.c: sin z = z + z^3 S(z^2), cos z = 1 - z^2/2 + z^4 C(z^2), |z| <= pi/4
 _SIN = (1.58962301576546568060e-10, -2.50507477628578072866e-8, 2.75573136213857245213e-6,
@@ -76,7 +77,7 @@ def sincos(u):
 
     Returns:
         (sin u, cos u), within 2 ulp of the true values; ``jnp.sin``/``jnp.cos`` when some
-        |u| of the call (of the whole vmapped batch) reaches 8e8 or is not finite.
+        |u| of the call (of the whole vmapped batch) reaches 4.2e8 or is not finite.
     """
     u = jnp.asarray(u, dtype=float)
     far = eqxi.unvmap_any(jnp.any(~(jnp.abs(u) < _SINCOS_MAX)))
@@ -91,7 +92,7 @@ def _sincos_jvp(primals, tangents):
 
 
 def _tan_fraction(u):
-    """(num, den) with num/den = tan(u), for |u| < 8e8 (f(t) needs 0 <= u < pi/2); den != 0.
+    """(num, den) with num/den = tan(u), for |u| < 4.2e8 (f(t) needs 0 <= u < pi/2); den != 0.
 
     Within 3 ulp of the true value, derivative within 2e-15.
     """
