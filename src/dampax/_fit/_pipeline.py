@@ -482,8 +482,8 @@ def run(problem: Problem, plan: Plan = FULL) -> FitResult:
     if answered is not None:
         return answered
     state = exact_model(problem, plan, state)
-    state = continue_budget(problem, state)
-    state, others = neighbouring_halts(problem, plan, state)
+    state, others = neighbouring_halts(problem, plan, continue_budget(problem, state))
+    state = continue_budget(problem, state)  # the search's optimum too (wide 18 draw 36)
     lower = []
     res = assess(problem, plan, state, lower=lower)
     moved = from_the_bound(problem, state, lower) if lower else None
