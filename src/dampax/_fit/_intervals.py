@@ -45,7 +45,10 @@ METHOD = ("AR(1)-prewhitened Newey-West (HAC) sandwich covariance; Bartlett kern
 
 
 def _autocov(g: np.ndarray, max_lag: int) -> np.ndarray:
-    """Gamma_l = sum_t g_t g_(t+l)^T for l = 0..max_lag (FFT), shape (max_lag + 1, p, p)."""
+    """Gamma_l = sum_t g_t g_(t+l)^T for l = 0..max_lag (FFT; Gamma_0 alone as g^T g), shape
+    (max_lag + 1, p, p)."""
+    if max_lag == 0:
+        return (g.T @ g)[None]
     n, p = g.shape
     nfft = 1 << int(math.ceil(math.log2(2 * n)))
     F = np.fft.rfft(g, nfft, axis=0)
@@ -221,12 +224,15 @@ def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     else:
         L = bandwidth(g, period_samples)
     L = min(L, g.shape[0] - 1)
-    G = _autocov(g, L)
-    S = bartlett_sum(G)
-    floor = np.zeros_like(S) if L == 0 else _at_least(S, G[0]) - S  # what the kernel may not take
+    S = floor = 0.0
+    if L > 0 or basis is None:
+        G = _autocov(g, L)
+        S = bartlett_sum(G)
+        floor = 0.0 if L == 0 else _at_least(S, G[0]) - S  # what the kernel may not take
     if basis is None:
         return S + floor, L
-    return bartlett_sum(_autocov(g @ basis, L)) + basis.T @ floor @ basis, L
+    ST = bartlett_sum(_autocov(g @ basis, L))
+    return (ST if L == 0 else ST + basis.T @ floor @ basis), L
 
 
 def bartlett_sum(G: np.ndarray) -> np.ndarray:
