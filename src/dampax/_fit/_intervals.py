@@ -224,15 +224,14 @@ def score_matrix(J: np.ndarray, r: np.ndarray, *, period_samples: float,
     else:
         L = bandwidth(g, period_samples)
     L = min(L, g.shape[0] - 1)
-    S = floor = 0.0
-    if L > 0 or basis is None:
-        G = _autocov(g, L)
-        S = bartlett_sum(G)
-        floor = 0.0 if L == 0 else _at_least(S, G[0]) - S  # what the kernel may not take
+    if basis is not None and L == 0:  # the prewhitened sandwich: formed in the basis alone
+        return bartlett_sum(_autocov(g @ basis, 0)), L
+    G = _autocov(g, L)
+    S = bartlett_sum(G)
+    floor = 0.0 if L == 0 else _at_least(S, G[0]) - S  # what the kernel may not take
     if basis is None:
         return S + floor, L
-    ST = bartlett_sum(_autocov(g @ basis, L))
-    return (ST if L == 0 else ST + basis.T @ floor @ basis), L
+    return bartlett_sum(_autocov(g @ basis, L)) + basis.T @ floor @ basis, L
 
 
 def bartlett_sum(G: np.ndarray) -> np.ndarray:
