@@ -61,6 +61,7 @@ import functools
 import gc
 import hashlib
 import io
+import math
 import os
 import threading
 from pathlib import Path
@@ -312,9 +313,10 @@ def _compile_cached_turn(name: str, key, fn, *specs):
             return _compile(fn.lower(*specs))
         _write_entry(path, digest, {"kind": "jaxexport"}, bytes(payload))
     lowered = jax.jit(exported.call).lower(*specs)
-    with _fresh_compilation() as fresh:
+    keep = exe_path is not None and _keepable(lowered)
+    with _fresh_compilation(keep) as fresh:
         compiled = _compile(lowered)
-    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, compiled)
+    _keep_executable(exe_path if fresh() and keep else None, compiled)
     return compiled
 
 
@@ -412,11 +414,21 @@ def _prepare_loading_once() -> None:
 
 
 @contextlib.contextmanager
-def _fresh_compilation():
+def _fresh_compilation(kept: bool = False):
     """Yields a function that tells whether no program compiled in the block came from JAX's
     persistent cache. Only an executable compiled here may be kept by :func:`_keep_executable`:
     one read from that cache serializes without its kernels (jaxlib 0.10: "Function ... not
-    found" when the copy runs)."""
+    found" when the copy runs).
+
+    Arguments:
+        kept: the program will be kept as its own file: JAX's cache does not write it too
+            (in this thread only). A second copy cost a cold fit 0.8 s of its 2 cores
+            (serialized and compressed again, issue 36), and it is worse than none: a later
+            process that traces the program again (dampax's source changed, not the program)
+            reads it from there, and such an executable cannot be kept.
+    """
+    from jax._src import config
+
     hits = []
 
     def listener(event, **kwargs):
@@ -424,8 +436,11 @@ def _fresh_compilation():
             hits.append(event)
 
     jax.monitoring.register_event_listener(listener)
+    writes = config.persistent_cache_min_compile_time_secs(math.inf) if kept else \
+        contextlib.nullcontext()
     try:
-        yield lambda: not hits
+        with writes:
+            yield lambda: not hits
     finally:
         jax.monitoring.unregister_event_listener(listener)
 
@@ -500,7 +515,7 @@ def _compile_kept(name: str, fn, specs, exe_path):
         return None
     if not _keepable(lowered):
         return None
-    with _fresh_compilation() as fresh:
+    with _fresh_compilation(kept=True) as fresh:
         executable = _compile(lowered)
     if not fresh():
         return None
@@ -580,10 +595,10 @@ def _compile_tree_turn(name: str, fn, specs, folder, digest):
         return [_weak(a) if w else a for a, w in zip(exported.call(*args), weak, strict=True)]
 
     lowered = jax.jit(call).lower(*specs)
-    with _fresh_compilation() as fresh:
+    keep = exe_path is not None and _keepable(lowered)
+    with _fresh_compilation(keep) as fresh:
         executable = _compile(lowered)
-    _keep_executable(exe_path if fresh() and _keepable(lowered) else None, executable,
-                     (treedef, static))
+    _keep_executable(exe_path if fresh() and keep else None, executable, (treedef, static))
     return executable, treedef, static
 
 
@@ -628,8 +643,63 @@ def prepare_cached(name: str, key, fn, *args) -> None:
     then builds the program itself.
     """
     _, specs, memo = _memo(name, key, args)
-    if memo not in _EXECUTABLES:
+    if memo in _EXECUTABLES:
+        return
+    if _kept_file(name, key, specs):  # loaded, not compiled: by the loader or its caller
+        job = _EXECUTABLES[memo] = _Claimable(_compile_tree, name, key, fn, specs)
+        _loader().submit(job.run)
+    else:
         _EXECUTABLES[memo] = _pool().submit(_compile_tree, name, key, fn, specs)
+
+
+@functools.lru_cache(maxsize=1)
+def _loader():
+    """The one thread that loads kept executables ahead of their first call
+    (:func:`prepare_cached`), in the order asked (:class:`_Claimable`)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    return ThreadPoolExecutor(max_workers=1, thread_name_prefix="dampax-load")
+
+
+def _kept_file(name: str, key, specs) -> bool:
+    """Whether the program has a kept executable file on this machine (:func:`_keep_executable`)."""
+    folder = exported_dir()
+    if folder is None:
+        return False
+    where = _executable_path(folder, name, _digest(_program_text(key, specs)))
+    return where is not None and where[0].is_file()
+
+
+class _Claimable:
+    """A kept executable's loading, run by whoever needs it first: the loader thread in its
+    turn, or a caller that needs the program before then (:func:`_entry`).
+
+    Loading takes 0.1-0.4 s per program (XLA rebuilding the optimised HLO module), with
+    Python's lock released; the six programs of ``dampax fit --example`` loaded three at a
+    time on 2 cores made the first one the fit calls wait 0.6 s for all of them (issue 36).
+    One loader thread, and the caller loading what it needs first itself, keep at most two
+    loads at once, the one wanted now among them."""
+
+    def __init__(self, fn, *args):
+        from concurrent.futures import Future
+
+        self._call = functools.partial(fn, *args)
+        self._claim = threading.Lock()
+        self._future = Future()
+
+    def run(self) -> None:
+        """Load, unless another thread has started to."""
+        if not self._claim.acquire(blocking=False):
+            return
+        try:
+            self._future.set_result(self._call())
+        except BaseException as err:  # noqa: BLE001 - raised by result(), in the caller
+            self._future.set_exception(err)
+
+    def result(self):
+        """The loaded (executable, treedef, static): loaded here if no thread has begun."""
+        self.run()
+        return self._future.result()
 
 
 def finish_background() -> None:

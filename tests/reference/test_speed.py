@@ -468,3 +468,105 @@ def test_ar1_filter_equals_lfilter():
                 scale = np.max(np.abs(want), axis=0)
                 assert got.shape == want.shape
                 assert np.max(np.abs(got - want) / scale) < 1e-13, (n, order, phi)
+
+
+def test_a_kept_program_is_loaded_by_whoever_needs_it_first(monkeypatch):
+    """A prepared program with a kept executable is loaded (not compiled) by the loader
+    thread, or by its first caller if the loader has not begun it (``_cache._Claimable``):
+    loaded once, the same numbers as the compiled program's; a load begun elsewhere is
+    awaited, not repeated."""
+    import threading
+    import time
+
+    from dampax import _cache
+
+    x = jnp.linspace(0.0, 1.0, 6)
+    shift = float(time.time_ns() % 1000037)
+
+    def fn(a):
+        return jnp.tan(a) - shift
+
+    first = _cache.call_cached("test-claim", shift, fn, x)  # compiled, kept as a file
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})  # a new process
+    _cache.prepare_cached("test-claim", shift, fn, x)
+    (job,) = _cache._EXECUTABLES.values()
+    assert isinstance(job, _cache._Claimable)  # a load, not a compile
+    np.testing.assert_array_equal(_cache.call_cached("test-claim", shift, fn, x), first)
+
+    calls, gate = [], threading.Event()
+
+    def slow():
+        calls.append(threading.current_thread().name)
+        gate.wait(10)
+        return "loaded"
+
+    job = _cache._Claimable(slow)
+    other = threading.Thread(target=job.run, name="other")
+    other.start()
+    while not calls:
+        time.sleep(0.001)
+    job.run()  # claimed by the other thread: returns at once
+    gate.set()
+    assert job.result() == "loaded" and calls == ["other"]
+    other.join()
+    mine = _cache._Claimable(lambda: threading.current_thread().name)
+    assert mine.result() == threading.current_thread().name  # unclaimed: run by the caller
+    mine.run()
+    assert mine.result() == threading.current_thread().name
+
+
+def test_jax_cache_does_not_write_the_programs_dampax_keeps(monkeypatch):
+    """A program kept as its own executable file is not written to JAX's persistent cache
+    too (``_cache._fresh_compilation(kept=True)``: a second serialized copy, and one a later
+    process would read instead of keeping its own); elsewhere JAX's rule is unchanged."""
+    import time
+
+    from jax._src import compilation_cache
+    from jax._src import config as jax_config
+
+    from dampax import _cache
+
+    written = []
+    real = compilation_cache.put_executable_and_time
+    monkeypatch.setattr(compilation_cache, "put_executable_and_time",
+                        lambda *a, **k: (written.append(a[0]), real(*a, **k))[1])
+    x = jnp.linspace(0.0, 1.0, 4)
+    shift = float(time.time_ns() % 1000039)
+    with jax_config.persistent_cache_min_compile_time_secs(0.0):  # write whatever compiles
+        out = _cache.call_cached("test-nowrite", shift, lambda a: jnp.sinh(a) * shift, x)
+        assert list(_cache.exported_dir().glob("test-nowrite-*.jaxexe"))
+        assert written == []
+        jax.jit(lambda a: jnp.cosh(a) * shift)(x).block_until_ready()  # not kept by dampax
+    np.testing.assert_allclose(out, np.sinh(np.asarray(x)) * shift, rtol=1e-15)
+    assert len(written) == 1
+
+
+def test_an_oscillator_of_numbers_compiles_nothing():
+    """Oscillator(m=..., k=...) of Python numbers places its fields as they are: no eager
+    conversion is compiled (``jnp.asarray`` of a number compiled one the first time in each
+    process: 40-60 ms of every command); inside jit the fields are traced as before."""
+    import logging
+
+    seen = []
+
+    class Compiles(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Compiling"):
+                seen.append(record.getMessage())
+
+    jax.clear_caches()
+    handler, logger = Compiles(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            osc = dp.Oscillator(m=1.5, k=30.0, mu=0.02, b=0.1, D=1.2, k3=0.0, mu_s=0.03)
+    finally:
+        logger.removeHandler(handler)
+    assert seen == []
+    for name in ("m", "k", "mu", "b", "D", "g", "k3", "mu_s"):
+        value = getattr(osc, name)
+        assert isinstance(value, jax.Array) and value.dtype == jnp.float64
+        assert not value.weak_type
+    assert float(osc.m) == 1.5 and float(osc.mu_s) == 0.03
+    w = jax.jit(lambda m: dp.Oscillator(m=m, k=30.0).omega0)(2.0)
+    assert float(w) == pytest.approx(np.sqrt(15.0), rel=1e-15)
