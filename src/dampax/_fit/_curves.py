@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from .._cache import call_cached, prepare_cached
 from .._models._cubic import phase_excess
@@ -161,9 +162,8 @@ def _matched(m, w0, mu, b, D, g, x0, v0):
 
 
 def _matched_args(params: dict, m, g) -> tuple:
-    return tuple(jnp.asarray(float(v)) for v in (m, params["w0"], params["mu"], params["b"],
-                                                  params["D"], g, params["x0"],
-                                                  params["v0"]))
+    return tuple(np.asarray(float(v)) for v in (m, params["w0"], params["mu"], params["b"],
+                                                 params["D"], g, params["x0"], params["v0"]))
 
 
 def _reference_amplitude_phase(params: dict, q, m, g):

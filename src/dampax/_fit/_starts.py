@@ -23,12 +23,11 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached_tree, prepare_cached_tree
 from ._core import FIT_RESULTS, CoreOptions, Tuning, core, program_consts
-from ._params import PARAMS, TraceParams, as_arrays
+from ._params import PARAMS, TraceParams, host_arrays
 
 #: samples of the thinned trace of the batch (its padded length): the smallest of these that
 #: keeps PER_PERIOD samples per period of the whole trace, else the largest (cut to the first
@@ -161,16 +160,17 @@ def _program(problem, model: str, f_scale: float, vary, opts) -> _Program:
                   atol=float(s.atol), opts=opts)
     return _Program(sorted(static.items()),
                     functools.partial(_batch, options=CoreOptions(**static)),
-                    (jnp.asarray(tp), jnp.asarray(xp), jnp.asarray(wt)),
-                    (as_arrays(vary, bool), as_arrays(program_consts(problem.consts, model)),
-                     jnp.asarray(f_scale, dtype=float)), stride)
+                    (np.asarray(tp), np.asarray(xp), np.asarray(wt)),
+                    (host_arrays(vary, bool), host_arrays(program_consts(problem.consts, model)),
+                     np.asarray(f_scale, dtype=float)), stride)
 
 
 def _lanes(P: np.ndarray):
     """The batch's parameter arrays of a block of at most BATCH_LANES starts (the spare lanes
     repeat its first start)."""
     block = np.concatenate([P, np.tile(P[:1], (max(BATCH_LANES - len(P), 0), 1))])
-    return as_arrays(TraceParams(*(jnp.asarray(block[:, i]) for i in range(P.shape[1]))))
+    return TraceParams(*(np.ascontiguousarray(block[:, i], dtype=float)
+                         for i in range(P.shape[1])))
 
 
 def prepare_starts(problem, guess: TraceParams, model: str) -> None:
