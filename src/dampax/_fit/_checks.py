@@ -51,7 +51,7 @@ import math
 
 import numpy as np
 
-from ._core import FIT_RESULTS
+from ._core import FIT_RESULTS, is_code
 from ._dist import chi2_sf, f_sf
 from ._guess import Analysis, despike
 from ._intervals import ar1_coefficient, hac_covariance
@@ -376,7 +376,7 @@ def looks_stuck(t, x, curve, an: Analysis, w0: float, code) -> bool:
     (:func:`end_mismatch`). Then ``fit`` searches further (a batch of starts)."""
 
     c = np.asarray(curve, dtype=float)
-    if not bool(code == FIT_RESULTS.successful) or not np.all(np.isfinite(c)):
+    if not is_code(code, FIT_RESULTS.successful) or not np.all(np.isfinite(c)):
         return True
     r = np.asarray(x, dtype=float) - c
     st = residual_structure(t, r, w0)

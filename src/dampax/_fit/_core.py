@@ -20,6 +20,7 @@ from typing import Any, NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._cache import call_cached_tree, prepare_cached_tree
 from .._models._solution import result_where
@@ -57,6 +58,12 @@ class FIT_RESULTS(eqx.Enumeration):
     successful = "converged"
     max_steps_reached = "maximum number of steps reached"
     failed = "the optimizer failed (non-finite values or divergence)"
+
+
+def is_code(code, item) -> bool:
+    """Whether a fit's concrete result code is ``item`` of :class:`FIT_RESULTS`, read on the
+    host (``code == item`` compiles an eager comparison the first time in each process)."""
+    return int(np.asarray(code._value)) == int(np.asarray(item._value))
 
 
 # ----------------------------------------------------------------------------------------------

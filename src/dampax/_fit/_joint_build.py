@@ -15,6 +15,7 @@ import numpy as np
 from ._core import (
     FIT_RESULTS,
     CoreResult,
+    is_code,
 )
 from ._guess import analyse
 from ._intervals import gram_basis
@@ -297,7 +298,7 @@ def _result(out: JointCore, a: JointArrays, ctx: JointContext) -> JointResult:
     values = {nm: float(v) for nm, v in zip(names, p, strict=True)}
     stderr = {nm: float(v) for nm, v in zip(names, st.sd, strict=True)}
     code = out.code
-    converged = bool(code == FIT_RESULTS.successful)
+    converged = is_code(code, FIT_RESULTS.successful)
     text = FIT_RESULTS[code]
     finite = np.all(np.isfinite(p)) and np.isfinite(st.chisqr)
     if not finite:

@@ -12,7 +12,7 @@ import numpy as np
 
 from ._api import _swings_bucket
 from ._checks import STRUCTURE_P, residual_structure
-from ._core import FIT_MODELS, FIT_RESULTS, ReferenceOptions
+from ._core import FIT_MODELS, FIT_RESULTS, ReferenceOptions, is_code
 from ._joint_problem import (
     CONTINUATIONS,
     JointArrays,
@@ -76,7 +76,7 @@ def _optimise(init: JointStart, cfg: JointSettings) -> tuple:
         # a budget ran out on the way (the approximate optimum far from the exact one):
         # continue from where it stopped, with the same compiled program
         for _ in range(CONTINUATIONS):
-            if out.code != FIT_RESULTS.max_steps_reached:
+            if not is_code(out.code, FIT_RESULTS.max_steps_reached):
                 break
             arrays = _restart(arrays, out, lay, spec, data.consts)
             done = int(out.steps)
@@ -190,7 +190,7 @@ def _continue_lowest(both: JointCore, batch: list, init: JointStart, cfg: JointS
         arrays = _restart(arrays, out, init.lay, spec, init.data.consts)
         out = run_joint_core(arrays, lay=init.lay, opts=opts, max_steps=cfg.max_steps,
                              rtol=cfg.rtol, atol=cfg.atol)
-        if out.code != FIT_RESULTS.max_steps_reached:
+        if not is_code(out.code, FIT_RESULTS.max_steps_reached):
             break
     return jax.tree_util.tree_map(
         lambda a, v: np.concatenate([a[:i], np.asarray(v)[None], a[i + 1:]]), both, out), \

@@ -45,7 +45,7 @@ from ._answer import approximation_bias
 from ._assess import NEWTON_TOL
 from ._checks import STRUCTURE_P, looks_stuck, newton_step
 from ._context import prepare_envelope
-from ._core import FIT_MODELS, FIT_RESULTS
+from ._core import FIT_MODELS, FIT_RESULTS, is_code
 from ._curves import prepare_amplitude_phase
 from ._halts import (
     above_mu_s,
@@ -178,7 +178,7 @@ def _code(problem: Problem, out):
     nothing in 3 of 3 and cost 2-5 s). Elsewhere a capped fit keeps its search (a valley far
     from 0 can hide a lower optimum that only the batch finds: test_fit.py's two swings)."""
     p, se = out.params, out.stderr
-    if bool(out.code == FIT_RESULTS.max_steps_reached) and all(
+    if is_code(out.code, FIT_RESULTS.max_steps_reached) and all(
             float(getattr(p, n)) < AT_ZERO * float(getattr(se, n))
             for n in problem.settings.free if n in ("mu", "b", "D")) and \
             not _descending(problem, out):
@@ -219,7 +219,7 @@ def continue_budget(problem: Problem, state: Fit) -> Fit:
     steps = 0
     for i in range(CONTINUE_ROUNDS):
         out = state.best
-        if not bool(out.code == FIT_RESULTS.max_steps_reached) or \
+        if not is_code(out.code, FIT_RESULTS.max_steps_reached) or \
                 (i and not _descending(problem, out)):
             break
         last = problem.solve(out.params, problem.settings.model, state.last.fs)

@@ -21,7 +21,7 @@ from .._plot import plot_fit
 from . import _intervals
 from ._assess import Inputs, assess
 from ._context import FitContext, envelope_derived, trace_derived
-from ._core import FIT_MODELS, FIT_RESULTS, CoreResult
+from ._core import FIT_MODELS, FIT_RESULTS, CoreResult, is_code
 from ._dist import norm_ppf
 from ._params import DAMPING, check_choice, d_per_unit, varied_names
 from ._report import fit_report
@@ -384,8 +384,8 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
     kind = FIT_MODELS[ctx.model].kind
     derive = trace_derived if kind == "trace" else envelope_derived
     derived, envelope, fixed = derive(params, out.coords, ctx)
-    converged = bool(out.code == FIT_RESULTS.successful)
-    capped = bool(out.code == FIT_RESULTS.max_steps_reached)
+    converged = is_code(out.code, FIT_RESULTS.successful)
+    capped = is_code(out.code, FIT_RESULTS.max_steps_reached)
     jac, rows = data_rows(out, ctx.vary, n)
     fails, bad, diag = [], [], {}
     if ctx.analysis is not None or kind != "trace":

@@ -304,7 +304,7 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
             raise ValueError("engine='diffrax' needs diffrax: pip install diffrax") from err
     if adjoint not in _KINDS:
         raise ValueError(f"adjoint must be one of {tuple(_KINDS)}, got {adjoint!r}")
-    if jnp.asarray(0.0, dtype=float).dtype != jnp.float64:
+    if jax.dtypes.canonicalize_dtype(float) != jnp.float64:  # (no conversion compiled)
         raise ValueError("solve_reference needs float64: call "
                          "jax.config.update('jax_enable_x64', True) first")
     rtol = check_real("rtol", rtol, low=MIN_RTOL, high=1.0, high_open=True,
