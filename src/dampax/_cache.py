@@ -513,7 +513,11 @@ def _compile_kept(name: str, fn, specs, exe_path):
         treedef, static, _ = _kept_tree(traced)
     except Exception:  # noqa: BLE001 - the export route decides (and raises what it must)
         return None
+    held = getattr(_HOLDS, "turn", False)
+    _end_turn()  # the next program traces while this one is printed for its custom calls
     if not _keepable(lowered):
+        if held:  # the export route traces again, in its turn
+            _begin_turn()
         return None
     with _fresh_compilation(kept=True) as fresh:
         executable = _compile(lowered)
