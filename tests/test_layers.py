@@ -79,7 +79,8 @@ def test_no_import_cycle():
 #: the layers, bottom up (docs/DESIGN.md section 6): a module may import its own layer and the
 #: ones below it
 LAYERS = (
-    ("dampax._version", "dampax._trig", "dampax._io", "dampax._cachefiles", "dampax._cache",
+    ("dampax._version", "dampax._trig", "dampax._io", "dampax._cachefiles",
+     "dampax._cachethreads", "dampax._cache",
      "dampax._oscillator", "dampax._trace"),
     ("dampax._models",),
     ("dampax._reference",),
