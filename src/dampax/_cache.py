@@ -279,6 +279,7 @@ def _compile_cached_turn(name: str, key, fn, *specs):
             return _compile(fn.lower(*specs))
         _write_entry(path, digest, {"kind": "jaxexport"}, bytes(payload))
     lowered = jax.jit(exported.call).lower(*specs)
+    _end_turn()  # traced: the next program traces while this one is printed (_keepable)
     keep = exe_path is not None and _keepable(lowered)
     with _fresh_compilation(keep) as fresh:
         compiled = _compile(lowered)
@@ -565,6 +566,7 @@ def _compile_tree_turn(name: str, fn, specs, folder, digest):
         return [_weak(a) if w else a for a, w in zip(exported.call(*args), weak, strict=True)]
 
     lowered = jax.jit(call).lower(*specs)
+    _end_turn()  # traced: the next program traces while this one is printed (_keepable)
     keep = exe_path is not None and _keepable(lowered)
     with _fresh_compilation(keep) as fresh:
         executable = _compile(lowered)
