@@ -74,15 +74,20 @@ from ._sampling import WIDTH, hermite_columns, horner
 from ._solution import ReferenceSolution, from_engine, mask_samples, sample_single, with_samples
 from ._stepping import error_norm, ode_args, rk_step
 
-#: lanes per program (a power of two, as Triton's blocks must be): 4 warps of 32
-BLOCK = 128
+#: lanes per program (a power of two, as Triton's blocks must be): one warp. On an H200
+#: (benchmarks/gpu_kernel.py) programs of 32 lanes took 11.2 ms for 131,072 trajectories where
+#: 128 took 12.7-13.4 ms (both with the sampling below), 1.92 against 2.05-2.16 ms at 4,096
+BLOCK = 32
 #: lanes a GPU holds at once with this kernel's registers (an estimate for an H100: about 256
 #: threads per SM of 132 at ~250 float64 registers each); a batch beyond it is queued
 RESIDENT = 32768
 #: the longest queue of trajectories per lane
 MAX_DEPTH = 16
-#: sample times evaluated per pass of the inner sampling loop (a power of two)
-SAMPLES_PER_PASS = 16
+#: sample times evaluated per pass of the inner sampling loop (a power of two): on an H200 a
+#: pass of 16 took 2.8-3.2x the kernel's time of a pass of 2 or 4 at 131,072 trajectories x
+#: 1,000 samples (36 ms against 11.2-12.7 ms; the (lanes x 16) tensors of a pass spill to
+#: local memory: 168 registers a thread, 3 kB of stack), 8 took 1.9x, 1 took 1.1x
+SAMPLES_PER_PASS = 2
 # the per-trajectory inputs of the kernel, in order
 _INPUTS = ("x0", "v0", "t_end", "w_hi", "w2", "fric", "bm", "dm", "k3m", "k3k", "xstat",
            "rest0", "s0")
@@ -169,14 +174,15 @@ def _next_state(c, d, run, p, rows, max_swings):
     return dict(out, k=c["k"] + jnp.where(run, 1, 0).astype(jnp.int32), ptr=c["ptr"])
 
 
-def _write_step(refs, cur, c, d, run, rows, max_swings):
+def _write_step(refs, cur, c, d, run, rows, max_swings, keep_rows=True):
     """Store the step's row at the trajectory's next row and its turning point (masked scatter
-    stores at each lane's current trajectory ``cur``: only what it produced)."""
+    stores at each lane's current trajectory ``cur``: only what it produced; no row where
+    ``keep_rows`` is False, when only the samples are read)."""
     store = run & d["accepted"] & (c["n_rows"] < rows)
     # 64-bit indices: the row table of a large batch has more than 2^31 elements
     cur = cur.astype(jnp.int64)
     at_row = jnp.minimum(c["n_rows"], rows - 1).astype(jnp.int64)
-    for j, col in enumerate(d["cols"]):
+    for j, col in enumerate(d["cols"] if keep_rows else ()):
         col = jnp.broadcast_to(col, cur.shape)
         _store(refs["rows"].at[cur, at_row, jnp.full_like(cur, j)], col, store)
     turn = run & d["crossed"] & (c["n_turns"] < max_swings)
@@ -224,7 +230,7 @@ def _write_samples(refs, cur, c, d, p, store):
     return jax.lax.while_loop(pending, one_pass, c["ptr"])
 
 
-def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth):
+def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth, keep_rows):
     """One program: ``block`` lanes, each integrating its queue of ``depth`` trajectories one
     after the other (program i, lane j, queue position q: the trajectory ``order[i block depth
     + q block + j]``); a lane whose trajectory ends writes its outcome and starts its next one
@@ -250,7 +256,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth)
         q, p, c, cur = state["q"], state["p"], state["c"], state["cur"]
         run = live(c) & (q < depth)
         d = _step(c, p, rtol, atol)
-        store = _write_step(refs, cur, c, d, run, rows, max_swings)
+        store = _write_step(refs, cur, c, d, run, rows, max_swings, keep_rows)
         new = _next_state(c, d, run, p, rows, max_swings)
         if "ts" in refs:
             new["ptr"] = _write_samples(refs, cur, c, d, p, store)
@@ -303,9 +309,10 @@ def queues(size: int) -> tuple[int, int]:
     return BLOCK, max(1, min(MAX_DEPTH, -(-size // RESIDENT)))
 
 
-def _buffers(n_pad, ts, rows, max_swings):
-    """The pre-filled buffers the kernel writes into (aliased to its outputs)."""
-    out = {"rows": jnp.full((n_pad, rows, WIDTH), jnp.inf),
+def _buffers(n_pad, ts, rows, max_swings, keep_rows=True):
+    """The pre-filled buffers the kernel writes into (aliased to its outputs; the row table one
+    row long where ``keep_rows`` is False)."""
+    out = {"rows": jnp.full((n_pad, rows if keep_rows else 1, WIDTH), jnp.inf),
            "turns": jnp.full((n_pad, max_swings, 2), jnp.nan)}
     if ts is not None:
         out.update(xs=jnp.full((n_pad, ts.shape[0]), jnp.nan),
@@ -314,7 +321,7 @@ def _buffers(n_pad, ts, rows, max_swings):
 
 
 def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret: bool,
-               block: int | None = None, depth: int | None = None):
+               block: int | None = None, depth: int | None = None, keep_rows: bool = True):
     """The kernel over 1-D per-trajectory ``inputs`` (from :func:`prepare`).
 
     Arguments:
@@ -323,6 +330,8 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
         rtol, atol, max_swings, rows: as `_engine.integrate`.
         interpret: run Pallas's interpreter (off a GPU).
         block, depth: lanes per program and trajectories per lane (default :func:`queues`).
+        keep_rows: write the row table (the dense output); False writes the samples alone
+            (``rows`` then comes back one row long, inf).
 
     Returns:
         The dict of `_engine.integrate` (batched over B) without ``result`` and ``ok_in``,
@@ -340,7 +349,7 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
     args["order"] = jnp.argsort(-work_estimate(args)).astype(jnp.int32)
     if ts is not None:
         args["ts"] = _padded_times(ts)
-    buffers = _buffers(n_pad, None if ts is None else args["ts"], rows, max_swings)
+    buffers = _buffers(n_pad, None if ts is None else args["ts"], rows, max_swings, keep_rows)
     args.update({f"in_{k}": a for k, a in buffers.items()})
 
     def spec(a):  # every program sees whole arrays: its trajectories are the order's
@@ -352,7 +361,8 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
     out_names = [f"out_{k}" for k in _FLOATS + _INTS] + list(buffers)
     kernel = functools.partial(_kernel, names=tuple(args) + tuple(out_names), rtol=rtol,
                                atol=atol, max_swings=max_swings, rows=rows,
-                               max_steps=2 * rows + 64, block=block, depth=depth)
+                               max_steps=2 * rows + 64, block=block, depth=depth,
+                               keep_rows=keep_rows)
     first = len(args) - len(buffers)
     res = pl.pallas_call(
         kernel, out_shape=outs, grid=(n_pad // per,),

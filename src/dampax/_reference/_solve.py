@@ -336,11 +336,11 @@ def check_reference_options(x0, v0, *, t_end=None, rtol: float = 1e-10, atol: fl
 
 
 #: "auto" takes the fused kernel for at most this many trajectories in one solve (vmapped
-#: solves counted together): on an H200 (jax 0.11.2, 1,000 samples, 5 s) the kernel took
-#: 4.0-4.6 ms for 1,024-8,192 trajectories where the XLA engine took 7.7-8.6 ms, 10.9 ms
-#: against 13.4 at 32,768, the same 20.7 ms at 65,536, and 39.9 against 29.7 ms at 131,072
-#: (78.6 against 51.1 at 262,144): above, the XLA engine (benchmarks/README.md, issue 35)
-KERNEL_MAX_TRAJECTORIES = 65_536
+#: solves counted together): on an H200 (jax 0.11.2, 1,000 samples, 5 s), with programs of 32
+#: lanes and 2 samples a pass, the kernel took 1.92 ms for 4,096 trajectories where the XLA
+#: engine took 7.1-8.1 ms, and 11.2 ms against 25.2 ms at 131,072 (benchmarks/README.md,
+#: issue 35); with 128 lanes and 16 samples a pass it had lost to XLA above 65,536
+KERNEL_MAX_TRAJECTORIES = 1 << 20
 
 
 def resolve_engine(engine: str, adjoint: str = "recursive", inputs=(),
