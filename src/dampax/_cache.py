@@ -127,19 +127,34 @@ CPU_COMPILER_OPTIONS = (("xla_cpu_use_fusion_emitters", False),)
 _REFUSED = threading.Event()
 
 
-def compiler_options() -> dict | None:
-    """The XLA options dampax compiles its programs with: :data:`CPU_COMPILER_OPTIONS` on a
-    CPU unless ``DAMPAX_FAST_COMPILE`` is 0 (or off/false/no) or this XLA does not know
-    them, XLA's defaults otherwise (None)."""
+#: programs compiled on a CPU without XLA's backend optimisations
+#: (``xla_backend_optimization_level`` 0): the approximate model's fit where it only starts
+#: the exact one (``_core.run_core``'s ``quick``; once per default fit). It compiles in about
+#: half the time (2 of 4 s) and runs 2-3x longer (about 30 ms more per call): a cold default
+#: fit takes 3 s less CPU, 1.3 s less on 2 cores (benchmarks/README.md, issue 36, twenty-sixth
+#: session). Not for the ansatz's own fits (``model="ansatz"``, the model ranking: 1.6x
+#: longer warm), nor for the small programs, which compile in 0.1-0.7 s either way
+QUICK_PROGRAMS = frozenset({"fit-core-quick"})
+
+
+def compiler_options(name: str | None = None) -> dict | None:
+    """The XLA options dampax compiles its program ``name`` with: :data:`CPU_COMPILER_OPTIONS`
+    on a CPU (and optimisation level 0 for :data:`QUICK_PROGRAMS`) unless
+    ``DAMPAX_FAST_COMPILE`` is 0 (or off/false/no) or this XLA does not know them, XLA's
+    defaults otherwise (None)."""
     if _REFUSED.is_set() or os.environ.get("DAMPAX_FAST_COMPILE", "1").strip().lower() in _OFF:
         return None
-    return dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+    if jax.default_backend() != "cpu":
+        return None
+    quick = {"xla_backend_optimization_level": 0} if name in QUICK_PROGRAMS else {}
+    return dict(CPU_COMPILER_OPTIONS, **quick)
 
 
-def _compile(lowered):
-    """``lowered.compile()`` with :func:`compiler_options`; the tracing turn passes on."""
+def _compile(lowered, name: str | None = None):
+    """``lowered.compile()`` with :func:`compiler_options` of the program ``name``; the tracing
+    turn passes on."""
     _end_turn()
-    options = compiler_options()
+    options = compiler_options(name)
     try:
         return lowered.compile(options)
     except jax.errors.JaxRuntimeError as err:
@@ -220,13 +235,14 @@ def exported_dir() -> Path | None:
     return folder
 
 
-def _program_text(key, specs) -> str:
-    """What determines a program beyond the environment: the key, the specs, the devices."""
+def _program_text(key, specs, name: str | None = None) -> str:
+    """What determines a program ``name`` beyond the environment: the key, the specs, the
+    devices, the compiler's options."""
     devices = jax.devices()
     return repr((key, [(s.shape, str(s.dtype), str(getattr(s, "sharding", None)),
                         bool(getattr(s, "weak_type", False))) for s in specs],
                  len(devices), devices[0].platform, devices[0].device_kind,
-                 compiler_options()))
+                 compiler_options(name)))
 
 
 def compile_cached(name: str, key, fn, *specs):
@@ -258,8 +274,8 @@ def _compile_cached_turn(name: str, key, fn, *specs):
     """
     folder = exported_dir()
     if folder is None:
-        return _compile(fn.lower(*specs))
-    digest = _digest(_program_text(key, specs))
+        return _compile(fn.lower(*specs), name)
+    digest = _digest(_program_text(key, specs, name))
     path = folder / f"{name}-{digest[:32]}.jaxexport"
     mesh = getattr(getattr(specs[0], "sharding", None), "mesh", None) if specs else None
     exe_path = _executable_path(folder, name, digest)
@@ -276,13 +292,13 @@ def _compile_cached_turn(name: str, key, fn, *specs):
             exported = jax.export.export(fn)(*specs)
             payload = exported.serialize()
         except Exception:  # noqa: BLE001 - not exportable: the plain route
-            return _compile(fn.lower(*specs))
+            return _compile(fn.lower(*specs), name)
         _write_entry(path, digest, {"kind": "jaxexport"}, bytes(payload))
     lowered = jax.jit(exported.call).lower(*specs)
     _end_turn()  # traced: the next program traces while this one is printed (_keepable)
     keep = exe_path is not None and _keepable(lowered)
     with _fresh_compilation(keep) as fresh:
-        compiled = _compile(lowered)
+        compiled = _compile(lowered, name)
     _keep_executable(exe_path if fresh() and keep else None, compiled)
     return compiled
 
@@ -487,7 +503,7 @@ def _compile_kept(name: str, fn, specs, exe_path):
             _begin_turn()
         return None
     with _fresh_compilation(kept=True) as fresh:
-        executable = _compile(lowered)
+        executable = _compile(lowered, name)
     if not fresh():
         return None
     _keep_executable(exe_path, executable, (treedef, static))
@@ -499,7 +515,7 @@ def _compile_tree(name: str, key, fn, specs):
     without the tracing turn (:func:`_kept_executable_tree`), else :func:`_compile_tree_turn`
     in its turn (:func:`_turn`)."""
     folder = exported_dir()
-    digest = None if folder is None else _digest(_program_text(key, specs))
+    digest = None if folder is None else _digest(_program_text(key, specs, name))
     kept = _kept_executable_tree(folder, name, digest)
     if kept is not None:
         return kept
@@ -538,7 +554,7 @@ def _compile_tree_turn(name: str, fn, specs, folder, digest):
     """
     plain = jax.jit(fn)
     if folder is None:
-        return _compile(plain.lower(*specs)), None, None
+        return _compile(plain.lower(*specs), name), None, None
     path = folder / f"{name}-{digest[:32]}.jaxcall"
     exe_path = _executable_path(folder, name, digest)
     exported = None
@@ -558,7 +574,7 @@ def _compile_tree_turn(name: str, fn, specs, folder, digest):
             payload = exported.serialize()
             exported = jax.export.deserialize(payload)  # the program a later process reads
         except Exception:  # noqa: BLE001 - not exportable: the plain route
-            return _compile(plain.lower(*specs)), None, None
+            return _compile(plain.lower(*specs), name), None, None
         _write_entry(path, digest, {"kind": "jaxcall", "trees": _dump_tree(
             (treedef, static, weak)).decode()}, bytes(payload))
 
@@ -569,7 +585,7 @@ def _compile_tree_turn(name: str, fn, specs, folder, digest):
     _end_turn()  # traced: the next program traces while this one is printed (_keepable)
     keep = exe_path is not None and _keepable(lowered)
     with _fresh_compilation(keep) as fresh:
-        executable = _compile(lowered)
+        executable = _compile(lowered, name)
     _keep_executable(exe_path if fresh() and keep else None, executable, (treedef, static))
     return executable, treedef, static
 
@@ -619,7 +635,7 @@ def _kept_file(name: str, key, specs) -> bool:
     folder = exported_dir()
     if folder is None:
         return False
-    where = _executable_path(folder, name, _digest(_program_text(key, specs)))
+    where = _executable_path(folder, name, _digest(_program_text(key, specs, name)))
     return where is not None and where[0].is_file()
 
 

@@ -229,7 +229,7 @@ def test_an_xla_that_refuses_the_options_compiles_with_its_defaults(monkeypatch)
     monkeypatch.setattr(jax.stages.Lowered, "compile", refusing)
     monkeypatch.setattr(_cache, "_EXECUTABLES", {})
     monkeypatch.setattr(_cache, "_REFUSED", type(_cache._REFUSED)())
-    monkeypatch.setattr(_cache, "compiler_options", lambda: (  # as on a CPU
+    monkeypatch.setattr(_cache, "compiler_options", lambda name=None: (  # as on a CPU
         None if _cache._REFUSED.is_set() else {"xla_cpu_use_fusion_emitters": False}))
     x = jnp.linspace(0.0, 1.0, 5)
     for k in range(2):
@@ -449,6 +449,17 @@ def test_eager_fit_core_is_kept_compiled_and_equals_the_traced_path():
     _core.run_core(t, 1.01 * x, *args[2:], **static)
     assert len(_cache._EXECUTABLES) == entries
     assert list(_cache.dampax_cache_dir().glob("exported/fit-core-*.jax*"))
+    # the fit that only starts the exact model: its program compiled without XLA's backend
+    # optimisations (about half the compile time), the same fit to rounding
+    quick = _core.run_core(*args, quick=True, **static)
+    assert list(_cache.dampax_cache_dir().glob("exported/fit-core-quick-*.jax*"))
+    if _cache.compiler_options() is not None:  # dampax's own options (a CPU)
+        assert _cache.compiler_options("fit-core-quick")["xla_backend_optimization_level"] == 0
+    assert _core.is_code(quick.code, _core.FIT_RESULTS.successful)
+    assert int(quick.steps) == int(kept.steps)
+    for name in ("mu", "D", "w0", "x0"):
+        np.testing.assert_allclose(getattr(quick.params, name), getattr(kept.params, name),
+                                   rtol=1e-10)
 
 
 def test_ar1_filter_equals_lfilter():

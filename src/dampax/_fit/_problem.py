@@ -165,7 +165,8 @@ class Problem:
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
                        self.consts, Tuning(fs, budget, give_up, at_bound), model=model,
                        optimizer=s.optimizer, max_steps=cap, rtol=float(s.rtol),
-                       atol=float(s.atol), opts=opts, prepare=prepare)
+                       atol=float(s.atol), opts=opts, prepare=prepare,
+                       quick=model != s.model)  # another model's start: compiled quickly
         return None if prepare else Solved(out, model, fs, opts)
 
     def holding(self, *names: str) -> Problem:
