@@ -43,7 +43,8 @@ GPU it runs in Pallas's interpreter (``interpret=True``: correct, slow; the test
 
 Under ``jax.vmap`` (an error map's points, each a scalar solve) the mapped trajectories join
 the kernel's batch (:func:`packed`, a custom vmap rule): one launch with every lane at work,
-where Pallas's own batching would give each point a program of 128 lanes with one at work.
+where Pallas's own batching would give each point a program of :data:`BLOCK` lanes with one
+at work.
 
 Gradients: a custom VJP whose backward pass is the XLA engine's reverse mode at the same inputs
 (the same steps, the same results to rounding), so ``jax.grad`` works; forward mode
@@ -79,7 +80,8 @@ from ._stepping import error_norm, ode_args, rk_step
 #: 128 took 12.7-13.4 ms (both with the sampling below), 1.92 against 2.05-2.16 ms at 4,096
 BLOCK = 32
 #: lanes a GPU holds at once with this kernel's registers (an estimate for an H100: about 256
-#: threads per SM of 132 at ~250 float64 registers each); a batch beyond it is queued
+#: threads per SM of 132 at ~250 float64 registers each; ncu on an H200 counted 168 registers a
+#: thread, 384 threads per SM); a batch beyond it is queued
 RESIDENT = 32768
 #: the longest queue of trajectories per lane
 MAX_DEPTH = 16
@@ -371,7 +373,7 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
         input_output_aliases={first + j: len(_FLOATS) + len(_INTS) + j
                               for j in range(len(buffers))},
         # Triton, one thread per lane (block / 32 warps); not Mosaic GPU, whose blocks live
-        # in shared memory (a row table of 128 trajectories does not fit)
+        # in shared memory (the row table of a program's trajectories does not fit)
         compiler_params=plt.CompilerParams(num_warps=max(1, block // 32), num_stages=1),
         interpret=interpret)(*args.values())
     out = {k: a[:size] for k, a in zip(out_names, res, strict=True)}
@@ -448,8 +450,8 @@ def packed(**opts):
     """:func:`solve_flat` with ``opts``, such that under ``jax.vmap`` the mapped trajectories
     join the kernel's batch (one launch, every lane a trajectory) instead of Pallas's own
     batching, which would give each mapped element a program of its own (a vmapped scalar
-    solve, as in an error map's points: 1 lane of 128 at work). Where the sample times are
-    themselves mapped, Pallas's batching runs (the kernel shares one ts per launch)."""
+    solve, as in an error map's points: 1 lane of :data:`BLOCK` at work). Where the sample
+    times are themselves mapped, Pallas's batching runs (the kernel shares one ts per launch)."""
 
     @jax.custom_batching.custom_vmap
     def run(osc, x0, v0, t_end, ts):
