@@ -347,6 +347,47 @@ def test_long_window_in_segments_matches_scipy():
     assert float(got["window"]) == pytest.approx(t[window][-1] / (2 * math.pi), rel=1e-12)
 
 
+def test_harmonic_points_are_the_exact_motion(quick_map):
+    """Without damping and with a linear spring (d0 = d1 = d2 = 0) the map's reference is the
+    harmonic motion x0 cos t + v0 sin t in closed form, not integrated (issue 35: a motion that
+    never stops held its batch for the whole span): the undamped model, which is that motion,
+    errs by rounding only (with the integrator: its error, 3e-10 over 10 periods), over the
+    whole window, with no halt."""
+    point = quick_map.sel(d0_ratio=0.0, d2_ratio=0.0).squeeze()
+    assert float(point["max_error"].sel(model="undamped").max()) < 1e-14
+    assert float(point["energy_error"].sel(model="undamped").max()) < 1e-14
+    # the matched ansatz without damping is the same cosine, up to rounding of its phase
+    assert float(point["max_error"].sel(model="matched").max()) < 1e-13
+    assert np.allclose(point["window"], 10.0, rtol=0, atol=1e-12)
+    assert bool(np.isnan(point["reference_halt_time"]).all())
+    assert bool(point["reference_valid"].all())
+
+
+def test_faded_point_beside_a_harmonic_one_matches_scipy():
+    """A point whose energy falls below the floor in the second of four segments, in one step
+    with a harmonic point (which keeps every segment of the step live): once faded it no longer
+    integrates, and its metrics over its window still match scipy's integration."""
+    d2r, phi0, periods, spp = 0.3, 1.0, 100.0, 32
+    ds = error_map(d0_ratio=0.0, d2_ratio=[0.0, d2r], phi0=phi0, periods=periods,
+                   samples_per_period=spp, models=("matched",), progress=False)
+    assert ds.attrs["reference_segments"] == 4
+    mu, b, D = ratios_to_constants(0.0, 0.0, d2r, m=1.0, k=1.0, A0=1.0)
+    x0, v0 = math.cos(phi0), -math.sin(phi0)
+    t = np.arange(int(periods * spp) + 1) * (2 * math.pi / spp)
+    segments, _, rest = scipy_stick_slip(1.0, 1.0, mu, b, D, x0, v0, t[-1])
+    x_ref, v_ref = evaluate(segments, rest, t)
+    below = 0.5 * (x_ref**2 + v_ref**2) < maps.ENERGY_FLOOR * 0.5
+    window = np.cumsum(below) == 0  # up to the first sample below the floor
+    assert 32 < t[window][-1] / (2 * math.pi) < 64  # fades in the second segment
+    sol = dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=mu, b=b, D=D), x0, v0, method="ansatz")
+    err = np.abs(np.asarray(sol.x(t[window])) - x_ref[window])
+    got = ds.sel(d2_ratio=d2r).squeeze()
+    assert float(got["max_error"]) == pytest.approx(err.max(), rel=1e-6)
+    assert float(got["rms_error"]) == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
+    assert float(got["window"]) == pytest.approx(t[window][-1] / (2 * math.pi), rel=1e-12)
+    assert float(ds["max_error"].sel(d2_ratio=0.0).squeeze()) < 1e-13  # the harmonic point
+
+
 def test_blocks_after_every_window_closed_are_skipped_without_changing_the_map():
     """A step whose points have all halted skips its later blocks of samples: a point of such a
     step has the metrics it has in a step that must evaluate them (a point beside it still
