@@ -128,3 +128,33 @@ def test_sigterm_leaves_no_temporary_file_or_folder(tmp_path, processes):
     assert list(out.iterdir()) == []
     time.sleep(0.5)  # the workers see their stdin close
     assert list(scratch.iterdir()) == []
+
+
+def test_work_beside_the_command_is_awaited_and_its_error_raised():
+    """A fit's figure is drawn in a thread beside the model ranking (``_common.beside``):
+    leaving the block waits for it, also when the block fails (no thread writes after the
+    command has ended), and its own error is raised where its result is asked for."""
+    import threading
+
+    from dampax._cli._common import beside
+
+    release = threading.Event()
+
+    def slow():
+        release.wait(5.0)
+        time.sleep(0.05)
+        return "drawn"
+
+    with pytest.raises(KeyError):
+        with beside(slow) as figure:
+            release.set()
+            raise KeyError("the ranking failed")
+    assert figure.done() and figure.result() == "drawn"
+
+    def broken():
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with beside(broken) as figure:
+        pass
+    with pytest.raises(OSError, match="No space left"):
+        figure.result()

@@ -115,6 +115,25 @@ def compile_clock():
         jax.monitoring.unregister_event_duration_listener(on_duration)
 
 
+@contextlib.contextmanager
+def beside(fn, *args):
+    """Run ``fn(*args)`` in a thread while the block runs; yields its Future (``result()``
+    returns its value or raises its error). Leaving the block, also by an error, waits for it:
+    no thread writes after the command has ended.
+
+    For a fit's figure, drawn while the model ranking runs: the figure is Python (matplotlib's
+    Agg canvas, no pyplot), the ranking mostly compiled programs that release Python's lock
+    (``dampax fit --example``: 3.5 -> 3.3 s, benchmarks/README.md, issue 36).
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="dampax-cli")
+    try:
+        yield pool.submit(fn, *args)
+    finally:
+        pool.shutdown(wait=True)
+
+
 def show_progress(args: argparse.Namespace, stream=None) -> bool:
     """Whether to draw progress bars: only when stderr (``stream``) is a terminal, and neither
     ``--no-progress`` nor ``--quiet`` was given (no bars in logs and pipes)."""

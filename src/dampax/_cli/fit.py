@@ -37,7 +37,7 @@ from .._io import write_text
 from .._oscillator import Oscillator
 from .._plot import plot_fit, plot_joint_fit
 from .._trace import load_trace
-from ._common import PROG, compile_clock, error, fmt, prepare_out_dir, split_names
+from ._common import PROG, beside, compile_clock, error, fmt, prepare_out_dir, split_names
 
 
 def _parse_rate(text):
@@ -173,29 +173,14 @@ def run_fit(args: argparse.Namespace) -> int:
             kw = dict(omega0=args.omega0, oscillator=osc, offset=False, loss=args.loss,
                       optimizer=args.optimizer, max_steps=args.max_steps, units=units)
             result = fit_envelope(trace, free=free, **kw)
-            comparison = None if args.no_compare else compare_envelope_models(trace, **kw)
+            with beside(plot_fit, result, out_dir / "fit.png") as figure:
+                comparison = None if args.no_compare else compare_envelope_models(trace, **kw)
         else:
             kw = dict(oscillator=osc, fit_omega0=fit_omega0, offset=not args.no_offset,
                       window=window, solver=solver)
             result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
-            # the ranking fits the candidates with the ansatz: this fit is one of them
-            done = {free: result} if result.model == "ansatz" else None
-            if args.example:
-                # the example's cost is smooth: its fit's global starts all reach one optimum,
-                # and so does each candidate's turning-point guess (the ranking is the same
-                # with 32 starts per candidate, 6x the work); the reported fit keeps --starts
-                kw["solver"] = solver._replace(starts=EXAMPLE_RANKING_STARTS)
-            comparison = None if args.no_compare else compare_models(
-                trace, model="ansatz", fitted=done, **kw)
-            if args.posterior:
-                from .._fit import posterior
-
-                post = posterior(trace, oscillator=osc, free=free, model=result.model,
-                                 fit_omega0=fit_omega0, offset=not args.no_offset,
-                                 start=start, end=args.end, num_samples=args.draws,
-                                 num_chains=args.chains, num_warmup=args.warmup,
-                                 seed=args.seed, units=units, start_fit=result,
-                                 mu_s=args.mu_s)
+            with beside(plot_fit, result, out_dir / "fit.png") as figure:
+                comparison, post = _ranking_and_posterior(args, trace, result, free, kw, start)
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
     elapsed = time.perf_counter() - began
@@ -233,7 +218,7 @@ def run_fit(args: argparse.Namespace) -> int:
         except (ValueError, np.linalg.LinAlgError):
             pass
     failed = _write_outputs(args, result, post, summary, written, out_dir, elapsed, "fit",
-                            compiling=clock.text(),
+                            compiling=clock.text(), figure=figure,
                             data="" if args.example else trace.describe_columns())
     if failed is not None:
         return failed
@@ -242,6 +227,31 @@ def run_fit(args: argparse.Namespace) -> int:
               f"{_cli_words('; '.join(result.inadequacy))}")
         return EXIT_INADEQUATE
     return 0
+
+
+def _ranking_and_posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
+    """(ranking, posterior) of a single-trace fit: the candidate models' ranking (None with
+    --no-compare) and the posterior (None without --posterior); ``kw`` holds the fit's
+    oscillator, fit_omega0, offset, window and solver."""
+    # the ranking fits the candidates with the ansatz: this fit is one of them
+    done = {free: result} if result.model == "ansatz" else None
+    if args.example:
+        # the example's cost is smooth: its fit's global starts all reach one optimum, and so
+        # does each candidate's turning-point guess (the ranking is the same with 32 starts
+        # per candidate, 6x the work); the reported fit keeps --starts
+        kw = dict(kw, solver=kw["solver"]._replace(starts=EXAMPLE_RANKING_STARTS))
+    comparison = None if args.no_compare else compare_models(
+        trace, model="ansatz", fitted=done, **kw)
+    post = None
+    if args.posterior:
+        from .._fit import posterior
+
+        post = posterior(trace, oscillator=kw["oscillator"], free=free, model=result.model,
+                         fit_omega0=kw["fit_omega0"], offset=not args.no_offset, start=start,
+                         end=args.end, num_samples=args.draws, num_chains=args.chains,
+                         num_warmup=args.warmup, seed=args.seed, units=args.units,
+                         start_fit=result, mu_s=args.mu_s)
+    return comparison, post
 
 
 def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
@@ -312,7 +322,7 @@ def _jsonable(value):
 
 
 def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what: str, *,
-                   compiling: str = "", data: str = ""):
+                   compiling: str = "", data: str = "", figure=None):
     """The common end of a single and a joint fit: the posterior's report and files, fit.json,
     fit.png, the list of files; returns EXIT_FAILED (after the message) when the fit failed,
     else None.
@@ -322,6 +332,8 @@ def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what:
             "" (:func:`~dampax._cli._common.compile_clock`).
         data: which columns of which files were read (``Trace.describe_columns``), named in
             the message of a failed fit; "" for the example.
+        figure: the Future of fit.png when it was drawn beside the ranking, else None (drawn
+            here).
     """
     if post is not None:
         print()
@@ -330,7 +342,10 @@ def _write_outputs(args, result, post, summary, written, out_dir, elapsed, what:
         written += [post.to_netcdf(out_dir / "posterior.nc"),
                     post.corner(out_dir / "corner.png")]
     write_text(out_dir / "fit.json", json.dumps(summary, indent=2, default=_jsonable))
-    (plot_joint_fit if hasattr(result, "runs") else plot_fit)(result, out_dir / "fit.png")
+    if figure is not None:  # drawn beside the ranking (``_common.beside``); its error here
+        figure.result()
+    else:
+        (plot_joint_fit if hasattr(result, "runs") else plot_fit)(result, out_dir / "fit.png")
     print()
     print(f"  {elapsed:.1f} s{compiling}; written: {', '.join(str(p) for p in written)}")
     if not result.success:
