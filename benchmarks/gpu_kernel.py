@@ -77,14 +77,12 @@ def program(name, interpret, keep_rows=True, block=None, spp=None, ts=True, engi
         return jax.jit(solve)
 
     def run(k, mu, b, D, x0, v0, times):
-        default = _kernel.SAMPLES_PER_PASS
-        _kernel.SAMPLES_PER_PASS = spp or default  # read while tracing
         osc = dp.Oscillator(m=M, k=k, mu=mu, b=b, D=D)
         inputs, _, _ = _kernel.prepare(osc, x0, v0, jnp.full_like(x0, T_END))
         out = _kernel.run_blocks(inputs, times if ts else None, rtol=RTOL, atol=ATOL,
                                  max_swings=MAX_SWINGS, rows=ROWS, interpret=interpret,
-                                 block=block, keep_rows=keep_rows)
-        _kernel.SAMPLES_PER_PASS = default
+                                 block=block, keep_rows=keep_rows,
+                                 samples_per_pass=spp or _kernel.SAMPLES_PER_PASS)
         return out.get("xs", out["x"]), out["n_rows"]
 
     run.__name__ = run.__qualname__ = "kernel_" + name.replace("-", "_")

@@ -314,3 +314,21 @@ def test_auto_leaves_large_batches_to_the_xla_engine(monkeypatch):
     jax.vmap(jax.vmap(f))(jnp.full((2, most // 2 + 1), 0.01))
     jax.jit(jax.vmap(f))(jnp.full(most + 1, 0.01))
     assert chosen == ["pallas", "dampax", "dampax"]
+
+
+def test_samples_per_pass_changes_no_sample(both):
+    """The sampling loop's passes (``run_blocks(samples_per_pass=...)``, swept by
+    benchmarks/gpu_kernel.py) change how many times each pass evaluates, not the samples: 5 a
+    pass (a step holds 0-3 of these samples) gives the XLA engine's values."""
+    xla = both[0]
+    m, k, mu, b, D, _, _, x0, v0 = (np.asarray([c[j] for c in ENGINE_CASES[:3]], dtype=float)
+                                    for j in range(9))
+    inputs, _, _ = _kernel.prepare(Oscillator(m=m, k=k, mu=mu, b=b, D=D), x0, v0,
+                                   jnp.full(3, T_END))
+    inside = (TS >= 0) & (TS <= T_END)
+    out = _kernel.run_blocks(inputs, jnp.asarray(TS[inside]), rtol=OPTIONS["rtol"],
+                             atol=OPTIONS["atol"], max_swings=OPTIONS["max_swings"],
+                             rows=OPTIONS["max_swings"] * OPTIONS["max_steps_per_swing"],
+                             interpret=True, block=2, samples_per_pass=5)
+    _same(np.asarray(xla.xs)[:3, inside], out["xs"], 1e-12, "xs")
+    _same(np.asarray(xla.vs)[:3, inside], out["vs"], 1e-11, "vs")

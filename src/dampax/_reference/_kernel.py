@@ -202,11 +202,12 @@ def _load(ref):
     return plt.load(ref)
 
 
-def _write_samples(refs, cur, c, d, p, store):
+def _write_samples(refs, cur, c, d, p, store, per_pass):
     """x, v at the sample times inside the stored step, from its polynomial: passes of
-    :data:`SAMPLES_PER_PASS` times from each trajectory's pointer until every pointer has
-    passed its step's end (t_end included on the last step). Returns the pointers."""
-    window = jnp.arange(SAMPLES_PER_PASS, dtype=jnp.int32)[None, :]
+    ``per_pass`` (:data:`SAMPLES_PER_PASS`) times from each trajectory's pointer until every
+    pointer has passed its step's end (t_end included on the last step). Returns the
+    pointers."""
+    window = jnp.arange(per_pass, dtype=jnp.int32)[None, :]
     upper = jnp.where(d["crossed"], d["t_sw"], c["t"] + d["h"])[:, None]
     last, t_end = d["last"][:, None], p["t_end"][:, None]
     cols = [jnp.broadcast_to(col, c["t"].shape)[:, None] for col in d["cols"]]
@@ -232,7 +233,8 @@ def _write_samples(refs, cur, c, d, p, store):
     return jax.lax.while_loop(pending, one_pass, c["ptr"])
 
 
-def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth, keep_rows):
+def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth, keep_rows,
+            per_pass):
     """One program: ``block`` lanes, each integrating its queue of ``depth`` trajectories one
     after the other (program i, lane j, queue position q: the trajectory ``order[i block depth
     + q block + j]``); a lane whose trajectory ends writes its outcome and starts its next one
@@ -261,7 +263,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth,
         store = _write_step(refs, cur, c, d, run, rows, max_swings, keep_rows)
         new = _next_state(c, d, run, p, rows, max_swings)
         if "ts" in refs:
-            new["ptr"] = _write_samples(refs, cur, c, d, p, store)
+            new["ptr"] = _write_samples(refs, cur, c, d, p, store, per_pass)
         ended = (q < depth) & ~live(new)
         for k in _FLOATS + _INTS:
             _store(refs["out_" + k].at[cur], new[k].astype(refs["out_" + k].dtype), ended)
@@ -276,10 +278,11 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth,
     jax.lax.while_loop(cond, body, dict(q=q0, cur=at(q0), p=p0, c=c0))
 
 
-def _padded_times(ts):
-    """ts padded with inf to a power of two with room for one pass beyond its end."""
+def _padded_times(ts, per_pass: int = SAMPLES_PER_PASS):
+    """ts padded with inf to a power of two with room for one pass of ``per_pass`` beyond its
+    end."""
     n = ts.shape[0]
-    n_pad = 1 << max(4, math.ceil(math.log2(n + SAMPLES_PER_PASS)))
+    n_pad = 1 << max(4, math.ceil(math.log2(n + per_pass)))
     return jnp.concatenate([ts, jnp.full((n_pad - n,), jnp.inf, ts.dtype)])
 
 
@@ -323,7 +326,8 @@ def _buffers(n_pad, ts, rows, max_swings, keep_rows=True):
 
 
 def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret: bool,
-               block: int | None = None, depth: int | None = None, keep_rows: bool = True):
+               block: int | None = None, depth: int | None = None, keep_rows: bool = True,
+               samples_per_pass: int = SAMPLES_PER_PASS):
     """The kernel over 1-D per-trajectory ``inputs`` (from :func:`prepare`).
 
     Arguments:
@@ -334,6 +338,9 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
         block, depth: lanes per program and trajectories per lane (default :func:`queues`).
         keep_rows: write the row table (the dense output); False writes the samples alone
             (``rows`` then comes back one row long, inf).
+        samples_per_pass: sample times evaluated per pass of the sampling loop
+            (:data:`SAMPLES_PER_PASS`; the same samples for any value, benchmarks/gpu_kernel.py
+            sweeps it).
 
     Returns:
         The dict of `_engine.integrate` (batched over B) without ``result`` and ``ok_in``,
@@ -350,7 +357,7 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
     # the longest trajectories first, neighbours in work side by side (`work_estimate`)
     args["order"] = jnp.argsort(-work_estimate(args)).astype(jnp.int32)
     if ts is not None:
-        args["ts"] = _padded_times(ts)
+        args["ts"] = _padded_times(ts, samples_per_pass)
     buffers = _buffers(n_pad, None if ts is None else args["ts"], rows, max_swings, keep_rows)
     args.update({f"in_{k}": a for k, a in buffers.items()})
 
@@ -364,7 +371,7 @@ def run_blocks(inputs, ts, *, rtol, atol, max_swings: int, rows: int, interpret:
     kernel = functools.partial(_kernel, names=tuple(args) + tuple(out_names), rtol=rtol,
                                atol=atol, max_swings=max_swings, rows=rows,
                                max_steps=2 * rows + 64, block=block, depth=depth,
-                               keep_rows=keep_rows)
+                               keep_rows=keep_rows, per_pass=samples_per_pass)
     first = len(args) - len(buffers)
     res = pl.pallas_call(
         kernel, out_shape=outs, grid=(n_pad // per,),
