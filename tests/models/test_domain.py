@@ -240,8 +240,14 @@ def test_turning_point_count_checked(n):
 
 BAD = [math.nan, math.inf, -math.inf, -1.0, 0.0]
 #: the analytic approximations' energy (eq. 15 and its kin) wiggles at second order in the damping
-#: ratios (measured up to 0.04 rho^2 E0 between samples); the exact models' only by rounding
+#: ratios, near the halt, where the energy left is itself of order rho^2 E0: measured up to
+#: 0.13 rho^2 E0 between samples over 1,500 random draws of this test's input space
+#: (rizcallah_impulse 0.128, matched 0.097, rizcallah 0.085, matched_tail 0.011; seed 1), so the
+#: bound is 0.2 rho^2 (0.1 failed on a drawn Coulomb decay, rho = 0.10, at 0.1035 rho^2); a
+#: damping term of the wrong sign would raise it by about 2 rho E0 per radian (0.1 rho E0 between
+#: these samples, 0.05 rad apart). The exact models' energy wiggles only by rounding
 APPROX = ("matched", "matched_tail", "rizcallah", "rizcallah_impulse")
+APPROX_RISE = 0.2
 EXACT_TOL = {"undamped": 1e-12, "coulomb_exact": 1e-12, "reference": 1e-8}
 
 
@@ -294,7 +300,7 @@ def check_property(model, p):
     if v0 == 0.0 and abs(x0) <= mu * g * m / k:  # at rest inside the band: stays there
         assert np.all(x == x0) and np.all(v == 0.0) and halt_t == 0.0 and halt_x == x0, p
         return
-    tol = max(0.1 * rho(p) ** 2, 1e-12) if model in APPROX else EXACT_TOL[model]
+    tol = max(APPROX_RISE * rho(p) ** 2, 1e-12) if model in APPROX else EXACT_TOL[model]
     assert np.max(np.diff(e)) <= tol * E0, (model, p, np.max(np.diff(e)) / E0)
     assert e[0] == pytest.approx(E0, rel=1e-9), (model, p)
 
