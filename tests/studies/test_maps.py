@@ -323,14 +323,25 @@ def test_cli_bad_axis_exits_2(tmp_path, capsys):
     assert not any(Path(tmp_path).iterdir())
 
 
-def test_long_window_in_segments_matches_scipy():
+#: 100 periods in four segments, one step of 24 points (a halt in a later segment, a harmonic
+#: point, a point fading in the second segment): shared by the two tests below
+LONG = dict(d0_ratio=[0.0, 0.002], d1_ratio=[0.0, 0.003], d2_ratio=[0.0, 0.01, 0.3],
+            phi0=[1.0, 2.0], periods=100.0, samples_per_period=32, models=("matched",),
+            progress=False)
+
+
+@pytest.fixture(scope="module")
+def long_map():
+    ds = error_map(**LONG)
+    assert ds.attrs["reference_segments"] == 4 and ds.attrs["chunk_size"] >= 24  # one step
+    return ds
+
+
+def test_long_window_in_segments_matches_scipy(long_map):
     """Beyond 32 periods the reference runs in restarted segments: a 100-period point against
     scipy's stick-slip integration (an independent reference over the same window)."""
     d0r, d1r, d2r, phi0 = 0.002, 0.003, 0.01, 2.0
-    periods, spp = 100.0, 32
-    ds = error_map(d0_ratio=d0r, d1_ratio=d1r, d2_ratio=d2r, phi0=phi0, periods=periods,
-                   samples_per_period=spp, models=("matched",), progress=False)
-    assert ds.attrs["reference_segments"] == 4
+    periods, spp = LONG["periods"], LONG["samples_per_period"]
     mu, b, D = ratios_to_constants(d0r, d1r, d2r, m=1.0, k=1.0, A0=1.0)
     x0, v0 = math.cos(phi0), -math.sin(phi0)
     t = np.arange(int(periods * spp) + 1) * (2 * math.pi / spp)
@@ -340,7 +351,7 @@ def test_long_window_in_segments_matches_scipy():
     window = t <= rest[0]
     sol = dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=mu, b=b, D=D), x0, v0, method="ansatz")
     expected = np.max(np.abs(np.asarray(sol.x(t[window])) - x_ref[window]))
-    got = ds.squeeze()
+    got = long_map.sel(d0_ratio=d0r, d1_ratio=d1r, d2_ratio=d2r, phi0=phi0).squeeze()
     assert float(got["max_error"]) == pytest.approx(expected, rel=1e-6)
     assert float(got["reference_halt_time"]) == pytest.approx(rest[0] / (2 * math.pi),
                                                               rel=1e-9)
@@ -363,14 +374,12 @@ def test_harmonic_points_are_the_exact_motion(quick_map):
     assert bool(point["reference_valid"].all())
 
 
-def test_faded_point_beside_a_harmonic_one_matches_scipy():
+def test_faded_point_beside_a_harmonic_one_matches_scipy(long_map):
     """A point whose energy falls below the floor in the second of four segments, in one step
-    with a harmonic point (which keeps every segment of the step live): once faded it no longer
+    with harmonic points (which keep every segment of the step live): once faded it no longer
     integrates, and its metrics over its window still match scipy's integration."""
-    d2r, phi0, periods, spp = 0.3, 1.0, 100.0, 32
-    ds = error_map(d0_ratio=0.0, d2_ratio=[0.0, d2r], phi0=phi0, periods=periods,
-                   samples_per_period=spp, models=("matched",), progress=False)
-    assert ds.attrs["reference_segments"] == 4
+    d2r, phi0 = 0.3, 1.0
+    periods, spp = LONG["periods"], LONG["samples_per_period"]
     mu, b, D = ratios_to_constants(0.0, 0.0, d2r, m=1.0, k=1.0, A0=1.0)
     x0, v0 = math.cos(phi0), -math.sin(phi0)
     t = np.arange(int(periods * spp) + 1) * (2 * math.pi / spp)
@@ -381,11 +390,12 @@ def test_faded_point_beside_a_harmonic_one_matches_scipy():
     assert 32 < t[window][-1] / (2 * math.pi) < 64  # fades in the second segment
     sol = dp.solve(dp.Oscillator(m=1.0, k=1.0, mu=mu, b=b, D=D), x0, v0, method="ansatz")
     err = np.abs(np.asarray(sol.x(t[window])) - x_ref[window])
-    got = ds.sel(d2_ratio=d2r).squeeze()
+    point = long_map.sel(d0_ratio=0.0, d1_ratio=0.0)
+    got = point.sel(d2_ratio=d2r, phi0=phi0).squeeze()
     assert float(got["max_error"]) == pytest.approx(err.max(), rel=1e-6)
     assert float(got["rms_error"]) == pytest.approx(np.sqrt(np.mean(err**2)), rel=1e-6)
     assert float(got["window"]) == pytest.approx(t[window][-1] / (2 * math.pi), rel=1e-12)
-    assert float(ds["max_error"].sel(d2_ratio=0.0).squeeze()) < 1e-13  # the harmonic point
+    assert float(point["max_error"].sel(d2_ratio=0.0).max()) < 1e-13  # the harmonic points
 
 
 def test_blocks_after_every_window_closed_are_skipped_without_changing_the_map():
