@@ -123,7 +123,8 @@ def beside(fn, *args):
 
     For a fit's figure, drawn while the model ranking runs: the figure is Python (matplotlib's
     Agg canvas, no pyplot), the ranking mostly compiled programs that release Python's lock
-    (``dampax fit --example``: 3.5 -> 3.3 s, benchmarks/README.md, issue 36).
+    (``dampax fit --example`` repeated: median 3.29 -> 3.02 s, benchmarks/README.md, issue 36,
+    twenty-seventh session).
     """
     from concurrent.futures import ThreadPoolExecutor
 

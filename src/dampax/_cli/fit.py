@@ -165,7 +165,6 @@ def run_fit(args: argparse.Namespace) -> int:
     if trace.n_dropped:
         print(f"{PROG}: note: {trace.n_dropped} unreadable rows were dropped", file=sys.stderr)
     began = time.perf_counter()
-    post = None
     with compile_clock() as clock, warnings.catch_warnings(record=True) as caught, \
             _columns_named(None if args.example else trace):
         warnings.simplefilter("always")
@@ -173,14 +172,18 @@ def run_fit(args: argparse.Namespace) -> int:
             kw = dict(omega0=args.omega0, oscillator=osc, offset=False, loss=args.loss,
                       optimizer=args.optimizer, max_steps=args.max_steps, units=units)
             result = fit_envelope(trace, free=free, **kw)
-            with beside(plot_fit, result, out_dir / "fit.png") as figure:
-                comparison = None if args.no_compare else compare_envelope_models(trace, **kw)
+
+            def rest():
+                return (None if args.no_compare else compare_envelope_models(trace, **kw)), None
         else:
             kw = dict(oscillator=osc, fit_omega0=fit_omega0, offset=not args.no_offset,
                       window=window, solver=solver)
             result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
-            with beside(plot_fit, result, out_dir / "fit.png") as figure:
-                comparison, post = _ranking_and_posterior(args, trace, result, free, kw, start)
+
+            def rest():
+                return _ranking_and_posterior(args, trace, result, free, kw, start)
+        with beside(plot_fit, result, out_dir / "fit.png") as figure:
+            comparison, post = rest()  # the ranking (and posterior) while the figure is drawn
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
     elapsed = time.perf_counter() - began
