@@ -278,7 +278,7 @@ def _kernel(*refs, names, rtol, atol, max_swings, rows, max_steps, block, depth,
     jax.lax.while_loop(cond, body, dict(q=q0, cur=at(q0), p=p0, c=c0))
 
 
-def _padded_times(ts, per_pass: int = SAMPLES_PER_PASS):
+def _padded_times(ts, per_pass: int):
     """ts padded with inf to a power of two with room for one pass of ``per_pass`` beyond its
     end."""
     n = ts.shape[0]
