@@ -180,7 +180,10 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     units = Window(units=units).checked().units
     free = check_free(free)
     osc = oscillator_values(oscillator)
-    t, E, source = read_arrays(t_peaks, amplitudes)
+    n_params = 1 + len(free) + bool(offset)  # A, the free constants, the offset
+    t, E, source = read_arrays(t_peaks, amplitudes, least=n_params + 1,
+                               what=f"an envelope fit of {n_params} parameters needs",
+                               noun="maxima")
     E = np.abs(E)
     if omega0 is None:
         omega0 = 2.0 * math.pi / float(np.median(np.diff(t)))

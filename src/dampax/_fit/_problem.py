@@ -254,8 +254,10 @@ def _checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
 # reading the data
 
 
-def read_arrays(trace_or_t, x):
-    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped."""
+def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
+                noun: str = "samples"):
+    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped;
+    at least ``least`` finite samples (the error: "{what} at least {least} finite {noun}")."""
     source = ""
     if isinstance(trace_or_t, Trace):
         if x is not None:
@@ -278,8 +280,8 @@ def read_arrays(trace_or_t, x):
     check_positions(x)
     order = np.argsort(t, kind="stable")
     t, x = t[order], x[order]
-    if t.size < 10:
-        raise ValueError(f"a fit needs at least 10 finite samples, got {t.size}")
+    if t.size < least:
+        raise ValueError(f"{what} at least {least} finite {noun}, got {t.size}")
     return t, x, source
 
 
