@@ -208,11 +208,18 @@ def test_matched_start_and_energy():
 
 def test_phase_quadrature_against_scipy():
     """The phase integral P(t) = int (w(A f) - w0) ds of the ansatz against scipy's quad, in
-    every damping regime and on both sides of the switch from the t rule to the f rule."""
+    every damping regime and on both sides of the switch from the t rule to the f rule; and
+    the fits' form accumulated over the samples (``phase_excess_sampled``), at the same times
+    among 200 others, shuffled, and with only those 5 (intervals of up to 7 s, 3 periods)."""
     from scipy.integrate import quad
 
-    from dampax._models._cubic import phase_excess
+    from dampax._models._cubic import phase_excess, phase_excess_sampled
     from dampax._models._decay import _decay_constants, _decay_from
+
+    times = np.array([0.05, 0.3, 1.0, 3.0, 10.0])
+    dense = np.random.default_rng(3).permutation(np.concatenate([np.linspace(0, 10, 200),
+                                                                 times]))
+    at = [int(np.flatnonzero(dense == t)[0]) for t in times]
 
     for osc in (dp.Oscillator(m=M, k=K, mu=0.05, k3=300.0), dp.Oscillator(m=M, k=K, b=0.4,
                                                                            k3=-300.0),
@@ -221,7 +228,9 @@ def test_phase_quadrature_against_scipy():
         sol = dp.solve(osc, 0.2, 0.0)
         k = _decay_constants(sol.a, sol.bp, sol.c, sol.halt_time)
         kappa, w0 = float(sol.kappa), float(sol.omega0)
-        for t in (0.05, 0.3, 1.0, 3.0, 10.0):
+        sampled = [np.asarray(phase_excess_sampled(k, w0, kappa, ts, _decay_from(k, ts)))
+                   for ts in (jnp.asarray(dense), jnp.asarray(times[::-1]))]
+        for i, t in enumerate(times):
             f = _decay_from(k, t)
             got = float(phase_excess(k, w0, kappa, t, f))
             te = min(t, float(sol.halt_time))
@@ -230,6 +239,8 @@ def test_phase_quadrature_against_scipy():
 
             want = quad(rate, 0.0, te, epsabs=1e-13, epsrel=1e-12)[0]
             assert got == pytest.approx(want, rel=1e-7, abs=1e-12), (osc, t)
+            for p in (sampled[0][at[i]], sampled[1][4 - i]):
+                assert p == pytest.approx(want, rel=1e-7, abs=1e-12), (osc, t)
 
 
 def _x_at(k3, mu=0.02, b=0.2, D=0.8, t=1.3):

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached, prepare_cached
-from .._models._cubic import phase_excess
+from .._models._cubic import phase_excess_sampled
 from .._models._decay import _decay_constants, _decay_from, decay
 from .._oscillator import Oscillator
 from .._solve import solve
@@ -104,7 +104,8 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     k = _decay_constants(d2 * A, d1, d0 / A)
     f = _decay_from(k, tau)
     ratio = consts.k3 * A * A / (consts.m * q.w0 * q.w0)
-    th = phase_rate(q.w0, d1) * tau + phi + phase_excess(k, q.w0, 0.75 * ratio, tau, f)
+    th = phase_rate(q.w0, d1) * tau + phi + phase_excess_sampled(k, q.w0, 0.75 * ratio,
+                                                              tau, f)
     cth, sth = jnp.cos(th), jnp.sin(th)
     return q.offset + A * f * (cth - (ratio / 32.0) * f * f * 4.0 * cth * sth * sth)
 

@@ -26,6 +26,11 @@ from ._decay import _decay_from, _DecayConstants
 _GL_T = np.polynomial.legendre.leggauss(6)
 _GL_F = np.polynomial.legendre.leggauss(20)
 _F_SWITCH = 0.1
+#: :func:`phase_excess_sampled`: an interval over which f falls by more than _F_STEP is
+#: integrated over f with this rule (6 nodes: 2.3e-8 of P at worst against scipy's quad, 4
+#: nodes 3e-6, 8 nodes 2.2e-8)
+_GL_STEP = np.polynomial.legendre.leggauss(6)
+_F_STEP = 0.002
 
 
 def excess_frequency(f, w0, kappa):
@@ -110,6 +115,57 @@ def phase_excess(k: _DecayConstants, w0, kappa, t, f):
     R = jnp.where(over_f & (R > 0.0), R, 1.0)
     p_f = span * jnp.sum(wf * excess_frequency(f_q, w0, kappa) / R, axis=0)
     return jnp.where(over_f, p_f, p_t)
+
+
+def phase_excess_sampled(k: _DecayConstants, w0, kappa, t, f):
+    """:func:`phase_excess` at every sample of a 1-d ``t`` at once, accumulated from sample to
+    sample (the fits' model, whose samples are the data): no f(t) beyond the samples' own,
+    where :func:`phase_excess` takes 6 more and 20 nodes of the f rule per sample (a k3 fit
+    of 1,200 samples: 12.3 -> 6.2 s warm).
+
+    In time order, P(t_i) = P(t_(i-1)) + the integral over [t_(i-1), t_i] (both clipped to the
+    halt): by the cubic Hermite rule h/2 (g0 + g1) + h^2/12 (g0' - g1') of the integrand g =
+    w(A f) - w0, with g' = dg/df f' and f' = -(a f^2 + b' f + c) of eq. 20 in closed form
+    (error h^5 g^(4) / 720: g follows the envelope, not the oscillation); where f falls by
+    more than ``_F_STEP`` over the interval, over f instead (ds = -df / (a f^2 + b' f + c),
+    ``_GL_STEP``'s nodes on [f_i, f_(i-1)]). Against scipy's quad, over random decays of every
+    regime sampled 50-300 times over 2-40 periods: 2.3e-8 of P at worst (:func:`phase_excess`
+    4.3e-7); tests/models/test_cubic.py checks it to 1e-7. The first sample in time order
+    takes :func:`phase_excess` itself.
+
+    Arguments:
+        k, w0, kappa: as in :func:`phase_excess` (one oscillator: scalars).
+        t: the sample times, 1-d, any order.
+        f: f(t) at those times (:func:`_decay_from`).
+
+    Returns:
+        P(t) [rad], the shape of ``t``.
+    """
+    t = jnp.asarray(t, dtype=float)
+    order = jnp.argsort(t)
+    ts, fs = t[order], f[order]
+    t_e = jnp.clip(ts, 0.0, k.tau)
+    f_e = jnp.where(ts < 0.0, 1.0, fs)  # (f is NaN before the start, where P = 0)
+    kf2 = kappa * f_e * f_e
+    root = jnp.sqrt(jnp.maximum(1.0 + kf2, 1e-300))
+    g = w0 * kf2 / (root + 1.0)  # excess_frequency
+    rate = k.a * f_e * f_e + k.bp * f_e + k.c  # -f'
+    dg = -w0 * kappa * f_e * rate / root  # g' = dg/df f'
+    h = jnp.diff(t_e)
+    pieces = 0.5 * h * (g[1:] + g[:-1]) + h * h / 12.0 * (dg[:-1] - dg[1:])
+    # where f falls by more than _F_STEP within an interval, the integral over f instead
+    # (ds = -df / (a f^2 + b' f + c), Gauss--Legendre on [f_i, f_(i-1)]: rational functions)
+    v, wv = _nodes(_GL_STEP, 1)
+    span = jnp.maximum(f_e[:-1] - f_e[1:], 0.0)
+    over_f = span > _F_STEP
+    f_q = f_e[1:] + jnp.where(over_f, span, 0.0) * v
+    r_q = k.a * f_q * f_q + k.bp * f_q + k.c
+    r_q = jnp.where(over_f & (r_q > 0.0), r_q, 1.0)
+    by_f = span * jnp.sum(wv * excess_frequency(f_q, w0, kappa) / r_q, axis=0)
+    pieces = jnp.where(over_f, by_f, pieces)
+    first = phase_excess(k, w0, kappa, ts[:1], fs[:1])
+    p = jnp.concatenate([first, first + jnp.cumsum(pieces)])
+    return jnp.zeros_like(p).at[order].set(p)
 
 
 def _cubic_residual(dy, dphi, y, phi, e0, e1, e2, e3):
