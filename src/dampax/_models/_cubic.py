@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._decay import _decay_from, _DecayConstants
+from ._decay import _decay_from, _DecayConstants, decay_rate
 
 # ----------------------------------------------------------------------------------------------
 # cubic stiffness (issue 14, docs/cubic_stiffness.md): the amplitude-dependent phase
@@ -146,11 +146,9 @@ def phase_excess_sampled(k: _DecayConstants, w0, kappa, t, f):
     ts, fs = t[order], f[order]
     t_e = jnp.clip(ts, 0.0, k.tau)
     f_e = jnp.where(ts < 0.0, 1.0, fs)  # (f is NaN before the start, where P = 0)
-    kf2 = kappa * f_e * f_e
-    root = jnp.sqrt(jnp.maximum(1.0 + kf2, 1e-300))
-    g = w0 * kf2 / (root + 1.0)  # excess_frequency
-    rate = k.a * f_e * f_e + k.bp * f_e + k.c  # -f'
-    dg = -w0 * kappa * f_e * rate / root  # g' = dg/df f'
+    g = excess_frequency(f_e, w0, kappa)
+    root = jnp.sqrt(jnp.maximum(1.0 + kappa * f_e * f_e, 1e-300))  # (XLA shares it with g's)
+    dg = w0 * kappa * f_e * decay_rate(f_e, k.a, k.bp, k.c) / root  # g' = dg/df f'
     h = jnp.diff(t_e)
     pieces = 0.5 * h * (g[1:] + g[:-1]) + h * h / 12.0 * (dg[:-1] - dg[1:])
     # where f falls by more than _F_STEP within an interval, the integral over f instead
