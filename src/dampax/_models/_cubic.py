@@ -108,13 +108,20 @@ def phase_excess(k: _DecayConstants, w0, kappa, t, f):
     t_q = jnp.where(over_f, 0.0, t_e)
     p_t = t_q * jnp.sum(wt * excess_frequency(_decay_from(k, u * t_q), w0, kappa), axis=0)
     # over f
-    v, wf = _nodes(_GL_F, nd)
-    span = jnp.where(over_f, gone, 0.0)
-    f_q = (1.0 - span) + span * v
-    R = k.a * f_q * f_q + k.bp * f_q + k.c
-    R = jnp.where(over_f & (R > 0.0), R, 1.0)
-    p_f = span * jnp.sum(wf * excess_frequency(f_q, w0, kappa) / R, axis=0)
+    p_f = _integral_over_f(k, w0, kappa, 1.0 - jnp.where(over_f, gone, 0.0), gone, over_f, _GL_F)
     return jnp.where(over_f, p_f, p_t)
+
+
+def _integral_over_f(k: _DecayConstants, w0, kappa, lo, span, use, rule):
+    """The phase added while f falls from lo + span to lo: int (w(A f) - w0) df / (a f^2 + b' f
+    + c) over [lo, lo + span] (ds = -df / (a f^2 + b' f + c), eq. 20) by the Gauss--Legendre
+    ``rule``; rational functions of f only. 0 where ``use`` is False (safe values there)."""
+    v, w = _nodes(rule, jnp.ndim(span))
+    span = jnp.where(use, span, 0.0)
+    f_q = lo + span * v
+    R = k.a * f_q * f_q + k.bp * f_q + k.c
+    R = jnp.where(use & (R > 0.0), R, 1.0)
+    return span * jnp.sum(w * excess_frequency(f_q, w0, kappa) / R, axis=0)
 
 
 def phase_excess_sampled(k: _DecayConstants, w0, kappa, t, f):
@@ -153,13 +160,9 @@ def phase_excess_sampled(k: _DecayConstants, w0, kappa, t, f):
     pieces = 0.5 * h * (g[1:] + g[:-1]) + h * h / 12.0 * (dg[:-1] - dg[1:])
     # where f falls by more than _F_STEP within an interval, the integral over f instead
     # (ds = -df / (a f^2 + b' f + c), Gauss--Legendre on [f_i, f_(i-1)]: rational functions)
-    v, wv = _nodes(_GL_STEP, 1)
     span = jnp.maximum(f_e[:-1] - f_e[1:], 0.0)
     over_f = span > _F_STEP
-    f_q = f_e[1:] + jnp.where(over_f, span, 0.0) * v
-    r_q = k.a * f_q * f_q + k.bp * f_q + k.c
-    r_q = jnp.where(over_f & (r_q > 0.0), r_q, 1.0)
-    by_f = span * jnp.sum(wv * excess_frequency(f_q, w0, kappa) / r_q, axis=0)
+    by_f = _integral_over_f(k, w0, kappa, f_e[1:], span, over_f, _GL_STEP)
     pieces = jnp.where(over_f, by_f, pieces)
     first = phase_excess(k, w0, kappa, ts[:1], fs[:1])
     p = jnp.concatenate([first, first + jnp.cumsum(pieces)])
