@@ -146,3 +146,15 @@ def test_fit_envelope_file_gives_coulomb_friction_from_its_exact_decrement(tmp_p
     with pytest.raises(ValueError, match="envelope fit of 2 parameters needs at least 3 "
                                          "finite maxima, got 2"):
         dampax.fit_envelope(t[:2], amp[:2], free=("mu",))
+    # four maxima: the asked fit is made, and the ranking, whose largest candidate (A, mu, b
+    # and D) needs five, ranks the others and names that one (it stopped the command before)
+    np.savetxt(path, np.column_stack([t[:4], amp[:4]]), fmt="%.17g", delimiter=",",
+               header="t,amplitude", comments="")
+    status = main(["fit", str(path), "--envelope", "--free", "mu", "--m", str(m), "--k",
+                   str(k), "--out", str(out)])
+    text = capsys.readouterr().out
+    assert status == 0, text
+    ranking = json.loads((out / "fit.json").read_text())["ranking"]
+    assert ranking["skipped"] == {"mu,b,D": "an envelope fit of 4 parameters needs at least 5 "
+                                            "finite maxima, got 4"}, ranking
+    assert len(ranking["ranking"]) == 6 and "left out (not fitted): mu,b,D: an envelope" in text

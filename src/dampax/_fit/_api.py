@@ -344,7 +344,9 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
             included), passed on (or to :func:`fit_envelope`).
 
     Returns:
-        A :class:`ModelComparison` (``.best``, ``.table``, ``.report()``).
+        A :class:`ModelComparison` (``.best``, ``.table``, ``.report()``); a candidate that
+        these data cannot fit (its fit raises a ValueError) is left out and named in
+        ``.skipped`` with the reason (all refused: the first refusal is raised).
     """
     if envelope is not None:
         if trace is not None:
@@ -359,14 +361,29 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         fit_kwargs.update(options(fit_kwargs.pop("window", None),
                                   fit_kwargs.pop("solver", None)))
     known = {tuple(check_free(k)): r for k, r in (fitted or {}).items()}
-    results = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for cand in candidates:
-            key = tuple(check_free(cand))
-            results[key] = known[key] if key in known else fit(
-                trace, x, Settings(**{**fit_kwargs, "free": cand}))
-    return rank(results, criterion)
+        return _ranked(candidates, criterion, lambda cand: known[cand] if cand in known else
+                       fit(trace, x, Settings(**{**fit_kwargs, "free": cand})))
+
+
+def _ranked(candidates, criterion: str, fit_one) -> ModelComparison:
+    """:func:`rank` of ``fit_one(free)`` over the candidates. A candidate whose fit refuses
+    these data (a ValueError: more parameters than an envelope has maxima, constants that are
+    not separately identifiable) is left out with its reason (``ModelComparison.skipped``);
+    where every candidate is refused, the first refusal is raised (the data or the options
+    fit no model)."""
+    results, skipped, first = {}, {}, None
+    for cand in candidates:
+        key = tuple(check_free(cand))
+        try:
+            results[key] = fit_one(key)
+        except ValueError as err:
+            skipped[key] = str(err)
+            first = first or err
+    if not results and first is not None:
+        raise first
+    return rank(results, criterion, skipped)
 
 
 def compare_envelope_models(t_peaks, amplitudes=None, *, candidates=CANDIDATES,
@@ -383,9 +400,8 @@ def compare_envelope_models(t_peaks, amplitudes=None, *, candidates=CANDIDATES,
     """
     if "free" in kwargs:
         raise ValueError("compare_envelope_models sets free itself; pass candidates=")
-    results = {tuple(check_free(c)): fit_envelope(t_peaks, amplitudes, free=c, **kwargs)
-               for c in candidates}
-    return rank(results, criterion)
+    return _ranked(candidates, criterion,
+                   lambda cand: fit_envelope(t_peaks, amplitudes, free=cand, **kwargs))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -255,12 +255,15 @@ class ModelComparison:
         table: one dict per successful candidate, best first: free, aic, bic, delta
             (criterion minus the best), chisqr, rms, nvarys, success, adequate.
         failed: the candidates whose fit failed (left out of the ranking): -> FitResult.
+        skipped: the candidates that could not be fitted to these data at all (left out):
+            -> the reason (e.g. more parameters than an envelope has maxima).
     """
 
     results: dict
     criterion: str
     table: list
     failed: dict = field(default_factory=dict)
+    skipped: dict = field(default_factory=dict)
 
     @property
     def best(self) -> FitResult | None:
@@ -310,6 +313,8 @@ class ModelComparison:
                 lines.append(f"  ranked, but its verdict failed: {','.join(cand)}: {r.reason}")
         for cand, r in self.failed.items():
             lines.append(f"  left out (no optimum): {','.join(cand)}: {r.reason}")
+        for cand, why in self.skipped.items():
+            lines.append(f"  left out (not fitted): {','.join(cand)}: {why}")
         if self.best is None:
             lines.append("  no candidate fit reached an optimum: the data support no model")
             return "\n".join(lines)
@@ -327,7 +332,8 @@ class ModelComparison:
         return {"criterion": self.criterion,
                 "ranking": [{**row, "free": list(row["free"])} for row in self.table],
                 "supported": list(self.supported),
-                "failed": {",".join(k): r.reason for k, r in self.failed.items()}}
+                "failed": {",".join(k): r.reason for k, r in self.failed.items()},
+                "skipped": {",".join(k): why for k, why in self.skipped.items()}}
 
 
 class ArrayFit(NamedTuple):
@@ -418,13 +424,14 @@ def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
         full_x=ctx.full_x, f_scale=float(ctx.f_scale), warnings=list(ctx.warnings))
 
 
-def rank(results: dict, criterion: str) -> ModelComparison:
+def rank(results: dict, criterion: str, skipped: dict | None = None) -> ModelComparison:
     """A :class:`ModelComparison` of fits (candidate -> FitResult) ranked by their statistics:
     every fit that reached an optimum (converged, finite cost and criterion) by increasing
     ``criterion`` ("aic" or "bic"), whatever its verdict (a fit that fails a check of its
     intervals or of its residuals is still the optimum of its model, and its cost is what the
     ranking compares; the table says which failed, the report why); fits without an optimum
-    are left out and listed in ``failed``."""
+    are left out and listed in ``failed``; ``skipped`` (candidate -> reason) lists the
+    candidates that could not be fitted at all."""
     check_choice("criterion", criterion, ("aic", "bic"))
 
     def ranked(r) -> bool:
@@ -439,4 +446,5 @@ def rank(results: dict, criterion: str) -> ModelComparison:
                   delta=getattr(r, criterion) - best, chisqr=r.chisqr, rms=r.rms,
                   nvarys=r.nvarys, success=r.success, adequate=r.adequate)
              for k, r in ordered.items()]
-    return ModelComparison(results=ordered, criterion=criterion, table=table, failed=failed)
+    return ModelComparison(results=ordered, criterion=criterion, table=table, failed=failed,
+                           skipped=dict(skipped or {}))
