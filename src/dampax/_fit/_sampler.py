@@ -198,9 +198,11 @@ def _neg_hessian(grad: Callable, theta: np.ndarray) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnames=("residual", "layout", "mode", "num_warmup",
                                              "num_samples"))
-def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
-    """Window adaptation then NUTS sampling of every chain, vmapped over the chains (keys,
-    u0: one row per chain); returns the draws of u and the sample stats.
+def _chains(keys, start, data, residual, layout, mode, num_warmup, num_samples):
+    """Window adaptation then NUTS sampling of every chain, vmapped over the chains (keys and
+    ``start``: one row per chain; ``start`` = (u0, the log density there, its gradient in
+    u), computed by the caller's compiled gradient, so that this program holds the gradient
+    only inside its kernel); returns the draws of u and the sample stats.
 
     Stan's window adaptation (blackjax's ``window_adaptation.base`` and ``build_schedule``:
     the step size by dual averaging, a diagonal mass matrix over doubling windows) and the
@@ -226,7 +228,7 @@ def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
               jnp.concatenate([schedule[:, 1], after]).astype(bool),
               jnp.arange(num_warmup + num_samples) < num_warmup)
 
-    def one_chain(key, u):
+    def one_chain(key, u, lp, grad):
         k_warm, k_draw = jax.random.split(key)
         keys = jnp.concatenate([jax.random.split(k_warm, num_warmup),
                                 jax.random.split(k_draw, num_samples)])
@@ -250,10 +252,11 @@ def _chains(keys, u0, data, residual, layout, mode, num_warmup, num_samples):
                 "n_steps": info.num_integration_steps, "step_size": step_size})
 
         _, (pos, stats) = jax.lax.scan(
-            step, (nuts.init(u, logdensity), adapt_init(u, 1.0)), (keys, *stages))
+            step, (nuts.init(u, logdensity)._replace(logdensity=lp, logdensity_grad=grad),
+                   adapt_init(u, 1.0)), (keys, *stages))
         return pos[num_warmup:], {k: v[num_warmup:] for k, v in stats.items()}
 
-    return jax.vmap(one_chain)(keys, u0)
+    return jax.vmap(one_chain)(keys, *start)
 
 
 class Prior(NamedTuple):
@@ -360,9 +363,11 @@ def sample(residual: Callable, args, layout: Layout, prior: Prior, theta0, *,
     mid = time.perf_counter()
     k_init, k_chains = jax.random.split(jax.random.PRNGKey(int(seed)))
     nch = int(num_chains)
-    u0 = 0.5 * jax.random.normal(k_init, (nch, dim))
-    U, stats = _chains(jax.random.split(k_chains, nch), u0, data, num_warmup=int(num_warmup),
-                       num_samples=int(num_samples), **static)
+    u0 = np.asarray(0.5 * jax.random.normal(k_init, (nch, dim)))
+    at = [value_and_grad(theta_map + L @ u) for u in u0]  # -log density, its gradient in theta
+    start = (u0, np.array([-v for v, _ in at]), np.array([-(L.T @ g) for _, g in at]))
+    U, stats = _chains(jax.random.split(k_chains, nch), start, data,
+                       num_warmup=int(num_warmup), num_samples=int(num_samples), **static)
     U = np.asarray(U)  # (chain, draw, dim)
     stats = {k: np.asarray(v) for k, v in stats.items()}
     done = time.perf_counter()
