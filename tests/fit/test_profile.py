@@ -191,6 +191,42 @@ def test_a_lower_cost_at_the_bound_is_where_the_fit_continues():
         assert abs(value - getattr(truth, name)) < 3.0 * se, (name, value, se)
 
 
+def test_a_direct_exact_fit_that_creeps_to_a_bound_starts_again_there():
+    """The exact model started directly (k3's profile, mu_s's fits: no approximate start
+    whose rounds place the constants at their bounds) on a decay whose quadratic drag the data
+    want below 0 (scipy's integrator, D = -20 kg/m: D's optimum is its bound) crept towards
+    D = 0 by damped log-steps for its whole budget (256 steps, not converged, 0.5 noise
+    variances above the optimum; fit_calibration.py --wide seed 31 draw 50: 14 such fits of
+    768 steps in k3's profile). With ``settle`` it stops once the creep is plain
+    (``_core.Tuning.leave``), starts again with D at its bound and converges at the cost of
+    the fit with D held at 0 (1e-3 noise variances). The same samples and settings as the
+    test above: the programs are shared."""
+    from helpers import evaluate, scipy_stick_slip
+
+    from dampax._fit._core import FIT_RESULTS, is_code
+    from dampax._fit._params import TraceParams
+    from dampax._fit._problem import Settings, prepare
+
+    m, k, b = 4.322520219963828, 30.96234455962546, 9.047853784625625
+    x0, v0, offset = 0.0013496502553528849, 0.04484604229153602, 0.00580550564521066
+    t = np.linspace(0.0, 18.154317365471556, 1000)
+    seg, _, rest = scipy_stick_slip(m, k, 0.0, b, -20.0, x0, v0, t[-1])
+    x = offset + evaluate(seg, rest, t)[0] + 5e-6 * np.random.default_rng(2).standard_normal(
+        t.size)
+    problem = prepare(t, x, Settings(model="reference", free=("mu", "b", "D"), starts=1))
+    start = TraceParams(mu=0.0, b=0.5 * b / m, D=50.0, w0=math.sqrt(k / m), offset=offset,
+                        x0=x0, v0=v0)
+    held = problem.holding("D").solve(start._replace(D=0.0), "reference", math.inf).out
+    s2 = float(held.chisqr) / t.size  # a noise variance
+    crept = problem.solve(start, "reference", math.inf).out
+    settled = problem.solve(start, "reference", math.inf, settle=3).out
+    assert is_code(crept.code, FIT_RESULTS.max_steps_reached) and int(crept.steps) == 256
+    assert float(crept.chisqr) > float(held.chisqr) + 0.1 * s2
+    assert is_code(settled.code, FIT_RESULTS.successful)
+    assert abs(float(settled.chisqr) - float(held.chisqr)) < 1e-3 * s2
+    assert float(settled.params.D) < 1e-4 * float(crept.params.D)
+
+
 def test_the_motions_of_a_search_share_one_compiled_program(caplog):
     """The halt search's motions (``_halts.turning_points``: a fit's parameters over twice its
     window) with other damping constants use one compiled reference program: the swing

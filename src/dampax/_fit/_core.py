@@ -161,13 +161,15 @@ def _lm_code(sol: LMSolution) -> FIT_RESULTS:
 
 
 def _lm_once(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions, budget,
-             give_up=None):
+             give_up=None, leave=False):
     """One round of :func:`_lm_rounds`: (theta, code, steps, (r, J) at the returned point);
     ``give_up`` a chi-square in data units (the residuals are in units of ``sx``)."""
+    b = _log_coordinates(args, model)
     sol = levenberg_marquardt(lambda th: fn(th, args), theta0, rtol=options.rtol,
                               atol=options.atol, max_steps=int(options.max_steps),
                               budget=budget, give_up=None if give_up is None else
-                              give_up / args.setup.sx ** 2)
+                              give_up / args.setup.sx ** 2,
+                              leave=lambda y, newton: leave & _creeping(b, y, newton))
     return (_clamp_flat(sol.value, args, model), _lm_code(sol), sol.steps,
             (sol.residual, sol.jac))
 
@@ -188,6 +190,13 @@ def _log_coordinates(args: ResidualArgs, model: FitModel) -> _LogBounds:
                       flat(on_damping(model.coords, lo, -jnp.inf)),
                       flat(on_damping(model.coords, Damping(True, True, True), False)),
                       flat(args.vary))
+
+
+def _creeping(b: _LogBounds, theta, newton):
+    """Whether the Gauss-Newton step -``newton`` (theta) sends a damping constant above lo + 1
+    to p <= 0 (its log coordinate falls by 1 or more, linearised): a creep to its bound (the
+    next round, or the caller where one round stops there, ``_pipeline``, starts it there)."""
+    return jnp.any(b.is_log & b.vary & (theta > b.lo + 1.0) & (newton >= 1.0))
 
 
 def _start(args: ResidualArgs, model: FitModel, at_bound):
@@ -223,7 +232,7 @@ def _between_rounds(b: _LogBounds, theta, scale, r, J):
 
 
 def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOptions,
-               budget=None, give_up=None):
+               budget=None, give_up=None, leave=False):
     """optimistix Levenberg-Marquardt in ``model.lm_rounds`` restarts, for constants that go
     to 0.
 
@@ -237,13 +246,12 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
     crept 51 steps towards D = 0 before). A round after a converged one
     with nothing changed is skipped. Returns (theta, code, steps, final) with final = (r, J)
     for one round. ``budget``: the steps of one round (traced, at most max_steps; None:
-    max_steps); ``give_up``: the bound of ``_lm.levenberg_marquardt`` (one round only).
-    """
+    max_steps); ``give_up``, ``leave``: :class:`Tuning`'s (one round only)."""
     _, _, max_steps, rtol, atol, opts = options
     # the step budget is honoured: never more rounds than steps, never more steps in all
     rounds = max(min(model.lm_rounds, int(max_steps)), 1)
     if rounds == 1:
-        return _lm_once(fn, theta0, args, model, options, budget, give_up)
+        return _lm_once(fn, theta0, args, model, options, budget, give_up, leave)
     per_round = max(int(max_steps) // rounds, 1)
     b = _log_coordinates(args, model)
 
@@ -251,12 +259,8 @@ def _lm_rounds(fn, theta0, args: ResidualArgs, model: FitModel, options: CoreOpt
         return _residual_rows(th, args, model, opts, clamped=False)
 
     def solve(theta, scale, last):
-        def leave(u, newton):
-            # the undamped Gauss-Newton step (-scale newton in theta) sends p to p <= 0
-            # (theta falls by 1 or more, linearised) for a constant above lo + 1
-            th = theta + scale * u
-            return jnp.any(b.is_log & b.vary & (th > b.lo + 1.0) & (scale * newton >= 1.0)) \
-                & ~last
+        def leave(u, newton):  # (the step is -scale newton in theta)
+            return _creeping(b, theta + scale * u, scale * newton) & ~last
 
         sol = levenberg_marquardt(lambda u: fn(theta + scale * u, args),
                                   jnp.zeros_like(theta), rtol=rtol, atol=atol,
@@ -330,12 +334,10 @@ def _covariance(J, params_of, theta, vary, s2):
     pair = active[:, None] & active[None, :]
     d = jnp.sqrt(jnp.where(active, norm2, 1.0))
     # (J^T J)^-1 from the singular values of the column-scaled Jacobian, not by inverting
-    # J^T J: forming J^T J squares the condition number, and a fit whose damping constants sit
-    # at 0 (no decay: their columns agree to 1e-8) has cond(J)^2 ~ 1e16, where the inverse's
-    # diagonal came out negative or positive by the last bits of the data (issue 34: a GPU's
-    # other rounding turned "no measurable decay" into "standard error not finite"). The
-    # singular values keep 1/s^2 accurate down to s ~ eps s_max; the fixed and inactive
-    # columns are unit columns (C = 1 there, dropped by `pair` below).
+    # J^T J (cond(J)^2 ~ 1e16 where damping constants sit at 0, their columns equal to 1e-8:
+    # the inverse's diagonal took its sign from the data's last bits; issue 34, a GPU's
+    # rounding). 1/s^2 stays accurate down to s ~ eps s_max; fixed and inactive columns are
+    # unit columns (C = 1 there, dropped by `pair` below).
     Jn = jnp.where(active[None, :], Jp / d[None, :], 0.0)
     A = jnp.concatenate([Jn, jnp.diag(jnp.where(active, 0.0, 1.0)).astype(Jn.dtype)])
     s, vt = tall_svd(A)  # (XLA's CPU SVD of a tall A: 44 ms; _linalg)
@@ -348,15 +350,13 @@ def _covariance(J, params_of, theta, vary, s2):
 
 
 class CoreOptions(NamedTuple):
-    """The static settings of :func:`core` (hashable: equal settings share one compiled
-    program).
+    """The static settings of :func:`core` (equal settings share one compiled program).
 
     Attributes:
         model: the name of an entry of :data:`FIT_MODELS`.
         optimizer: "lm", "adam" or "lbfgs".
         max_steps, rtol, atol: budget and tolerances (internal coordinates).
-        opts: :class:`ReferenceOptions` for models that integrate, else None.
-    """
+        opts: :class:`ReferenceOptions` for models that integrate, else None."""
 
     model: str
     optimizer: str
@@ -368,17 +368,18 @@ class CoreOptions(NamedTuple):
 
 class Tuning(NamedTuple):
     """The traced settings of one fit (:func:`core`): the soft_l1 scale ``f_scale`` in data
-    units (inf: the linear loss), Levenberg-Marquardt's step ``budget`` (at most
-    ``CoreOptions.max_steps``; None: that) and ``give_up``, a chi-square (data units) above
-    which the fit stops after ``_lm.GIVE_UP_AFTER`` steps (None or inf: never), both
-    honoured by the models of one round (``FitModel.lm_rounds``); ``at_bound``: a varied
-    damping constant started at 0 starts at its lower bound (a continuation from a fit with
-    it held at 0), not at its small floor (the log-parameter's reference: its start)."""
+    units (inf: the linear loss); for the models of one round (``FitModel.lm_rounds``) the
+    step ``budget`` (at most ``CoreOptions.max_steps``; None: that), ``give_up``, a
+    chi-square (data units) above which the fit stops after ``_lm.GIVE_UP_AFTER`` steps
+    (None or inf: never), and ``leave``: stop where it creeps to a bound (:func:`_creeping`);
+    ``at_bound``: a varied damping constant started at 0 starts at its lower bound (a
+    continuation from a fit with it held at 0), not at its floor (its reference: its start)."""
 
     f_scale: Any
     budget: Any = None
     give_up: Any = None
     at_bound: Any = False
+    leave: Any = False
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
@@ -399,7 +400,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
         A :class:`CoreResult`.
     """
     model, optimizer, max_steps, rtol, atol, opts = options
-    f_scale, budget, give_up, at_bound = tuning
+    f_scale, budget, give_up, at_bound, leave = tuning
     spec = FIT_MODELS[model]
     st = spec.setup(p0, t, consts, spec)
     args = ResidualArgs(t=t, x=x, weight=weight, setup=st, vary=vary, f_scale=f_scale)
@@ -409,7 +410,7 @@ def core(t, x, weight, p0, vary, consts, tuning: Tuning, *,
     final = None
     if optimizer == "lm":
         theta, code, steps, final = _lm_rounds(raw, theta0, args, spec, options, *(
-            (budget, give_up) if spec.lm_rounds == 1 else ()))
+            (budget, give_up, leave) if spec.lm_rounds == 1 else ()))
     else:
         theta, code, steps = _optax_fit(fn, theta0, args, options)
 
@@ -481,13 +482,13 @@ def run_core(t, x, weight, p0, vary, consts, tuning, **static) -> CoreResult | N
     model's (the same numbers to rounding; it runs about 3x longer, compiles 2 s sooner)."""
     prepare = static.pop("prepare", False)
     quick = static.pop("quick", False)
-    f_scale, budget, give_up, at_bound = tuning if isinstance(tuning, Tuning) else \
+    f_scale, budget, give_up, at_bound, leave = tuning if isinstance(tuning, Tuning) else \
         Tuning(tuning)
     args = (t, x, weight, p0, vary, program_consts(consts, static["model"]), Tuning(
         f_scale, static["max_steps"] if budget is None else budget,
-        jnp.inf if give_up is None else give_up, at_bound))
+        jnp.inf if give_up is None else give_up, at_bound, leave))
     options = CoreOptions(**static)
-    types = (float, float, float, float, bool, float, Tuning(float, int, float, bool))
+    types = (float, float, float, float, bool, float, Tuning(float, int, float, bool, bool))
     concrete = is_concrete(args)
     to_array = host_array if concrete else jnp.asarray
     args = jax.tree_util.tree_map(

@@ -122,7 +122,7 @@ def global_starts(problem: Problem, plan: Plan) -> Fit:
     if batch_of_starts(problem, plan):
         found = run_starts(problem, problem.guess, first, math.inf, seed=int(s.seed))
         start = found.params
-    last = problem.solve(start, first, math.inf)
+    last = problem.solve(start, first, math.inf, settle=len(DAMPING))  # (one-round models)
     return Fit(last.out, last, found)
 
 
@@ -451,9 +451,9 @@ def prepare_programs(problem: Problem, plan: Plan) -> None:
     if s.optimizer != "lm":
         return
     first = first_model(problem, plan)
-    problem.solve(problem.guess, first, math.inf, prepare=True)  # the quickest to trace
+    problem.prepare(problem.guess, first)  # the quickest to trace
     if first != s.model:
-        problem.solve(problem.guess, s.model, math.inf, prepare=True)
+        problem.prepare(problem.guess, s.model)
     if batch_of_starts(problem, plan):
         prepare_starts(problem, problem.guess, first)
     if plan.neighbouring_halts and FIT_MODELS[s.model].integrates and problem.vary.mu and \
