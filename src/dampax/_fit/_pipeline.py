@@ -18,8 +18,8 @@ Stages, in order (:func:`run`):
    neighbouring turning points (``_halts.search_other_halts``);
 6. **assess**: the result and its checks (``_result.build_result``), with the profile refits
    of the intervals' checks (:func:`profile_refit`) where the plan asks for them;
-6b. **from the bound**: where a test at the bound (a damping constant held at 0) cost less,
-   the fit again from there (:func:`from_the_bound`);
+6b. **from the bound**: where a test at the bound (a constant held at 0) cost less, the fit
+   again from there (:func:`from_the_bound`); :func:`finished` runs 6-7 on :func:`fitted`'s;
 6c. **search on**: where the fit failed with structured residuals, each free damping constant
    held at 0, then a batch of the exact model's starts around the optimum, the neighbouring
    halts of a lower cost searched again (:func:`search_on`);
@@ -27,9 +27,8 @@ Stages, in order (:func:`run`):
 
 :data:`FULL` is ``dp.fit``'s plan; :data:`INNER` the plan of the fits inside a search (k3's
 profile, mu_s's screen: no neighbouring-halt search, no profile checks, no refusal, no static
-halt; the search's chosen fit is checked by the plan of the search); :data:`DIRECT` and
-:data:`DIRECT_INNER` start with the exact model (the fits at fixed mu_s, started from another
-fit of that model).
+halt; the search checks its chosen fit); :data:`DIRECT` and :data:`DIRECT_INNER` start with
+the exact model (the fits at fixed mu_s or k3, from another fit's optimum).
 """
 
 from __future__ import annotations
@@ -172,11 +171,10 @@ def _code(problem: Problem, out):
     """The exact fit's result code as :func:`exact_model` reads it: where no free damping
     constant is told from 0 (each within ``AT_ZERO`` standard errors: no measurable decay)
     and the step budget ran out on a flat valley (one more Gauss-Newton step would lower the
-    cost by less than ``NEWTON_TOL`` noise variances: :func:`_descending`), the optimizer
-    crept along eq. 3's kink at mu = b = D = 0, which the assessment accepts as converged: no
-    sign of a local optimum (undamped traces: a batch of the exact model's starts then found
-    nothing in 3 of 3 and cost 2-5 s). Elsewhere a capped fit keeps its search (a valley far
-    from 0 can hide a lower optimum that only the batch finds: test_fit.py's two swings)."""
+    cost by less than ``NEWTON_TOL`` noise variances: :func:`_descending`), it crept along
+    eq. 3's kink at mu = b = D = 0, which the assessment accepts: no sign of a local optimum
+    (undamped traces: a batch of starts found nothing in 3 of 3, 2-5 s). Elsewhere a capped
+    fit keeps its search (a valley far from 0 can hide a lower optimum: test_fit.py)."""
     p, se = out.params, out.stderr
     if is_code(out.code, FIT_RESULTS.max_steps_reached) and all(
             float(getattr(p, n)) < AT_ZERO * float(getattr(se, n))
@@ -187,14 +185,11 @@ def _code(problem: Problem, out):
 
 
 #: rounds of the default step budget that stage 4 adds: the first where the fit ran out of
-#: steps, each further one while the last ran out too with a Gauss-Newton step that would
-#: still lower the cost by more than ``_assess.NEWTON_TOL`` noise variances (wide draw 4 of
-#: fit_calibration.py seed 9: a single swing, heavily damped, mu, b, D and w0 free at
-#: correlation 0.9992: 5.4 noise variances after the first round, converged in the second;
-#: one round failed it with the truth inside its intervals). Where the step would lower it by
-#: less, the fit sits on a flat valley that the assessment accepts, and which leads on to
-#: absurd constants (the same motion with other noise: 0.013, then d0/(w0 A) = 100 three
-#: rounds on)
+#: steps, each further one while a Gauss-Newton step would still lower the cost by more than
+#: ``_assess.NEWTON_TOL`` noise variances (wide seed 9 draw 4: one heavily damped swing at
+#: correlation 0.9992, converged in the second round; one failed it, the truth inside). A
+#: smaller step: a flat valley the assessment accepts, leading on to absurd constants
+#: (other noise: 0.013, then d0/(w0 A) = 100 three rounds on)
 CONTINUE_ROUNDS = 3
 
 
@@ -465,25 +460,30 @@ def prepare_programs(problem: Problem, plan: Plan) -> None:
 
 
 def run(problem: Problem, plan: Plan = FULL) -> FitResult:
-    """Fit a prepared problem by ``plan`` (the module docstring's stages).
+    """The :class:`FitResult` of a prepared problem (from ``_problem.prepare``, and its
+    ``holding`` / ``with_consts`` / ``starting_at``) fitted by ``plan`` (the module
+    docstring's stages)."""
+    answered, state, others = fitted(problem, plan)
+    return answered if answered is not None else finished(problem, plan, state, others)
 
-    Arguments:
-        problem: from ``_problem.prepare`` (and its ``holding`` / ``with_consts`` /
-            ``starting_at``).
-        plan: which stages run.
 
-    Returns:
-        The :class:`FitResult`.
-    """
+def fitted(problem: Problem, plan: Plan) -> tuple[FitResult | None, Fit, dict]:
+    """Stages 1-5 of :func:`run`: (the approximation's answer or None, the fit, its
+    neighbouring halts). A search that keeps one of its fits (k3's profile) assesses only
+    that one (:func:`finished`)."""
     prepare_programs(problem, plan)
     state = global_starts(problem, plan)
     state = robust_restart(problem, state)
     answered, state = approximation_answers(problem, plan, state)
     if answered is not None:
-        return answered
+        return answered, state, {}
     state = exact_model(problem, plan, state)
     state, others = neighbouring_halts(problem, plan, continue_budget(problem, state))
-    state = continue_budget(problem, state)  # the search's optimum too (wide 18 draw 36)
+    return None, continue_budget(problem, state), others  # (its optimum: wide 18 draw 36)
+
+
+def finished(problem: Problem, plan: Plan, state: Fit, others: dict) -> FitResult:
+    """Stages 6-7 of :func:`run` on the fit of stages 1-5 (:func:`fitted`)."""
     lower = []
     res = assess(problem, plan, state, lower=lower)
     moved = from_the_bound(problem, state, lower) if lower else None

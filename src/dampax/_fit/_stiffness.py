@@ -21,7 +21,7 @@ from ._dist import norm_ppf
 from ._halts import first_halt
 from ._intervals import ar1_coefficient
 from ._params import PARAMS, start_amplitude
-from ._pipeline import DIRECT_INNER, FULL, INNER, run
+from ._pipeline import DIRECT_INNER, FULL, INNER, finished, fitted, run
 from ._profile import PROFILE_FAIL, PROFILE_REACH, other_halt_check, profile_side
 
 #: the reach of k3's search: e = k3 A^2/(m w0^2) within +- this (docs/cubic_stiffness.md)
@@ -64,21 +64,29 @@ def profile_k3(problem) -> Profile:
     # approximate model's (the ansatz's k3 phase integral costs some 26 evaluations per sample
     # and step: 34 s of a 35 s fit of 15,274 samples, 1,010 s for the whole profile)
     plan = _fixed_k3_plan(problem)
-    cache = {}
+    cache, results = {}, {}
     shift = hardening_shift(problem, amp) if "w0" in base.varied else 0.0
+
+    def fit(e):
+        # from the linear spring's w0 and from it less the rise this k3 gives: the lower;
+        # assessed only where its result is asked for (``at``: 3 of some 20-50 fits)
+        if e not in cache:
+            w0s = (w0,) if shift * e == 0.0 else (w0, w0 / (1.0 + shift * e))
+            fits = [(p, fitted(p, plan)[1]) for p in (
+                problem.starting_at({**start, "w0": w}, starts=1).with_consts(k3=e * scale)
+                for w in w0s)]
+            cache[e] = min(fits, key=lambda f: _finite_cost(f[1].best.chisqr))
+        return cache[e]
 
     def at(e):
         e = float(e)
-        if e not in cache:
-            # from the linear spring's w0 and from it less the rise this k3 gives: the lower
-            w0s = (w0,) if shift * e == 0.0 else (w0, w0 / (1.0 + shift * e))
-            fits = [run(problem.starting_at({**start, "w0": w}, starts=1)
-                        .with_consts(k3=e * scale), plan) for w in w0s]
-            cache[e] = min(fits, key=lambda r: _finite_cost(r.chisqr))
-        return cache[e]
+        if e not in results:
+            problem_e, state = fit(e)
+            results[e] = finished(problem_e, plan, state, {})
+        return results[e]
 
     def cost(e):
-        return _finite_cost(at(e).chisqr)
+        return _finite_cost(float(fit(float(e))[1].best.chisqr))
 
     opt = minimize_scalar(cost, bracket=(-0.01, 0.01), bounds=None, method="brent",
                           options={"xtol": 1e-4, "maxiter": 40})
