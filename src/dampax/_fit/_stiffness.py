@@ -283,11 +283,11 @@ def held_mu(problem, best):
     start = {name: float(best.params[name]) for name in PARAMS if name in best.params}
     flat = bool(problem.vary.offset)
 
-    def at(mu: float, near: dict | None = None):
-        fits = [run(problem.starting_at({**s, "mu": mu}, starts=1).holding("mu"), plan)
-                for s in ((start, {**start, **near}) if near else (start,))]
+    def at(mu: float, near: dict | None = None):  # (only costs and values: not assessed)
+        fits = [fitted(problem.starting_at({**s, "mu": mu}, starts=1).holding("mu"), plan)[1]
+                .best for s in ((start, {**start, **near}) if near else (start,))]
         r = min(fits, key=lambda f: _finite_cost(f.chisqr))
-        values = {k: float(v) for k, v in r.params.items() if k in start}
+        values = {k: float(getattr(r.params, k)) for k in start}
         return (_finite_cost(r.chisqr), flat and first_halt(values, problem.data.t,
                                                             problem.consts.motion), values)
     return at
@@ -361,10 +361,10 @@ def model_bias(problem, best, profile: tuple, extra=None) -> dict:
     # the same window and mask on the exact motion, started at the fit (no new analysis)
     exact_problem = problem.with_positions(exact).starting_at(
         {name: float(p[name]) for name in PARAMS}, starts=1)
-    refits = {}
+    refits = {}  # (their costs and values only: not assessed)
     try:
         for e in (e_best - h, e_best, e_best + h):
-            refits[e] = run(exact_problem.with_consts(k3=e * scale), INNER)
+            refits[e] = fitted(exact_problem.with_consts(k3=e * scale), INNER)[1].best
     except ValueError:
         return {}
     costs = np.array([float(r.chisqr) for r in refits.values()])
@@ -376,8 +376,8 @@ def model_bias(problem, best, profile: tuple, extra=None) -> dict:
     lo, mid, hi = refits.values()
     out = {}
     for name in best.free:
-        slope = (float(hi.params[name]) - float(lo.params[name])) / (2.0 * h)
-        shift = float(mid.params[name]) - float(p[name]) + slope * shift_e
+        slope = (float(getattr(hi.params, name)) - float(getattr(lo.params, name))) / (2.0 * h)
+        shift = float(getattr(mid.params, name)) - float(p[name]) + slope * shift_e
         se2 = float(best.stderr.get(name, math.nan)) ** 2
         if extra is not None and name in best.varied:
             i = list(best.varied).index(name)
