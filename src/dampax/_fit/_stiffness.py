@@ -361,10 +361,10 @@ def model_bias(problem, best, profile: tuple, extra=None) -> dict:
     # the same window and mask on the exact motion, started at the fit (no new analysis)
     exact_problem = problem.with_positions(exact).starting_at(
         {name: float(p[name]) for name in PARAMS}, starts=1)
-    refits = {}  # (their costs and values only: not assessed)
+    refits = {}
     try:
         for e in (e_best - h, e_best, e_best + h):
-            refits[e] = fitted(exact_problem.with_consts(k3=e * scale), INNER)[1].best
+            refits[e] = run(exact_problem.with_consts(k3=e * scale), INNER)
     except ValueError:
         return {}
     costs = np.array([float(r.chisqr) for r in refits.values()])
@@ -376,8 +376,8 @@ def model_bias(problem, best, profile: tuple, extra=None) -> dict:
     lo, mid, hi = refits.values()
     out = {}
     for name in best.free:
-        slope = (float(getattr(hi.params, name)) - float(getattr(lo.params, name))) / (2.0 * h)
-        shift = float(getattr(mid.params, name)) - float(p[name]) + slope * shift_e
+        slope = (float(hi.params[name]) - float(lo.params[name])) / (2.0 * h)
+        shift = float(mid.params[name]) - float(p[name]) + slope * shift_e
         se2 = float(best.stderr.get(name, math.nan)) ** 2
         if extra is not None and name in best.varied:
             i = list(best.varied).index(name)
