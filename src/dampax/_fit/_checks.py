@@ -416,6 +416,16 @@ def newton_decrement(jac, rows, values=None, names=()) -> float:
     return newton_step(jac, rows, values, names)[0]
 
 
+def data_rows(out, vary, n: int):
+    """(jac, rows) of a fit (a ``_core.CoreResult``) on its window's ``n`` samples: the
+    Jacobian's columns those of the varied parameters (in the order of their fields), None
+    where the fit returned none."""
+    idx = [i for i, on in enumerate(vary._asdict().values()) if on]
+    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
+    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
+    return jac, rows
+
+
 def newton_step(jac, rows, values=None, names=()):
     """(decrement, step) of :func:`newton_decrement`: the decrement in noise variances and
     the Gauss-Newton step of every parameter (0 for the constants held at their bound; None

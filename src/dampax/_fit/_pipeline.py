@@ -42,7 +42,7 @@ import numpy as np
 
 from ._answer import approximation_bias
 from ._assess import NEWTON_TOL
-from ._checks import STRUCTURE_P, looks_stuck, newton_step
+from ._checks import STRUCTURE_P, data_rows, looks_stuck, newton_step
 from ._context import prepare_envelope
 from ._core import FIT_MODELS, FIT_RESULTS, is_code
 from ._curves import prepare_amplitude_phase
@@ -58,7 +58,7 @@ from ._measures import k3_hint
 from ._params import DAMPING, varied_names
 from ._problem import Problem, Solved, predicted_start, robust_scale
 from ._profile import other_halt_check, shared_start
-from ._result import FitContext, FitResult, build_result, data_rows
+from ._result import FitContext, FitResult, build_result
 from ._starts import prepare_starts, run_starts
 from ._text import lower_cost
 

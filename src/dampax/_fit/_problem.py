@@ -28,6 +28,7 @@ from ._checks import (
     check_sampling,
     check_time_axis,
     check_trace,
+    data_rows,
 )
 from ._core import (
     FIT_MODELS,
@@ -47,6 +48,7 @@ from ._params import (
     Constants,
     TraceParams,
     oscillator_values,
+    varied_names,
     vary_mask,
 )
 
@@ -213,12 +215,10 @@ class Problem:
         if not (is_code(out.code, FIT_RESULTS.max_steps_reached) and int(out.steps) < budget
                 and out.jac is not None):
             return last
-        idx = [i for i, on in enumerate(self.vary) if on]
-        jac = np.asarray(out.jac, dtype=float)[:self.n][:, idx]
-        step = -np.linalg.lstsq(jac, np.asarray(out.resid, dtype=float)[:self.n],
-                                rcond=None)[0]
+        jac, rows = data_rows(out, self.vary, self.n)
+        step = -np.linalg.lstsq(jac, rows, rcond=None)[0]  # (unprojected: newton_step's is)
         p = out.params._asdict()
-        zero = {n: 0.0 for n, d in zip(np.array(PARAMS)[idx], step, strict=True)
+        zero = {n: 0.0 for n, d in zip(varied_names(self.vary), step, strict=True)
                 if n in DAMPING and 0.0 < float(p[n]) <= -d}
         # (where the step from the fit's last point sends none there, it stopped on its way
         # elsewhere: it goes on from there, as it would have without stopping)

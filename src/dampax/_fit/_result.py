@@ -20,6 +20,7 @@ import numpy as np
 from .._plot import plot_fit
 from . import _intervals
 from ._assess import Inputs, assess
+from ._checks import data_rows
 from ._context import FitContext, envelope_derived, trace_derived
 from ._core import FIT_MODELS, FIT_RESULTS, CoreResult, is_code
 from ._dist import norm_ppf
@@ -359,15 +360,6 @@ class ArrayFit(NamedTuple):
     covariance: jax.Array
     jac: jax.Array | None = None
     resid: jax.Array | None = None
-
-
-def data_rows(out: CoreResult, vary, n: int):
-    """(jac, rows) of a fit on its window's ``n`` samples: the Jacobian's columns those of the
-    varied parameters (in the order of their fields), None where the fit returned none."""
-    idx = [i for i, on in enumerate(vary._asdict().values()) if on]
-    jac = np.asarray(out.jac, dtype=float)[:n][:, idx] if out.jac is not None else None
-    rows = np.asarray(out.resid, dtype=float)[:n] if out.resid is not None else None
-    return jac, rows
 
 
 def build_result(out: CoreResult, ctx: FitContext) -> FitResult:
