@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from dampax._fit._linalg import tall_lstsq, tall_r, tall_svd
+from dampax._fit._linalg import householder_r, tall_lstsq, tall_r, tall_svd
 
 
 def _matrix(n, scales, seed=0, zero=()):
@@ -46,6 +46,65 @@ def test_lstsq_under_vmap_and_grad():
     assert np.allclose(xs, np.linalg.lstsq(A, bs.T, rcond=None)[0].T, rtol=1e-10)
     g = jax.grad(lambda b: tall_lstsq(A, b)[0])(bs[0])  # linear in b: the pseudo-inverse's row
     assert np.allclose(g, np.linalg.pinv(A)[0], rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(3, 64, 7), (2, 5, 7), (300, 4)])
+def test_householder_r_matches_lapack_up_to_row_signs(shape):
+    """The jnp Householder R of a stack (a stack of blocks, fewer rows than columns, a zero
+    column) against numpy's LAPACK R: equal up to the sign of each row."""
+    A = np.random.default_rng(4).standard_normal(shape) * np.geomspace(1e-5, 1e3, shape[-1])
+    A[..., 1] = 0.0
+    R = np.asarray(jax.jit(householder_r)(A))
+    R_np = np.linalg.qr(A, mode="r")
+    assert R.shape == R_np.shape and np.all(np.tril(R, -1) == 0.0)
+    sign = np.where(np.sign(np.diagonal(R, axis1=-2, axis2=-1)) == np.sign(
+        np.diagonal(R_np, axis1=-2, axis2=-1)), 1.0, -1.0)
+    np.testing.assert_allclose(R * sign[..., :, None], R_np, rtol=1e-10,
+                               atol=1e-12 * np.abs(R_np).max())
+
+
+def test_the_tall_factorizations_make_no_lapack_qr():
+    """The fit's QRs are jnp (no ``lapack_dgeqrf``): jaxlib splits a batch of LAPACK QRs
+    across XLA's intra-op threads and waits on one of them, which hung two fits run at once
+    on 2 cores (the next test)."""
+    A = np.zeros((8, 4096, 8))
+    for fn in (jax.vmap(tall_r), jax.vmap(tall_svd),
+               jax.vmap(lambda a: tall_lstsq(a[:, :7], a[:, 7]))):
+        text = jax.jit(fn).lower(A).as_text()
+        assert "lapack_dgeqrf" not in text and "lapack_dorgqr" not in text
+
+
+_THREADS = """
+import os, threading
+import jax, numpy as np
+import dampax  # noqa: F401 (float64)
+from dampax._fit._linalg import tall_r
+f = jax.jit(jax.vmap(tall_r))
+A = np.random.default_rng(0).standard_normal((8, 4096, 8))
+f(A).block_until_ready()
+def work():
+    for _ in range(20):
+        f(A).block_until_ready()
+threads = [threading.Thread(target=work) for _ in range(max(2, min(os.cpu_count() or 2, 16)))]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+print("done")
+"""
+
+
+def test_tall_factorizations_in_threads_at_once_finish():
+    """A batched TSQR run by as many Python threads at once as there are cores finishes (in a
+    child process, with a time limit). With LAPACK's batched QR each thread's program held one
+    of XLA's intra-op threads waiting for chunks queued behind the others': on a 2-core machine
+    two fits in two threads (``dp.fit``, ``compare_models``) hung for ever, every time."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _THREADS], capture_output=True, text=True,
+                          timeout=180)
+    assert proc.returncode == 0 and proc.stdout.strip() == "done", proc.stderr[-2000:]
 
 
 def test_gram_inverse_of_a_nearly_collinear_jacobian():
