@@ -296,7 +296,7 @@ def test_cli(tmp_path, capsys, monkeypatch):
     assert "PATH or --example" in capsys.readouterr().err
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    args = parser.parse_args([str(path), "--rate", "fast"])
+    args = parser.parse_args([str(path), "--rate", "fast", "--out", str(tmp_path / "bad")])
     with pytest.raises(ValueError, match="--rate"):
         run(args)
 

@@ -178,10 +178,16 @@ def run_fit(args: argparse.Namespace) -> int:
         else:
             kw = dict(oscillator=osc, fit_omega0=fit_omega0, offset=not args.no_offset,
                       window=window, solver=solver)
-            result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
+            # the ranking (the ansatz's fits) does not wait for this fit unless it is one of
+            # them: it runs beside it (two fits at once: _fit._linalg's note on threads)
+            early = not args.no_compare and args.model != "ansatz"
+            ranking = beside(_ranking, args, trace, None, kw) if early else _no_thread()
+            with ranking as ranked:
+                result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
 
             def rest():
-                return _ranking_and_posterior(args, trace, result, free, kw, start)
+                comparison = ranked.result() if early else _ranking(args, trace, result, kw)
+                return comparison, _posterior(args, trace, result, free, kw, start)
         with beside(plot_fit, result, out_dir / "fit.png") as figure:
             comparison, post = rest()  # the ranking (and posterior) while the figure is drawn
     for w in {str(w.message) for w in caught}:
@@ -232,29 +238,38 @@ def run_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ranking_and_posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
-    """(ranking, posterior) of a single-trace fit: the candidate models' ranking (None with
-    --no-compare) and the posterior (None without --posterior); ``kw`` holds the fit's
-    oscillator, fit_omega0, offset, window and solver."""
-    # the ranking fits the candidates with the ansatz: this fit is one of them
-    done = {free: result} if result.model == "ansatz" else None
+@contextlib.contextmanager
+def _no_thread():
+    """The stand-in for :func:`beside` where nothing runs beside the block (yields None)."""
+    yield None
+
+
+def _ranking(args: argparse.Namespace, trace, result, kw: dict):
+    """The candidate models' ranking with the ansatz (None with --no-compare); ``result``:
+    this fit where it is the ansatz's and one of the candidates (not fitted again), else None.
+    ``kw`` holds the fit's oscillator, fit_omega0, offset, window and solver."""
+    if args.no_compare:
+        return None
+    done = {result.free: result} if result is not None and result.model == "ansatz" else None
     if args.example:
         # the example's cost is smooth: its fit's global starts all reach one optimum, and so
         # does each candidate's turning-point guess (the ranking is the same with 32 starts
         # per candidate, 6x the work); the reported fit keeps --starts
         kw = dict(kw, solver=kw["solver"]._replace(starts=EXAMPLE_RANKING_STARTS))
-    comparison = None if args.no_compare else compare_models(
-        trace, model="ansatz", fitted=done, **kw)
-    post = None
-    if args.posterior:
-        from .._fit import posterior
+    return compare_models(trace, model="ansatz", fitted=done, **kw)
 
-        post = posterior(trace, oscillator=kw["oscillator"], free=free, model=result.model,
-                         fit_omega0=kw["fit_omega0"], offset=not args.no_offset, start=start,
-                         end=args.end, num_samples=args.draws, num_chains=args.chains,
-                         num_warmup=args.warmup, seed=args.seed, units=args.units,
-                         start_fit=result, mu_s=args.mu_s)
-    return comparison, post
+
+def _posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
+    """The posterior of a single-trace fit, started from it (None without --posterior)."""
+    if not args.posterior:
+        return None
+    from .._fit import posterior
+
+    return posterior(trace, oscillator=kw["oscillator"], free=free, model=result.model,
+                     fit_omega0=kw["fit_omega0"], offset=not args.no_offset, start=start,
+                     end=args.end, num_samples=args.draws, num_chains=args.chains,
+                     num_warmup=args.warmup, seed=args.seed, units=args.units,
+                     start_fit=result, mu_s=args.mu_s)
 
 
 def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
