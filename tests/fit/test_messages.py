@@ -105,3 +105,43 @@ def test_residual_structure_equals_a_least_squares_fit_per_block():
         assert got["p_local"] == pytest.approx(min(1.0, J * chi2_sf(float(q[k]), 3)), rel=1e-9)
         assert got["q_share"] == pytest.approx(q[k] / q.sum(), rel=1e-9)
         assert got["worst"] == (t[edges[k]], t[edges[k + 1] - 1])
+
+
+def test_a_ranking_in_another_thread_does_not_silence_the_fits_warnings():
+    """``compare_models`` quiets its candidates' window warnings (the fit's own, repeated) in
+    its thread only. It ignored warnings process-wide (``warnings.catch_warnings``), so with
+    the ranking beside the fit (``dampax fit``) the fit's own warning could be lost: here the
+    ranking's thread holds its quiet block while this thread prepares a fit whose m and k
+    disagree with the trace's turning points by 10 %, and the warning must still arrive."""
+    import threading
+    import warnings
+
+    import numpy as np
+
+    import dampax as dp
+    from dampax._fit._problem import Settings, prepare, quiet_windows
+
+    t = np.linspace(0.0, 20.0, 2000)
+    x = 0.05 * np.exp(-0.05 * t) * np.cos(6.6 * t)  # w0 = 6.6 rad/s, told 6.0 below
+    settings = Settings(oscillator=dp.Oscillator(m=1.0, k=36.0), free=("b",))
+    inside, leave = threading.Event(), threading.Event()
+
+    def ranking():
+        with quiet_windows():
+            inside.set()
+            leave.wait(30.0)
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        other = threading.Thread(target=ranking)
+        other.start()
+        assert inside.wait(30.0)
+        try:
+            prepare(t, x, settings)
+            with quiet_windows():  # and in this thread's own quiet block, none
+                prepare(t, x, settings)
+        finally:
+            leave.set()
+            other.join()
+    texts = [str(w.message) for w in caught]
+    assert len(texts) == 1 and "turning points" in texts[0], texts

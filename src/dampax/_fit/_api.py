@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -50,7 +49,16 @@ from ._params import (
     vary_mask,
 )
 from ._pipeline import DEFAULT, FULL, run
-from ._problem import Settings, bucket, pad, prepare, read_arrays, robust_scale, units_of
+from ._problem import (
+    Settings,
+    bucket,
+    pad,
+    prepare,
+    quiet_windows,
+    read_arrays,
+    robust_scale,
+    units_of,
+)
 from ._result import ArrayFit, FitContext, FitResult, ModelComparison, build_result, rank
 from ._static import fit_mu_s
 from ._stiffness import fit_k3
@@ -361,8 +369,7 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         fit_kwargs.update(options(fit_kwargs.pop("window", None),
                                   fit_kwargs.pop("solver", None)))
     known = {tuple(check_free(k)): r for k, r in (fitted or {}).items()}
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with quiet_windows():  # (thread-local: a ranking may run beside the fit, dampax fit)
         return _ranked(candidates, criterion, lambda cand: known[cand] if cand in known else
                        fit(trace, x, Settings(**{**fit_kwargs, "free": cand})))
 

@@ -12,9 +12,11 @@ same pieces as arguments.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
+import threading
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -404,6 +406,26 @@ def _window(t_all, x_all, s: Settings, osc: dict, fit_omega0: bool):
     return t, xw, an, warn
 
 
+#: set in a thread whose fits repeat another fit's window warnings (:func:`quiet_windows`)
+_QUIET = threading.local()
+
+
+@contextlib.contextmanager
+def quiet_windows():
+    """In this thread, for the block: :func:`prepare` does not warn about the window (a model
+    ranking's candidates, whose trace and window are the fit's, which warned already), and
+    numpy's floating-point warnings are off. Thread-local, unlike ``warnings.catch_warnings``,
+    which changes every thread's filters: a ranking beside a fit (``dampax fit``) silenced the
+    fit's own warnings."""
+    before = getattr(_QUIET, "on", False)
+    _QUIET.on = True
+    try:
+        with np.errstate(all="ignore"):
+            yield
+    finally:
+        _QUIET.on = before
+
+
 def prepare(trace_or_t, x, settings: Settings) -> Problem:
     """Read, window and analyse the data once; the :class:`Problem` of a single-trace fit.
 
@@ -438,8 +460,9 @@ def prepare(trace_or_t, x, settings: Settings) -> Problem:
         if unknown:
             raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
         guess = guess._replace(**{k: float(v) for k, v in s.p0.items()})
-    for w in warn:
-        warnings.warn(w, stacklevel=3)
+    if not getattr(_QUIET, "on", False):
+        for w in warn:
+            warnings.warn(w, stacklevel=3)
     vary = vary_mask(TraceParams, s.free, fit_omega0=fit_omega0, offset=s.offset)
     k3, mu_s = _checked_consts(k3, mu_s, s.free, osc)
     tp, xp, wt = pad(t, xw, bucket(len(t)))
