@@ -145,3 +145,44 @@ def test_a_ranking_in_another_thread_does_not_silence_the_fits_warnings():
             other.join()
     texts = [str(w.message) for w in caught]
     assert len(texts) == 1 and "turning points" in texts[0], texts
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_full_starts_runs_the_ansatz_start_as_the_ansatz_own_fit(monkeypatch):
+    """The default fit starts the exact model from the ansatz compiled by XLA's quickest route
+    (``quick``); inside ``full_starts`` (``dampax fit``, whose ranking builds the ansatz's own
+    program beside the fit) the start runs that program, in that thread only."""
+    import threading
+
+    import numpy as np
+
+    import dampax as dp
+    from dampax._fit import _problem
+    from dampax._fit._problem import full_starts
+
+    seen = []
+
+    def stop(*args, **kwargs):
+        seen.append(kwargs["quick"])
+        raise _Stop
+
+    monkeypatch.setattr(_problem, "run_core", stop)
+    t = np.linspace(0.0, 10.0, 1000)
+    x = 0.05 * np.exp(-0.1 * t) * np.cos(6.0 * t)
+    osc = dp.Oscillator(m=1.0, k=36.0)
+
+    def one():
+        with pytest.raises(_Stop):
+            dp.fit(t, x, oscillator=osc, free=("mu", "D"))
+
+    one()
+    with full_starts():
+        one()
+        other = threading.Thread(target=one)
+        other.start()
+        other.join()
+    one()
+    assert seen == [True, False, True, True]

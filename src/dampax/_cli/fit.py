@@ -32,6 +32,7 @@ from .._fit import (
     example_trace,
     fit,
     fit_envelope,
+    full_starts,
 )
 from .._io import write_text
 from .._oscillator import Oscillator
@@ -182,7 +183,8 @@ def run_fit(args: argparse.Namespace) -> int:
             # them: it runs beside it (two fits at once: _fit._linalg's note on threads)
             early = not args.no_compare and args.model != "ansatz"
             ranking = beside(_ranking, args, trace, None, kw) if early else _no_thread()
-            with ranking as ranked:
+            # (the ranking builds the ansatz's program: the fit's start runs it too)
+            with ranking as ranked, full_starts() if early else contextlib.nullcontext():
                 result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
 
             def rest():

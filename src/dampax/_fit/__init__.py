@@ -49,6 +49,7 @@ from ._params import TraceParams as TraceParams
 from ._params import check_free as check_free
 from ._posterior import posterior as posterior
 from ._posterior_result import Posterior as Posterior
+from ._problem import full_starts as full_starts
 from ._result import ArrayFit as ArrayFit
 from ._result import FitResult as FitResult
 from ._result import ModelComparison as ModelComparison

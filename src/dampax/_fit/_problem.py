@@ -202,7 +202,7 @@ class Problem:
         out = run_core(self.data.tp, self.data.xp, self.data.wt, p_start, self.vary,
                        self.consts, tuning, model=model, optimizer=s.optimizer, max_steps=cap,
                        rtol=float(s.rtol), atol=float(s.atol), opts=opts, prepare=prepare,
-                       quick=model != s.model)  # another model's start: compiled quickly
+                       quick=model != s.model and not getattr(_FULL, "on", False))
         return out, opts
 
     def _settled(self, last: Solved, budget: int, settle: int) -> Solved:
@@ -404,6 +404,26 @@ def _window(t_all, x_all, s: Settings, osc: dict, fit_omega0: bool):
     check_gaps(t)
     check_trace(t, xw, an)
     return t, xw, an, warn
+
+
+#: set while another model's start is compiled as that model's own fit is (:func:`full_starts`)
+_FULL = threading.local()
+
+
+@contextlib.contextmanager
+def full_starts():
+    """In this thread, for the block: another model's start (the ansatz's, where the exact
+    model answers) runs the program of that model's own fits, not the one compiled by XLA's
+    quickest route (``_core.run_core``'s ``quick``; the same numbers to rounding). For a caller
+    that fits that model itself too (``dampax fit``'s ranking, beside the fit): a new process
+    then loads one program of the ansatz, not two (``dampax fit --example`` repeated
+    2.64-2.74 -> 2.44-2.49 s), and a cold one compiles one."""
+    before = getattr(_FULL, "on", False)
+    _FULL.on = True
+    try:
+        yield
+    finally:
+        _FULL.on = before
 
 
 #: set in a thread whose fits repeat another fit's window warnings (:func:`quiet_windows`)
