@@ -150,3 +150,34 @@ def test_leave_stops_where_the_newton_step_crosses_the_bound():
     # where it stopped, the Gauss-Newton step (A^-1 g, from the returned J and r) crosses
     J, r = np.asarray(left.jac), np.asarray(left.residual)
     assert np.linalg.solve(J.T @ J, J.T @ r)[1] >= 1.0
+
+
+@pytest.mark.parametrize("p", [1, 3, 7])
+def test_spd_solve_matches_numpy(p):
+    """The jnp Cholesky solve of the damped and Gauss-Newton steps against numpy's LAPACK, on
+    a Gram matrix with column scales 1e-4 .. 1e3; a matrix that is not positive definite
+    gives NaN (as LAPACK's factor)."""
+    from dampax._fit._lm import spd_solve
+
+    rng = np.random.default_rng(p)
+    J = rng.standard_normal((50, p)) * np.geomspace(1e-4, 1e3, p)
+    A, g = J.T @ J, rng.standard_normal(p)
+    x = np.asarray(jax.jit(spd_solve)(A, g))
+    np.testing.assert_allclose(x, np.linalg.solve(A, g), rtol=1e-9,
+                               atol=1e-12 * np.abs(np.linalg.solve(A, g)).max())
+    assert np.all(np.isnan(np.asarray(spd_solve(-np.eye(p), np.ones(p)))))
+
+
+def test_the_steps_make_no_lapack_call_under_a_wide_vmap():
+    """The damped and Gauss-Newton steps of 8,192 fits vmapped in one program make no LAPACK
+    call. As LAPACK's Cholesky (``potrf``), a batch that large is split by jaxlib across XLA's
+    intra-op threads and waited for on them: two such calls side by side hung
+    ``dp.fit_arrays`` vmapped over 4,096 traces on a 2-core machine, in one thread (seen in
+    gdb: both threads in ``CholeskyFactorization`` -> ``ParallelBatchMap``)."""
+    from dampax._fit._lm import _damped_step, gauss_newton
+
+    def both(A, g):
+        return _damped_step(A, g, 1.0), gauss_newton(A, g)
+
+    A, g = np.zeros((8192, 7, 7)), np.zeros((8192, 7))
+    assert "lapack" not in jax.jit(jax.vmap(both)).lower(A, g).as_text()

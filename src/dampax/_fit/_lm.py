@@ -88,8 +88,7 @@ def _damped_step(A, g, step_size):
     eps = jnp.finfo(g.dtype).eps
     pred = step_size > eps
     lam = jnp.where(pred, 1.0 / jnp.where(pred, step_size, 1.0), jnp.finfo(g.dtype).max)
-    L = jnp.linalg.cholesky(A + lam * jnp.eye(A.shape[0], dtype=A.dtype))
-    return jax.scipy.linalg.cho_solve((L, True), g)
+    return spd_solve(A + lam * jnp.eye(A.shape[0], dtype=A.dtype), g)
 
 
 #: the accepted point is the optimum when the undamped Gauss-Newton step would lower the cost
@@ -101,8 +100,33 @@ def gauss_newton(A, g):
     """(J^T J)^-1 J^T r from A = J^T J and g = J^T r (a ridge of 1e3 eps of A's largest
     diagonal entry keeps it defined): minus the undamped Gauss-Newton step."""
     ridge = 1e3 * jnp.finfo(A.dtype).eps * jnp.max(jnp.abs(jnp.diag(A)))
-    L = jnp.linalg.cholesky(A + ridge * jnp.eye(A.shape[0], dtype=A.dtype))
-    return jax.scipy.linalg.cho_solve((L, True), g)
+    return spd_solve(A + ridge * jnp.eye(A.shape[0], dtype=A.dtype), g)
+
+
+def spd_solve(A, g):
+    """A^-1 g for a small symmetric positive definite A (p x p), by the Cholesky factor
+    A = L L^T and two triangular substitutions written in jnp (p steps each, no LAPACK).
+
+    LAPACK's ``potrf`` under a wide ``jax.vmap`` (dp.fit_arrays over 4,096 traces) is split
+    by jaxlib across XLA's intra-op threads and waited for on one of them: the damped and the
+    Gauss-Newton steps, two such calls side by side in one program, held both threads of a
+    2-core machine and hung for ever (``_linalg``'s note). A non-positive pivot gives NaN,
+    as LAPACK's factor does.
+    """
+    p = A.shape[-1]
+    L = jnp.zeros_like(A)
+    for j in range(p):  # column j of L from the columns before it
+        d = A[j, j] - jnp.sum(L[j, :j] * L[j, :j])
+        ljj = jnp.sqrt(jnp.where(d > 0.0, d, jnp.nan))
+        col = (A[j + 1:, j] - L[j + 1:, :j] @ L[j, :j]) / ljj
+        L = L.at[j, j].set(ljj).at[j + 1:, j].set(col)
+    y = jnp.zeros_like(g)
+    for i in range(p):  # L y = g
+        y = y.at[i].set((g[i] - jnp.sum(L[i, :i] * y[:i])) / L[i, i])
+    x = jnp.zeros_like(g)
+    for i in reversed(range(p)):  # L^T x = y
+        x = x.at[i].set((y[i] - jnp.sum(L[i + 1:, i] * x[i + 1:])) / L[i, i])
+    return x
 
 
 def resolved(r, g, newton):
