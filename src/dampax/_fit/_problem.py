@@ -418,12 +418,8 @@ def full_starts():
     that fits that model itself too (``dampax fit``'s ranking, beside the fit): a new process
     then loads one program of the ansatz, not two (``dampax fit --example`` repeated
     2.64-2.74 -> 2.44-2.49 s), and a cold one compiles one."""
-    before = getattr(_FULL, "on", False)
-    _FULL.on = True
-    try:
+    with _set_here(_FULL):
         yield
-    finally:
-        _FULL.on = before
 
 
 #: set in a thread whose fits repeat another fit's window warnings (:func:`quiet_windows`)
@@ -437,13 +433,19 @@ def quiet_windows():
     numpy's floating-point warnings are off. Thread-local, unlike ``warnings.catch_warnings``,
     which changes every thread's filters: a ranking beside a fit (``dampax fit``) silenced the
     fit's own warnings."""
-    before = getattr(_QUIET, "on", False)
-    _QUIET.on = True
+    with _set_here(_QUIET), np.errstate(all="ignore"):
+        yield
+
+
+@contextlib.contextmanager
+def _set_here(flag: threading.local):
+    """``flag.on`` true in this thread for the block, as it was after."""
+    before = getattr(flag, "on", False)
+    flag.on = True
     try:
-        with np.errstate(all="ignore"):
-            yield
+        yield
     finally:
-        _QUIET.on = before
+        flag.on = before
 
 
 def prepare(trace_or_t, x, settings: Settings) -> Problem:
