@@ -182,7 +182,7 @@ def enable_compilation_cache() -> Path | None:
         return None
     _sweep(path)
     if secure_folder(dampax_cache_dir() / "exported"):
-        _sweep(dampax_cache_dir() / "exported")
+        _sweep(dampax_cache_dir() / "exported", kept=True)
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", _MIN_COMPILE_S)
     return path

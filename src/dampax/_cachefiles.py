@@ -100,13 +100,15 @@ def secure_folder(path: Path) -> bool:
     return True
 
 
-def _sweep(folder: Path) -> None:
+def _sweep(folder: Path, kept: bool = False) -> None:
     """Move aside what in JAX's cache folder is not a regular file of the user's own (a FIFO
     would hang JAX's read, a link could point anywhere, another user's file could hold any
     machine code) and temporary files that writers killed mid-write left (older than an hour).
     JAX reads its own entries without a check of its own; a damaged regular entry fails its
-    decompression and JAX compiles again."""
+    decompression and JAX compiles again. ``kept``: the folder of dampax's kept programs, whose
+    size is held to :func:`cache_limit` (:func:`_trim`)."""
     now = time.time()
+    files = []
     with contextlib.suppress(OSError), os.scandir(folder) as entries:
         for entry in entries:
             with contextlib.suppress(OSError):
@@ -120,10 +122,49 @@ def _sweep(folder: Path) -> None:
                     if problem is None and stale:  # its writer was killed mid-write
                         os.unlink(entry.path)
                         continue
+                    if problem is None:
+                        files.append((st.st_mtime, st.st_size, entry.path))
                 else:
                     problem = "it is not a regular file"
                 if problem:
                     _set_aside(Path(entry.path), problem)
+    if kept:
+        _trim(files, cache_limit())
+
+
+#: the default size of the kept programs' folder (``DAMPAX_CACHE_MAX_MB``)
+CACHE_MAX_MB = 2048
+
+
+def cache_limit() -> int:
+    """The most bytes the kept programs may take: ``DAMPAX_CACHE_MAX_MB`` (a number of MiB,
+    0 for no limit) or :data:`CACHE_MAX_MB`."""
+    text = os.environ.get("DAMPAX_CACHE_MAX_MB", "").strip()
+    try:
+        mb = float(text) if text else CACHE_MAX_MB
+    except ValueError:
+        _warn(f"dampax: DAMPAX_CACHE_MAX_MB={text!r} is not a number of MiB; "
+              f"using {CACHE_MAX_MB}")
+        mb = CACHE_MAX_MB
+    return int(mb * (1 << 20)) if mb > 0 else 0
+
+
+def _trim(files: list, limit: int) -> None:
+    """Where the (mtime, size, path) ``files`` take more than ``limit`` bytes (0: no limit),
+    remove the least recently used (a kept program's time is refreshed each time it is loaded,
+    :func:`_read_entry`) until they take at most 3/4 of it. Every change of dampax or of the
+    versions it runs on keeps a new set of programs (about 30 MB for a fit's); the old ones
+    are never read again, and grew this folder to 343 MB on a developer's machine. A program
+    removed while another process needs it is built again there."""
+    total = sum(size for _, size, _ in files)
+    if not limit or total <= limit:
+        return
+    for _, size, path in sorted(files):
+        if total <= limit * 3 // 4:
+            break
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+            total -= size
 
 
 def _set_aside(path: Path, reason: str) -> None:
@@ -260,6 +301,8 @@ def _read_entry(path: Path, digest: str) -> tuple[dict, bytes] | None:
     if not isinstance(header, dict) or header.get("digest") != digest:
         _set_aside(path, "it was built for other settings or versions")
         return None
+    with contextlib.suppress(OSError):  # used now: the last to go (_trim)
+        os.utime(path)
     return header, body[start + size:]
 
 

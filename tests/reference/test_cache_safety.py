@@ -306,3 +306,33 @@ def test_kept_arrays_are_verified_and_read_without_pickle(cache, tmp_path):
         out = _cache.kept_arrays("arrays", ("k", 1), make)
     assert len(calls) == 3 and not (tmp_path / "planted").exists()
     np.testing.assert_array_equal(out["x"], first["x"])
+
+
+def test_kept_programs_are_held_to_their_size_least_recently_used_first(cache, monkeypatch):
+    """The kept programs' folder grows by a set of programs at every change of dampax or its
+    versions; turning the cache on removes the least recently used files while they take more
+    than ``DAMPAX_CACHE_MAX_MB``, down to 3/4 of it. Loading a kept program refreshes its time:
+    an old file just used stays, files not read go first; 0 means no limit."""
+    exported = cache / "exported"
+    _call()  # a real kept program, then old files around it
+    program = _kept(cache, ".jaxexe")
+    now = time.time()
+    old = []
+    for i in range(6):  # 6 x 0.2 MiB, the oldest first
+        path = exported / f"old-{i}.jaxexe"
+        path.write_bytes(b"x" * (200 << 10))
+        os.utime(path, (now - 86400 * (10 - i),) * 2)
+        old.append(path)
+    os.utime(program, (now - 86400 * 30,) * 2)  # older than all of them ...
+    _call()  # ... but loaded now
+    assert program.stat().st_mtime > now - 60
+    monkeypatch.setenv("DAMPAX_CACHE_MAX_MB", "0")
+    _cache._sweep(exported, kept=True)
+    assert all(p.exists() for p in old)
+    monkeypatch.setenv("DAMPAX_CACHE_MAX_MB", "1")  # 1.2 MiB + the program > 1 MiB
+    _cache._sweep(exported, kept=True)
+    left = sorted(p.name for p in exported.glob("old-*"))
+    size = sum(p.stat().st_size for p in exported.iterdir() if p.is_file())
+    assert program.exists() and size <= 3 * (1 << 20) // 4, (left, size)
+    assert left == [f"old-{i}.jaxexe" for i in range(6 - len(left), 6)] and left  # newest kept
+    _call()  # the program still loads
