@@ -186,3 +186,15 @@ def test_full_starts_runs_the_ansatz_start_as_the_ansatz_own_fit(monkeypatch):
         other.join()
     one()
     assert seen == [True, False, True, True]
+
+
+def test_draws_that_never_moved_are_named_not_divided_by():
+    """A posterior whose draws of a constant never moved (sd 0, a ratio of 0 to the fit's
+    interval) is said so: ``dampax fit --example --posterior --draws 20 --warmup 20
+    --chains 1`` stopped with ZeroDivisionError in this line."""
+    from dampax._fit._posterior_result import narrow_text
+
+    text = narrow_text({"mu": 0.0, "D": 0.25, "b": 3e-14})
+    assert "D 4x" in text and "draws of mu, b never moved" in text and "mu 0" not in text
+    assert "never moved" not in narrow_text({"D": 0.25})
+    assert narrow_text({"mu": 0.0}).startswith("the draws of mu never moved")

@@ -161,9 +161,23 @@ class Posterior:
                            units={n: unit_of(n, self.units, self.per_mass) for n in names})
 
 
+#: a posterior sd below this fraction of the fit's interval is draws that never moved (a
+#: sampler stuck at its start), not a posterior narrower than the residuals allow
+STILL = 1e-6
+
+
 def narrow_text(narrow: dict) -> str:
-    """One line on the parameters whose posterior is narrower than the fit's intervals."""
-    items = ", ".join(f"{n} {1.0 / r:.3g}x" for n, r in narrow.items())
-    return (f"the posterior is narrower than the fit's interval ({items}): the AR(1) noise "
-            "model is too simple for these residuals, whose correlation the fit's intervals "
-            "allow for; quote the fit's intervals (conf_interval) for those")
+    """One line on the parameters whose posterior is narrower than the fit's intervals; a
+    ratio below :data:`STILL` (draws that never moved: ``dampax fit --example --posterior
+    --draws 20 --warmup 20 --chains 1`` divided by 0, and called D 3e13x narrower) is said
+    as such."""
+    items = ", ".join(f"{n} {1.0 / r:.3g}x" for n, r in narrow.items() if r > STILL)
+    still = [n for n, r in narrow.items() if not r > STILL]
+    parts = [f"the posterior is narrower than the fit's interval ({items}): the AR(1) noise "
+             "model is too simple for these residuals, whose correlation the fit's intervals "
+             "allow for; quote the fit's intervals (conf_interval) for those"] if items else []
+    if still:
+        parts.append(f"the draws of {', '.join(still)} never moved (the sampler's steps were "
+                     "refused or vanishingly small: too few warm-up steps to adapt them, "
+                     "num_warmup); these draws are not a posterior")
+    return "; ".join(parts)
