@@ -122,8 +122,8 @@ def _sweep(folder: Path, kept: bool = False) -> None:
                     if problem is None and stale:  # its writer was killed mid-write
                         os.unlink(entry.path)
                         continue
-                    if problem is None:
-                        files.append((st.st_mtime, st.st_size, entry.path))
+                    if problem is None:  # last used: its access time, set when loaded
+                        files.append((max(st.st_atime, st.st_mtime), st.st_size, entry.path))
                 else:
                     problem = "it is not a regular file"
                 if problem:
@@ -150,9 +150,10 @@ def cache_limit() -> int:
 
 
 def _trim(files: list, limit: int) -> None:
-    """Where the (mtime, size, path) ``files`` take more than ``limit`` bytes (0: no limit),
-    remove the least recently used (a kept program's time is refreshed each time it is loaded,
-    :func:`_read_entry`) until they take at most 3/4 of it. Every change of dampax or of the
+    """Where the (last used, size, path) ``files`` take more than ``limit`` bytes (0: no
+    limit), remove the least recently used (a kept program's access time is set each time it is
+    loaded, :func:`_read_entry`; its modification time stays) until they take at most 3/4 of
+    it. Every change of dampax or of the
     versions it runs on keeps a new set of programs (about 30 MB for a fit's); the old ones
     are never read again, and grew this folder to 343 MB on a developer's machine. A program
     removed while another process needs it is built again there."""
@@ -301,8 +302,8 @@ def _read_entry(path: Path, digest: str) -> tuple[dict, bytes] | None:
     if not isinstance(header, dict) or header.get("digest") != digest:
         _set_aside(path, "it was built for other settings or versions")
         return None
-    with contextlib.suppress(OSError):  # used now: the last to go (_trim)
-        os.utime(path)
+    with contextlib.suppress(OSError):  # used now: the last to go (_trim); read, not written
+        os.utime(path, ns=(time.time_ns(), os.stat(path).st_mtime_ns))
     return header, body[start + size:]
 
 

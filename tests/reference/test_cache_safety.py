@@ -311,8 +311,9 @@ def test_kept_arrays_are_verified_and_read_without_pickle(cache, tmp_path):
 def test_kept_programs_are_held_to_their_size_least_recently_used_first(cache, monkeypatch):
     """The kept programs' folder grows by a set of programs at every change of dampax or its
     versions; turning the cache on removes the least recently used files while they take more
-    than ``DAMPAX_CACHE_MAX_MB``, down to 3/4 of it. Loading a kept program refreshes its time:
-    an old file just used stays, files not read go first; 0 means no limit."""
+    than ``DAMPAX_CACHE_MAX_MB``, down to 3/4 of it. Loading a kept program sets its access time
+    (not its modification time): an old file just used stays, files not read go first; 0 means
+    no limit."""
     exported = cache / "exported"
     _call()  # a real kept program, then old files around it
     program = _kept(cache, ".jaxexe")
@@ -324,8 +325,9 @@ def test_kept_programs_are_held_to_their_size_least_recently_used_first(cache, m
         os.utime(path, (now - 86400 * (10 - i),) * 2)
         old.append(path)
     os.utime(program, (now - 86400 * 30,) * 2)  # older than all of them ...
-    _call()  # ... but loaded now
-    assert program.stat().st_mtime > now - 60
+    written = program.stat().st_mtime_ns
+    _call()  # ... but loaded now: its access time (read, not written)
+    assert program.stat().st_atime > now - 60 and program.stat().st_mtime_ns == written
     monkeypatch.setenv("DAMPAX_CACHE_MAX_MB", "0")
     _cache._sweep(exported, kept=True)
     assert all(p.exists() for p in old)
