@@ -153,10 +153,10 @@ def _trim(files: list, limit: int) -> None:
     """Where the (last used, size, path) ``files`` take more than ``limit`` bytes (0: no
     limit), remove the least recently used (a kept program's access time is set each time it is
     loaded, :func:`_read_entry`; its modification time stays) until they take at most 3/4 of
-    it. Every change of dampax or of the
-    versions it runs on keeps a new set of programs (about 30 MB for a fit's); the old ones
-    are never read again, and grew this folder to 343 MB on a developer's machine. A program
-    removed while another process needs it is built again there."""
+    it. Every change of dampax or of the versions it runs on keeps a new set of programs
+    (about 30 MB for a fit's); the old ones are never read again, and grew this folder to 343 MB
+    on a developer's machine. A program removed while another process needs it is built again
+    there."""
     total = sum(size for _, size, _ in files)
     if not limit or total <= limit:
         return
