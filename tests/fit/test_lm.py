@@ -181,3 +181,17 @@ def test_the_steps_make_no_lapack_call_under_a_wide_vmap():
 
     A, g = np.zeros((8192, 7, 7)), np.zeros((8192, 7))
     assert "lapack" not in jax.jit(jax.vmap(both)).lower(A, g).as_text()
+
+
+def test_the_small_factorizations_do_not_grow_with_the_parameters():
+    """The Cholesky solve and the Householder R run in loops of p turns, not unrolled: their
+    programs hold as many operations for 7 parameters as for 2 (every fit's program holds
+    them; a kept program loads in time proportional to its size, issue 36)."""
+    from dampax._fit._linalg import householder_r
+    from dampax._fit._lm import spd_solve
+
+    def ops(fn, *shapes):
+        return jax.jit(fn).lower(*(np.ones(s) for s in shapes)).as_text().count(" = ")
+
+    assert ops(spd_solve, (7, 7), (7,)) == ops(spd_solve, (2, 2), (2,))
+    assert ops(householder_r, (300, 7)) == ops(householder_r, (300, 2))

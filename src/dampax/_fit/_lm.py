@@ -114,18 +114,32 @@ def spd_solve(A, g):
     as LAPACK's factor does.
     """
     p = A.shape[-1]
-    L = jnp.zeros_like(A)
-    for j in range(p):  # column j of L from the columns before it
-        d = A[j, j] - jnp.sum(L[j, :j] * L[j, :j])
-        ljj = jnp.sqrt(jnp.where(d > 0.0, d, jnp.nan))
-        col = (A[j + 1:, j] - L[j + 1:, :j] @ L[j, :j]) / ljj
-        L = L.at[j, j].set(ljj).at[j + 1:, j].set(col)
-    y = jnp.zeros_like(g)
-    for i in range(p):  # L y = g
-        y = y.at[i].set((g[i] - jnp.sum(L[i, :i] * y[:i])) / L[i, i])
-    x = jnp.zeros_like(g)
-    for i in reversed(range(p)):  # L^T x = y
-        x = x.at[i].set((y[i] - jnp.sum(L[i + 1:, i] * x[i + 1:])) / L[i, i])
+    idx = jnp.arange(p)
+
+    # each in a loop of p turns, not unrolled: the same arithmetic in a far smaller program
+    # (every fit's program holds two of these solves; a kept program loads in time
+    # proportional to its size)
+    def column(j, LS):  # column j of L, and the trailing matrix less its outer product
+        L, S = LS
+        d = S[j, j]
+        c = jnp.where(idx >= j, S[:, j] / jnp.sqrt(jnp.where(d > 0.0, d, jnp.nan)), 0.0)
+        return L.at[:, j].set(c), S - c[:, None] * c[None, :]
+
+    L, _ = jax.lax.fori_loop(0, p, column, (jnp.zeros_like(A), A))
+
+    def forward(i, yr):  # L y = g
+        y, r = yr
+        yi = r[i] / L[i, i]
+        return y.at[i].set(yi), r - L[:, i] * yi
+
+    def backward(k, xr):  # L^T x = y
+        x, r = xr
+        i = p - 1 - k
+        xi = r[i] / L[i, i]
+        return x.at[i].set(xi), r - L[i, :] * xi
+
+    y, _ = jax.lax.fori_loop(0, p, forward, (jnp.zeros_like(g), g))
+    x, _ = jax.lax.fori_loop(0, p, backward, (jnp.zeros_like(g), y))
     return x
 
 
