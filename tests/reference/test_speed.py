@@ -526,6 +526,57 @@ def test_a_kept_program_is_loaded_by_whoever_needs_it_first(monkeypatch):
     assert mine.result() == threading.current_thread().name
 
 
+def test_two_threads_that_need_a_program_at_once_build_it_once(monkeypatch):
+    """Two threads that call the same program at once (``dampax fit``'s model ranking beside
+    its fit) share one build: a kept program is loaded once, a new one traced once; both get
+    its numbers. The ranking loaded the approximate model's program a second time beside the
+    loader thread before (1.3 s of CPU on 2 cores)."""
+    import threading
+    import time
+
+    from dampax import _cache
+
+    x = jnp.linspace(0.0, 1.0, 7)
+    shift = float(time.time_ns() % 1000039)
+    traced = []
+
+    def fn(a):
+        traced.append(1)
+        time.sleep(0.2)  # (tracing) long enough for the other thread to ask meanwhile
+        return jnp.cosh(a) + shift
+
+    def both():
+        got, start = [], threading.Barrier(2)
+
+        def call():
+            start.wait(10)
+            got.append(np.asarray(_cache.call_cached("test-once", shift, fn, x)))
+
+        threads = [threading.Thread(target=call, daemon=True) for _ in range(2)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+        assert len(got) == 2
+        np.testing.assert_array_equal(got[0], got[1])
+        return got[0]
+
+    first = both()  # no program yet: traced and compiled once
+    assert len(traced) == 1
+    np.testing.assert_allclose(first, np.cosh(np.asarray(x)) + shift, rtol=1e-15)
+    monkeypatch.setattr(_cache, "_EXECUTABLES", {})  # a new process: the kept file is left
+    loads, load = [], _cache._load_executable
+
+    def slow_load(*args, **kwargs):
+        loads.append(1)
+        time.sleep(0.2)
+        return load(*args, **kwargs)
+
+    monkeypatch.setattr(_cache, "_load_executable", slow_load)
+    np.testing.assert_array_equal(both(), first)
+    assert len(loads) == 1 and len(traced) == 1
+
+
 def test_jax_cache_does_not_write_the_programs_dampax_keeps(monkeypatch):
     """A program kept as its own executable file is not written to JAX's persistent cache
     too (``_cache._fresh_compilation(kept=True)``: a second serialized copy, and one a later
