@@ -679,6 +679,16 @@ def _position_unit(result) -> str:
     return getattr(result, "units", None) or "m"
 
 
+def warm_figures() -> None:
+    """Import matplotlib's Agg canvas and load its font list (0.3-0.4 s), for a command that
+    draws later: run beside computing that leaves a core free (``dampax errormap``)."""
+    from matplotlib import font_manager
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+    from matplotlib.figure import Figure  # noqa: F401
+
+    font_manager.findfont("DejaVu Sans")
+
+
 def plot_fit(result, path, *, title: str | None = None, dpi: int = 110):
     """Save the figure of a fit: data, fit, envelope and sticking band above, residuals below.
 

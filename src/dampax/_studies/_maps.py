@@ -551,7 +551,6 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         dampax._studies._distributed.DistributedError: a multi-process run failed: a process died,
             failed or timed out (nothing is returned).
     """
-    import xarray as xr
     from tqdm import tqdm  # plain text bar: tqdm.auto warns in notebooks without ipywidgets
 
     axes = {"d0_ratio": _axis("d0_ratio", d0_ratio, ratio=True),
@@ -730,6 +729,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
         "window": "the reference motion up to its halt, or until its energy falls below "
                   f"{ENERGY_FLOOR:g} E0 when it does not halt; at most `periods` periods",
     }
+    import xarray as xr  # (here, not first: ``dampax errormap`` imports it beside the map)
+
     ds = xr.Dataset(data, coords=coords, attrs=attrs)
     for name in ds.coords:  # CF: coordinate variables carry no _FillValue (ds.to_netcdf(path))
         ds[name].encoding["_FillValue"] = None
