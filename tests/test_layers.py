@@ -86,7 +86,7 @@ LAYERS = (
     ("dampax._reference",),
     ("dampax._solve",),
     ("dampax._studies",),
-    ("dampax._plot",),
+    ("dampax._plot", "dampax._plot_fit"),
     ("dampax._fit",),
     ("dampax._paper",),
     ("dampax._cli",),

@@ -1,4 +1,4 @@
-"""The fit figure (``dampax._plot.plot_fit``, issue 36 item 5): axes with units (t in s, positions
+"""The fit figure (``dampax._plot_fit.plot_fit``, issue 36 item 5): axes with units (t in s,
 in the fit's unit, per-mass fits too), and the sticking band that the motion has: the static one
 |k y + k3 y^3| <= mu_s m g where mu_s is set (held or fitted), the kinetic one (mu) otherwise,
 named in the legend. The band's numbers are checked against hand-computed ones (a root of the
@@ -14,7 +14,7 @@ from scipy.optimize import brentq
 
 import dampax as dp
 from dampax._fit._result import FitResult
-from dampax._plot import fit_figure, plot_fit, plot_joint_fit
+from dampax._plot_fit import fit_figure, plot_fit, plot_joint_fit
 
 M, K, G = 1.0, 30.0, 9.81
 W0 = math.sqrt(K / M)

@@ -36,7 +36,7 @@ from .._fit import (
 )
 from .._io import write_text
 from .._oscillator import Oscillator
-from .._plot import plot_fit, plot_joint_fit
+from .._plot_fit import plot_fit, plot_joint_fit
 from .._trace import load_trace
 from ._common import PROG, beside, compile_clock, error, fmt, prepare_out_dir, split_names
 

@@ -10,7 +10,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .._plot import plot_joint_fit
+from .._plot_fit import plot_joint_fit
 from . import _intervals
 from ._joint_problem import (
     JointArrays,
@@ -251,7 +251,7 @@ class JointResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: each run's data and joint fit above its residuals, in s and the fit's
-        units (``dampax._plot.plot_joint_fit``).
+        units (``dampax._plot_fit.plot_joint_fit``).
 
         Returns:
             The path written.

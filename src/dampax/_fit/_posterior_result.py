@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._plot import plot_corner
+from .._plot_fit import plot_corner
 from ._mcmc import ess_bulk, ess_tail, rhat, write_inference_data
 from ._params import (
     DAMPING,
@@ -151,7 +151,7 @@ class Posterior:
 
     def corner(self, path, *, names=None) -> Path:
         """Save a corner plot (pairwise scatter and histograms) of the damping constants (or
-        ``names``); ``dampax._plot.plot_corner``."""
+        ``names``); ``dampax._plot_fit.plot_corner``."""
 
         if names is None:  # of a joint posterior: the shared constants
             names = [n for n in self.free if n in self.draws.data_vars

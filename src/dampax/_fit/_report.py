@@ -1,7 +1,7 @@
 """The text report and the figure of a single fit (:class:`~dampax._fit._result.FitResult`):
 :func:`fit_report`, lmfit's fit_report in sections (the verdict, the model, the statistics,
 the variables, the derived quantities, the intervals, the correlations, the notes), and
-(the figure is ``dampax._plot.plot_fit``'s).
+(the figure is ``dampax._plot_fit.plot_fit``'s).
 """
 
 from __future__ import annotations

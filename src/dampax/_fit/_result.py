@@ -17,7 +17,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-from .._plot import plot_fit
+from .._plot_fit import plot_fit
 from . import _intervals
 from ._assess import Inputs, assess
 from ._checks import data_rows
@@ -233,7 +233,7 @@ class FitResult:
 
     def plot(self, path, *, title: str | None = None):
         """Save a figure: data, fit, envelope and sticking band above, residuals below, the
-        axes in s and the fit's units (``dampax._plot.plot_fit``; the static band where mu_s
+        axes in s and the fit's units (``dampax._plot_fit.plot_fit``; the static band where mu_s
         is set).
 
         Arguments:
