@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
                            turning_points=args.turning_points, **MODELS[k].solve_options)
 
     # the models side by side: each loads (or compiles) its own program with Python's lock
-    # released, on a core of its own (a repeated command: 3.7 -> 2.9 s on 2 cores)
+    # released, on a core of its own (a repeated command: 3.33 -> 2.96 s on 2 cores)
     from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=len(models), thread_name_prefix="dampax-cli") as pool:
