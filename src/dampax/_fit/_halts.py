@@ -19,7 +19,7 @@ import numpy as np
 
 from .._oscillator import Oscillator
 from .._solve import default_swings, prepare_reference, solve
-from ._core import FIT_RESULTS
+from ._core import FIT_MODELS, FIT_RESULTS
 from ._params import varied_names
 from ._problem import predicted_start
 from ._profile import LR_Z
@@ -313,6 +313,29 @@ def first_halt_start(params, t, constants, motion=None, mu=None):
     sign = math.copysign(1.0, v0) if v0 != 0.0 else -math.copysign(1.0, x0)
     shift = -sign * (mu - float(p["mu"])) * constants[1] / (w0 * w0)
     return params._replace(mu=mu, x0=x0 + shift, offset=float(p["offset"]) - shift)
+
+
+def held_mu_starts(problem, best, model: str, value, own: bool = True) -> list:
+    """The starts of a fit of mu's profile besides the linearised one (``_problem.
+    predicted_start``), with mu held at ``value``:
+
+    - above the optimum's mu, for the exact model with the offset free and a motion that
+      halts at its first or second turning point, the motion that halts at the first, with
+      the fit's own first swing (:func:`first_halt_start`). Over that swing friction moves only
+      the centre, which the offset takes up, so mu's profile above a halt's threshold is flat
+      or nearly (exactly without k3); the linearised start follows the optimum's side of that
+      threshold and stops far up (wide draw 41: the profile's fit at 1.05 mu 94 noise
+      variances up, from this start 1.0, the truth 31 interval sd away);
+    - (``own``) the fit's own values, mu moved: where the block sticks sets basins apart, and
+      the linearised start can end in another one (calibrated seed 34 draw 36: 3.2 noise
+      variances up at 2 sd from there, 0.5 from here; the linearised one said the intervals
+      hold, and the truth lay 3.5 half-widths outside mu's 99 % interval of a success).
+    """
+    out = []
+    if problem.vary.offset and FIT_MODELS[model].integrates and float(value) > float(best.mu):
+        out.append(first_halt_start(best, problem.data.t, problem.consts.motion,
+                                    mu=float(value)))
+    return [q for q in out + ([best._replace(mu=float(value))] if own else []) if q is not None]
 
 
 def _noise_variance(problem, best) -> float:

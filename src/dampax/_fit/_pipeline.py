@@ -18,8 +18,9 @@ Stages, in order (:func:`run`):
    neighbouring turning points (``_halts.search_other_halts``);
 6. **assess**: the result and its checks (``_result.build_result``), with the profile refits
    of the intervals' checks (:func:`profile_refit`) where the plan asks for them;
-6b. **from the bound**: where a test at the bound (a constant held at 0) cost less, the fit
-   again from there (:func:`from_the_bound`); :func:`finished` runs 6-7 on :func:`fitted`'s;
+6b. **from the bound**: where a test at the bound (a constant held at 0) or a profile's point
+   cost less, the fit again from there (:func:`from_the_bound`), its neighbouring halts
+   searched again; :func:`finished` runs 6-7 on :func:`fitted`'s;
 6c. **search on**: where the fit failed with structured residuals, each free damping constant
    held at 0, then a batch of the exact model's starts around the optimum, the neighbouring
    halts of a lower cost searched again (:func:`search_on`);
@@ -48,7 +49,7 @@ from ._core import FIT_MODELS, FIT_RESULTS, is_code
 from ._curves import prepare_amplitude_phase
 from ._halts import (
     above_mu_s,
-    first_halt_start,
+    held_mu_starts,
     mu_profile,
     prepare_motion,
     search_other_halts,
@@ -242,10 +243,12 @@ def neighbouring_halts(problem: Problem, plan: Plan, state: Fit) -> tuple[Fit, d
 
 def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, start=None,
                   batch: bool = False, values: bool = False):
-    """The cost of the fit with ``name`` held at ``value`` (the intervals' checks), from the
-    fit's values with ``start``'s in place; ``batch``: first a batch of jittered starts
-    around there (the first model's batch program), the best one polished; ``values``:
-    (the cost, {name: value} of the held fit's varied parameters)."""
+    """The cost of the fit with ``name`` held at ``value`` (the intervals' checks): the lowest
+    of the held fits from the linearised start (``start``: the fit's values with its values in
+    place) and, for mu, from ``_halts.held_mu_starts`` (the fit's own values, past the first
+    halt's threshold); ``batch``: from a batch of jittered starts around there (the first
+    model's batch program), the best one polished; ``values``: (the cost, {name: value} of the
+    held fit's varied parameters)."""
     held = {name: float(value), **{k: float(v) for k, v in (start or {}).items()}}
     best = state.best.params
     p = best._replace(**held) if start else predicted_start(state.best, name, value)
@@ -258,32 +261,14 @@ def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, st
         p = p._replace(**{k: float(getattr(p, k)) for k in problem.settings.free if k != name},
                        **{k: getattr(best, k) for k in ("w0", "offset", "x0", "v0")})
         p = p._replace(**{name: float(value)})
-    out = problem.holding(name).solve(p, state.last.model, state.last.fs, like=state.last).out
-    swing = _swing_start(problem, state, name, value) if not batch else None
-    if swing is not None:  # beyond the threshold of the first halt (wide draw 41)
-        other = problem.holding(name).solve(swing, state.last.model, state.last.fs,
-                                            like=state.last).out
-        out = other if float(other.chisqr) < float(out.chisqr) else out
+    starts = [p] + (held_mu_starts(problem, best, state.last.model, value, own=not start)
+                    if name == "mu" and not batch else [])
+    out = min((problem.holding(name).solve(q, state.last.model, state.last.fs, like=state.last)
+               .out for q in starts), key=lambda o: float(o.chisqr))
     if not values:
         return float(out.chisqr)
     return float(out.chisqr), {k: float(getattr(out.params, k))
                                for k in varied_names(problem.vary)}
-
-
-def _swing_start(problem: Problem, state: Fit, name: str, value):
-    """A second start of a profile's fit with mu held above the optimum's, for the exact model
-    with the offset free and a motion that halts at its first or second turning point: the
-    motion that halts at the first, with the fit's own first swing (``_halts.
-    first_halt_start``). Over that swing friction moves only the centre, which the offset
-    takes up, so mu's profile above a halt's threshold is flat or nearly (exactly without
-    k3); the linearised start follows the optimum's side of that threshold and stops far up
-    (wide draw 41: the profile's fit at 1.05 mu 94 noise variances up, from this start 1.0,
-    the truth 31 interval sd away). None where it does not apply."""
-    c, best = problem.consts, state.best.params
-    if not (name == "mu" and problem.vary.offset and FIT_MODELS[state.last.model].integrates
-            and float(value) > float(best.mu)):
-        return None
-    return first_halt_start(best, problem.data.t, c.motion, mu=float(value))
 
 
 #: a free damping constant within this many standard errors of 0 is not told from its bound
@@ -336,19 +321,20 @@ def assess(problem: Problem, plan: Plan, state: Fit, *, exact: bool = False,
            lower: list | None = None) -> FitResult:
     """Stage 6: the result and its checks (``_result.build_result``; ``exact``: the
     residuals are eq. 3's, ``_assess.Inputs``); ``lower`` collects (cost, name, values) of
-    the fits with a damping constant held at 0 that cost less than the fit (the tests at the
-    bound: :func:`from_the_bound`)."""
+    the held fits of the checks that cost less than the fit: a damping constant held at 0
+    (the tests at the bound), a profile's point by more than a step that decides nothing
+    (:func:`from_the_bound`)."""
     s, data = problem.settings, problem.data
-    profile = None
+    profile, c = None, float(state.best.chisqr)
     if s.loss == "linear" and plan.profile_checks:
         refit = functools.partial(profile_refit, problem, state, first_model(problem, plan))
+        floor = c - NEWTON_TOL * c / max(problem.n - int(sum(map(bool, problem.vary))), 1)
 
         def profile(name, value, *args, **kwargs):
-            out = refit(name, value, *args, **kwargs)
-            if lower is not None and kwargs.get("values") and float(value) == 0.0 and \
-                    out[0] < float(state.best.chisqr):
+            out = refit(name, value, *args, **{**kwargs, "values": True})
+            if lower is not None and out[0] < (c if float(value) == 0.0 else floor):
                 lower.append((out[0], name, out[1]))
-            return out
+            return out if kwargs.get("values") else out[0]
     res = build_result(state.best, FitContext(
         model=s.model, free=s.free, vary=problem.vary, consts=problem.consts, t=data.t,
         x=data.x, loss=s.loss, optimizer=s.optimizer, f_scale=state.last.fs,
@@ -363,20 +349,24 @@ def assess(problem: Problem, plan: Plan, state: Fit, *, exact: bool = False,
 
 
 def from_the_bound(problem: Problem, state: Fit, lower: list) -> Fit | None:
-    """Stage 6b: a fit with a damping constant held at 0 (the tests at the bound) costs less
-    than the optimum: the optimizer stopped near that constant's floor, where its log-step
-    stalls (wide draw 2 of fit_calibration.py seed 9: mu 8.6e-7, 0.45 of its floor, the
-    truth 0, the held fit 23 noise variances lower). The fit again from the held fit's values
-    with the constant free and started at its lower bound (``_core.Tuning.at_bound``); the
-    new optimum where it costs less, else None."""
+    """Stage 6b: a held fit of the checks costs less than the optimum. A damping constant
+    held at 0 (the tests at the bound): the optimizer stopped near its floor, where its
+    log-step stalls (wide draw 2 of fit_calibration.py seed 9: mu 8.6e-7, 0.45 of its floor,
+    the truth 0, the held fit 23 noise variances lower); a profile's point: the optimum was a
+    local one (calibrated seed 34 draw 43: mu 0.43 of the truth, mu's and b's held fits 6-10
+    noise variances lower). The fit again from the lowest held fit's values with the
+    constant free (at 0: started at its lower bound, ``_core.Tuning.at_bound``); the new
+    optimum where it costs less, else None."""
     cost, name, point = min(lower, key=lambda item: item[0])
-    p = state.best.params._replace(**{**{k: float(v) for k, v in point.items()}, name: 0.0})
-    last = problem.solve(p, state.last.model, state.last.fs, like=state.last, at_bound=True)
+    p = state.best.params._replace(**{k: float(v) for k, v in point.items()})
+    value = float(getattr(p, name))
+    last = problem.solve(p, state.last.model, state.last.fs, like=state.last,
+                         at_bound=value == 0.0)
     if not float(last.out.chisqr) < float(state.best.chisqr):
         return None
     was = lower_cost(0.5 * cost, 0.5 * float(state.best.chisqr))
-    note = (f"with {name} held at 0 the cost was lower ({was}): fitted again from there, "
-            f"{name} started at its bound")
+    note = (f"with {name} held at {value:.4g} the cost was lower ({was}): fitted again from "
+            "there" + (f", {name} started at its bound" if value == 0.0 else ""))
     return Fit(last.out, last, state.starts, state.notes + (note,), state.search)
 
 
@@ -487,6 +477,8 @@ def finished(problem: Problem, plan: Plan, state: Fit, others: dict) -> FitResul
     lower = []
     res = assess(problem, plan, state, lower=lower)
     moved = from_the_bound(problem, state, lower) if lower else None
+    if moved is not None:  # the motions that halt next to the new optimum's halt
+        moved, others = neighbouring_halts(problem, plan, moved)
     if not lower and (found := search_on(problem, plan, state, res)) is not None:
         moved, others = found
     if moved is not None:
