@@ -338,20 +338,20 @@ def held_mu_starts(problem, best, model: str, value, own: bool = True) -> list:
     return [q for q in out + ([best._replace(mu=float(value))] if own else []) if q is not None]
 
 
-def _noise_variance(problem, best) -> float:
+def noise_variance(problem, best) -> float:
     """The noise variance of the optimum's residuals (its chi-square per degree of freedom)."""
     return float(best.chisqr) / max(problem.n - int(sum(bool(v) for v in problem.vary)), 1)
 
 
 def _near(out, best, problem) -> bool:
     """Whether a fit's cost is within :data:`NEAR_RISE` noise variances of the optimum's."""
-    return float(out.chisqr) - float(best.chisqr) < NEAR_RISE * _noise_variance(problem, best)
+    return float(out.chisqr) - float(best.chisqr) < NEAR_RISE * noise_variance(problem, best)
 
 
 def _far(problem, best) -> float:
     """The chi-square above which a fit of the search gives up after ``_lm.GIVE_UP_AFTER``
     steps: :data:`GIVE_UP_RISE` noise variances above the optimum's."""
-    return float(best.chisqr) + GIVE_UP_RISE * _noise_variance(problem, best)
+    return float(best.chisqr) + GIVE_UP_RISE * noise_variance(problem, best)
 
 
 def _unfinished(out) -> bool:

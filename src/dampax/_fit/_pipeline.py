@@ -51,6 +51,7 @@ from ._halts import (
     above_mu_s,
     held_mu_starts,
     mu_profile,
+    noise_variance,
     prepare_motion,
     search_other_halts,
     with_static_halt,
@@ -328,7 +329,7 @@ def assess(problem: Problem, plan: Plan, state: Fit, *, exact: bool = False,
     profile, c = None, float(state.best.chisqr)
     if s.loss == "linear" and plan.profile_checks:
         refit = functools.partial(profile_refit, problem, state, first_model(problem, plan))
-        floor = c - NEWTON_TOL * c / max(problem.n - int(sum(map(bool, problem.vary))), 1)
+        floor = c - NEWTON_TOL * noise_variance(problem, state.best)
 
         def profile(name, value, *args, **kwargs):
             out = refit(name, value, *args, **{**kwargs, "values": True})
