@@ -19,6 +19,11 @@ from ._cache import enable_compilation_cache as _enable_compilation_cache  # noq
 
 _enable_compilation_cache()
 
+from ._cache import exported_dir as _exported_dir  # noqa: E402
+from ._cachethreads import start_prefetch as _start_prefetch  # noqa: E402
+
+_start_prefetch(_exported_dir)  # the console script's command: its programs load meanwhile
+
 from ._models._registry import MODELS as MODELS  # noqa: E402
 from ._models._registry import Model as Model  # noqa: E402
 from ._models._solution import RESULTS as RESULTS  # noqa: E402

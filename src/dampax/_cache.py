@@ -110,6 +110,7 @@ from ._cachethreads import _end_turn as _end_turn
 from ._cachethreads import _loader as _loader
 from ._cachethreads import _pool as _pool
 from ._cachethreads import _turn as _turn
+from ._cachethreads import note_used, prefetched
 
 _OFF = ("0", "off", "false", "no")
 _MIN_COMPILE_S = 0.5
@@ -342,17 +343,20 @@ def _load_executable(where, devices=None):
     if where is None:
         return None
     path, digest = where
-    entry = _read_entry(path, digest)
+    ahead = prefetched(path, digest) if devices is None else None
+    entry = (ahead[0], b"") if ahead is not None else _read_entry(path, digest)
     if entry is None:
         return None
     header, payload = entry
     try:
         _prepare_loading()
         in_tree, out_tree, extra = _load_tree(header["trees"].encode())
-        executable = load_executable_bytes(payload, in_tree, out_tree, devices)
+        executable = load_executable_bytes(payload, in_tree, out_tree, devices,
+                                           ahead[1] if ahead is not None else None)
     except Exception:  # noqa: BLE001 - verified, yet not loadable here: the kept program
         _set_aside(path, "it could not be loaded on this machine")
         return None
+    note_used(path)
     return executable, (extra if header.get("extra") else None)
 
 
@@ -437,6 +441,7 @@ def _keep_executable(where, executable, extra=None) -> None:
     kept = executable_header(executable, extra)
     if kept is not None:
         _write_entry(where[0], where[1], *kept)
+        note_used(where[0])
 
 
 _EXECUTABLES: dict = {}  # (name, repr(key), specs) -> (compiled, treedef, static)

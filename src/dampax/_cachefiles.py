@@ -275,9 +275,11 @@ def _read_regular(path: Path, *, private: bool = False) -> bytes | None:
         os.close(fd)
 
 
-def _read_entry(path: Path, digest: str) -> tuple[dict, bytes] | None:
+def _read_entry(path: Path, digest: str | None) -> tuple[dict, bytes] | None:
     """The (header, payload) of a cache file written by :func:`_write_entry` for the program
-    of ``digest``, after its checks; None when absent or refused (set aside)."""
+    of ``digest``, after its checks; None when absent or refused (set aside). ``digest``
+    None: a verified file of any program (its header's digest is compared by the caller
+    before the program is used: ``dampax._cachethreads.prefetched``)."""
     folder = path.parent
     if not path.exists() and not path.is_symlink():
         return None
@@ -299,7 +301,7 @@ def _read_entry(path: Path, digest: str) -> tuple[dict, bytes] | None:
         header = json.loads(body[start:start + size].decode())
     except ValueError:
         header = None
-    if not isinstance(header, dict) or header.get("digest") != digest:
+    if not isinstance(header, dict) or (digest is not None and header.get("digest") != digest):
         _set_aside(path, "it was built for other settings or versions")
         return None
     with contextlib.suppress(OSError):  # used now: the last to go (_trim); read, not written
@@ -455,15 +457,24 @@ def _restricted_unpickler():
     return Unpickler
 
 
-def load_executable_bytes(payload: bytes, in_tree, out_tree, devices=None):
+def load_executable_bytes(payload: bytes, in_tree, out_tree, devices=None, loaded=None):
     """``serialize_executable.deserialize_and_load`` through :func:`_restricted_unpickler`
-    (call only with bytes whose HMAC verified)."""
+    (call only with bytes whose HMAC verified); ``loaded``: what :func:`executable_parts`
+    already made of ``payload`` (then it is not read again)."""
+    executable, args_info_flat, no_kwargs = loaded or executable_parts(payload, devices)
+    return jax.stages.Compiled(executable, [], in_tree.unflatten(args_info_flat),
+                               out_tree, no_kwargs=no_kwargs)
+
+
+def executable_parts(payload: bytes, devices=None):
+    """(loaded executable, flat argument info, no_kwargs) of a kept executable's bytes: the
+    part of :func:`load_executable_bytes` that needs no class of dampax (XLA rebuilding the
+    program, with Python's lock released), so it may run while dampax imports."""
     backend = jax.devices()[0].client
     devices = devices or backend.devices()
     unloaded, args_info_flat, no_kwargs = _restricted_unpickler()(
         io.BytesIO(payload), backend, devices).load()
-    return jax.stages.Compiled(unloaded.load(), [], in_tree.unflatten(args_info_flat),
-                               out_tree, no_kwargs=no_kwargs)
+    return unloaded.load(), args_info_flat, no_kwargs
 
 
 def executable_header(executable, extra=None) -> tuple[dict, bytes] | None:

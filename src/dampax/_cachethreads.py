@@ -1,13 +1,36 @@
 """The threads that build dampax's kept programs (``_cache``): the tracing turn, the pool that
 compiles ahead of a program's first call, the loader of kept executables and its loads,
-claimed by whoever needs one first."""
+claimed by whoever needs one first, and a repeated command's programs loaded while dampax
+imports.
+
+**Loaded while dampax imports.** Loading a kept executable is XLA rebuilding its program
+(0.1-0.4 s each, Python's lock released), and a repeated ``dampax fit --example`` loads six,
+most while its fit waits; ``import dampax`` before it is Python on one core, with the other
+idle. So the console script (``dampax_cli.main``) names the command line it runs
+(``dampax_cli.COMMAND``) before it imports dampax, and dampax's import starts one thread
+(:func:`start_prefetch`) that loads the executables the last run of the same command line
+used, in the order it used them. The list is a verified cache file like every other
+(``command-<digest>.loads`` in the folder of kept programs: ``_cachefiles._read_entry``, HMAC
+under the user's key) and names files of that folder only, each verified before it is read, as
+always. A program loaded ahead is used only where its file's digest is the one its caller asks
+for (:func:`prefetched`), so a list that names other programs (other data, another version of
+dampax) costs that thread's work and nothing else; the list is rewritten when a command used
+other programs (:func:`recording`). Library use (``import dampax`` in Python) starts nothing.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import functools
 import gc
+import hashlib
+import json
+import re
+import sys
 import threading
+from pathlib import Path
+
+from ._cachefiles import _read_entry, _write_entry, executable_parts
 
 #: the tracing turn (:func:`_turn`): one thread traces and lowers a program at a time
 _TRACING = threading.Lock()
@@ -99,3 +122,125 @@ class _Claimable:
         """The loaded (executable, treedef, static): loaded here if no thread has begun."""
         self.run()
         return self._future.result()
+
+
+# ----------------------------------------------------------------------------------------------
+# a repeated command's programs, loaded while dampax imports (see the module docstring)
+
+#: a name the list may hold: a kept executable of the same folder
+_NAME = re.compile(r"[A-Za-z0-9_.-]{1,200}\.jaxexe")
+#: the most programs a list names (a command uses fewer than ten)
+MAX_NAMES = 32
+
+#: file path -> its load (:class:`_Claimable` of (header, parts) or None), until taken
+_PENDING: dict[str, _Claimable] = {}
+#: the kept executables this process loaded or wrote, in order (file names)
+_USED: list[str] = []
+#: the names the list of this command held when it was read
+_LISTED: list[list[str]] = []
+#: set when the command has ended: what is not loaded yet is not loaded
+_DONE = threading.Event()
+
+
+def _command() -> tuple[str, ...] | None:
+    """The command line the console script runs (``dampax_cli.COMMAND``), or None."""
+    command = getattr(sys.modules.get("dampax_cli"), "COMMAND", None)
+    return tuple(command) if isinstance(command, (list, tuple)) else None
+
+
+def _list_file(folder: Path, command) -> tuple[Path, str]:
+    """(path, digest) of the list of the programs ``command`` used."""
+    digest = hashlib.sha256(json.dumps(["loads", list(command)]).encode()).hexdigest()
+    return folder / f"command-{digest[:32]}.loads", digest
+
+
+def _load(path: Path):
+    """(header, executable parts) of a verified kept executable, or None."""
+    entry = _read_entry(path, None)
+    if entry is None or entry[0].get("kind") != "jaxexe":
+        return None
+    try:
+        return entry[0], executable_parts(entry[1])
+    except Exception:  # noqa: BLE001 - not loadable here: its caller loads (and sets aside)
+        return None
+
+
+def start_prefetch(folder_of) -> None:
+    """Start loading, in one thread, the kept executables the last run of the console
+    script's command line used (nothing outside it, or without a cache folder). LAPACK's
+    pointers are set later, before the first program runs (``dampax._cache._load_executable``):
+    scipy's import here would take Python's lock from dampax's import.
+
+    Arguments:
+        folder_of: returns the folder of kept programs, or None
+            (``dampax._cache.exported_dir``); called only for a command of the console script.
+    """
+    command = _command()
+    folder = None if command is None else folder_of()
+    if folder is None:
+        return
+    path, digest = _list_file(folder, command)
+    entry = _read_entry(path, digest)
+    names = entry[0].get("names") if entry is not None else None
+    if not isinstance(names, list):
+        return
+    names = [n for n in names[:MAX_NAMES] if isinstance(n, str) and _NAME.fullmatch(n)]
+    _LISTED.append(names)
+    _DONE.clear()
+    loads = [(str(folder / n), _Claimable(_load, folder / n)) for n in names]
+    _PENDING.update(loads)
+
+    def run():
+        for _, load in loads:
+            if _DONE.is_set():
+                return
+            load.run()
+
+    threading.Thread(target=run, name="dampax-prefetch", daemon=True).start()
+
+
+def prefetched(path: Path, digest: str):
+    """(header, executable parts) of ``path`` loaded ahead (waiting for its load if it has
+    begun, loading it here if not) when the file holds the program of ``digest``; else
+    None."""
+    load = _PENDING.pop(str(path), None)
+    if load is None:
+        return None
+    got = load.result()
+    if got is None or got[0].get("digest") != digest:
+        return None
+    return got
+
+
+def note_used(path: Path) -> None:
+    """Note that this process loaded or wrote the kept executable ``path``."""
+    if path.name not in _USED:
+        _USED.append(path.name)
+
+
+@contextlib.contextmanager
+def recording(folder_of):
+    """Around a command of the console script: at its end, the list of the kept executables
+    it used (when other than the list read at its start) is written for its next run, and
+    the programs loaded ahead that it did not use are dropped.
+
+    Arguments:
+        folder_of: as for :func:`start_prefetch`.
+    """
+    del _USED[:]
+    try:
+        yield
+    finally:
+        _DONE.set()
+        _PENDING.clear()
+        _write_list(_command(), _USED[:MAX_NAMES], folder_of)
+
+
+def _write_list(command, names: list[str], folder_of) -> None:
+    """Keep ``names`` as the list of ``command``'s programs, unless it is the list read."""
+    if command is None or not names or (_LISTED and _LISTED[-1] == names):
+        return
+    folder = folder_of()
+    if folder is not None:
+        path, digest = _list_file(folder, command)
+        _write_entry(path, digest, {"kind": "loads", "names": names}, b"")

@@ -142,6 +142,13 @@ def _position_unit(result) -> str:
     return getattr(result, "units", None) or "m"
 
 
+def import_figure_modules() -> None:
+    """Import what :func:`fit_figure` draws with (matplotlib's Figure and Agg canvas), e.g.
+    in a thread while the fit it will draw still runs."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
+    from matplotlib.figure import Figure  # noqa: F401
+
+
 def plot_fit(result, path, *, title: str | None = None, dpi: int = 110):
     """Save the figure of a fit: data, fit, envelope and sticking band above, residuals below.
 

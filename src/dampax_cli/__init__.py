@@ -21,6 +21,10 @@ from ._parser import PROG as PROG
 from ._parser import build_parser as build_parser
 from ._parser import version as version
 
+#: the command line :func:`main` runs (its arguments) while it runs, set before dampax is
+#: imported: dampax's import loads the programs its last run used (``dampax._cachethreads``)
+COMMAND: tuple[str, ...] | None = None
+
 
 def main(argv: list[str] | None = None) -> int:
     """The ``dampax`` console script: parse here, import dampax only to run a command.
@@ -33,12 +37,17 @@ def main(argv: list[str] | None = None) -> int:
         syntax errors exit through argparse (SystemExit with status 0 / 0 / 2) before
         anything heavy is imported.
     """
+    global COMMAND
     args = build_parser().parse_args(argv)
+    COMMAND = tuple(sys.argv[1:] if argv is None else argv)
     if args.quiet:  # XLA's own (C++) warnings, read when JAX loads
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     from dampax._cli import run_parsed
 
-    return run_parsed(args)
+    try:
+        return run_parsed(args)
+    finally:
+        COMMAND = None
 
 
 def console() -> None:

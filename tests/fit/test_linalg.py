@@ -167,7 +167,7 @@ def test_the_kernel_never_narrows_the_prewhitened_sandwich():
     never narrower than the kernel-free sandwich. The kernel alone over such a window (its
     scores sum to zero; without the AR(1) filter, whose coefficient is about 0 here), as the
     intervals had it before, covered 78-82 %."""
-    from dampax._fit._intervals import _autocov, bartlett_sum, gram_inverse, hac_covariance
+    from dampax._fit._intervals import bartlett_matrix, gram_inverse, hac_covariance
 
     rng = np.random.default_rng(11)
     n, L = 1000, 250
@@ -184,10 +184,28 @@ def test_the_kernel_never_narrows_the_prewhitened_sandwich():
         cov0, _ = hac_covariance(J, r, period_samples=250.0, lags=0)
         assert lags == L and np.all(np.diag(cov) >= np.diag(cov0) * (1 - 1e-12))
         hits += np.abs(est - truth) < 1.6449 * np.sqrt(np.diag(cov))
-        S = bartlett_sum(_autocov(J * r[:, None], L))  # the kernel alone, without the floor
+        S = bartlett_matrix(J * r[:, None], L)[0]  # the kernel alone, without the floor
         hits_old += np.abs(est - truth) < 1.6449 * np.sqrt(np.diag(Hinv @ S @ Hinv))
     assert np.all((0.86 < hits / 400) & (hits / 400 < 0.95)), hits
     assert np.all(hits_old / 400 < 0.85), hits_old
+
+
+@pytest.mark.parametrize("lags", [0, 1, 7, 299])
+def test_the_bartlett_sum_in_frequencies_is_the_sum_over_lags(lags):
+    """:func:`bartlett_matrix` (one product in the frequency domain) against the sum over
+    lags written out, w_0 g^T g + sum_(l=1..L) w_l (G_l + G_l^T), G_l = g[:-l]^T g[l:]."""
+    from dampax._fit._intervals import bartlett_matrix
+
+    g = np.random.default_rng(5).standard_normal((300, 4)) * [1.0, 1e-3, 5.0, 1e2]
+    S, g0 = bartlett_matrix(g, lags)
+    want = g.T @ g
+    for lag in range(1, lags + 1):
+        G = g[:-lag].T @ g[lag:]
+        want = want + (1.0 - lag / (lags + 1.0)) * (G + G.T)
+    np.testing.assert_allclose(g0, g.T @ g, rtol=1e-14)
+    scale = np.sqrt(np.outer(np.diag(g.T @ g), np.diag(g.T @ g)))
+    assert np.max(np.abs(S - want) / scale) < 1e-13
+    np.testing.assert_array_equal(S, S.T)
 
 
 def test_a_zero_width_interval_fails_the_fit():

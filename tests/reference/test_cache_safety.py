@@ -338,3 +338,106 @@ def test_kept_programs_are_held_to_their_size_least_recently_used_first(cache, m
     assert program.exists() and size <= 3 * (1 << 20) // 4, (left, size)
     assert left == [f"old-{i}.jaxexe" for i in range(6 - len(left), 6)] and left  # newest kept
     _call()  # the program still loads
+
+
+@pytest.fixture
+def command(cache, monkeypatch):
+    """The console script's command line set (``dampax_cli.COMMAND``), and the loads ahead of
+    an earlier command forgotten, as in a new process."""
+    import dampax_cli
+
+    from dampax import _cachethreads as threads
+
+    monkeypatch.setattr(dampax_cli, "COMMAND", ("safety", "--example"))
+    for name in ("_PENDING", "_USED", "_LISTED"):
+        monkeypatch.setattr(threads, name, type(getattr(threads, name))())
+    monkeypatch.setattr(threads, "_DONE", threads.threading.Event())
+    return threads
+
+
+def _prefetch(threads):
+    """Start the loads ahead of the command (as ``import dampax`` does) and wait for them."""
+    import threading
+
+    threads.start_prefetch(_cache.exported_dir)
+    for t in threading.enumerate():
+        if t.name == "dampax-prefetch":
+            t.join(timeout=60)
+    return dict(threads._PENDING)
+
+
+def test_a_command_s_programs_load_ahead_of_its_next_run(command):
+    """A command of the console script leaves the list of the programs it used; its next run
+    loads them while dampax imports and its call takes that load: the kept file, removed
+    after the load ahead, is not read again and not rebuilt (the same result as without any
+    cache). A list that names another program's file loads it, yet the call does not take
+    it (its digest is another), and builds its own program."""
+    with command.recording(_cache.exported_dir):
+        _call()
+    lists = list((_cache.exported_dir()).glob("command-*.loads"))
+    exe = _kept(_cache.exported_dir().parent, ".jaxexe")
+    assert len(lists) == 1 and exe.exists()
+
+    _cache._EXECUTABLES.clear()
+    pending = _prefetch(command)
+    assert list(pending) == [str(exe)]
+    exe.unlink()  # the call must take the program loaded ahead
+    with command.recording(_cache.exported_dir):
+        _call()
+    assert not command._PENDING and not exe.exists()  # taken, not built again
+
+    # the same list, the file now another program's: loaded ahead, not taken
+    command._LISTED.clear()
+    _call(key="other")  # keeps the program of key "other"
+    other = next(p for p in _cache.exported_dir().glob("safety-*.jaxexe"))
+    other.rename(exe)
+    _cache._EXECUTABLES.clear()
+    assert list(_prefetch(command)) == [str(exe)]
+    with pytest.warns(_cache.CacheWarning, match="other settings"):  # the file, read again
+        _call()  # key "k": not the loaded program; built (and its result right)
+    assert not command._PENDING
+
+
+def test_a_planted_or_foreign_list_loads_nothing(command, tmp_path):
+    """A list file another user planted (its checksum does not verify) is set aside and loads
+    nothing; a verified list's names outside the folder (a path, not a file name) are
+    skipped; without the console script's command (library use) nothing starts."""
+    _call()
+    exe = _kept(_cache.exported_dir().parent, ".jaxexe")
+    path, digest = command._list_file(_cache.exported_dir(), command._command())
+    _cachefiles._write_entry(path, digest, {"kind": "loads",
+                                            "names": ["../x.jaxexe", "/etc/x.jaxexe",
+                                                      exe.name]}, b"")
+    assert list(_prefetch(command)) == [str(exe)]
+
+    data = bytearray(path.read_bytes())
+    data[-40] ^= 1
+    path.write_bytes(bytes(data))
+    command._PENDING.clear()
+    with pytest.warns(_cache.CacheWarning, match="checksum"):
+        assert _prefetch(command) == {}
+    assert _aside(_cache.exported_dir().parent)
+
+    import dampax_cli
+
+    dampax_cli.COMMAND = None  # (the fixture restores it)
+    called = []
+    command.start_prefetch(lambda: called.append(1))
+    assert not called and not command._PENDING
+
+
+def test_import_dampax_loads_the_console_command_s_programs_ahead(command):
+    """The wiring: the console script names its command before it imports dampax
+    (``dampax_cli.COMMAND``), and ``import dampax`` starts loading that command's programs
+    (a fresh process, the list and the program of this test's cache)."""
+    import subprocess
+    import sys
+
+    with command.recording(_cache.exported_dir):
+        _call()
+    exe = _kept(_cache.exported_dir().parent, ".jaxexe")
+    code = ("import dampax_cli; dampax_cli.COMMAND = ('safety', '--example'); import dampax; "
+            "from dampax import _cachethreads as t; print(sorted(t._PENDING))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env=dict(os.environ), check=True, timeout=120)
+    assert out.stdout.strip() == repr([str(exe)])

@@ -28,7 +28,8 @@ from collections.abc import Callable
 from dampax_cli._arguments import COMMANDS
 from dampax_cli._parser import build_parser as _build_parser
 
-from .._cache import keep_every_program
+from .._cache import exported_dir, keep_every_program
+from .._cachethreads import recording
 from .._io import all_or_nothing
 from ._common import PROG, silenced
 
@@ -143,8 +144,9 @@ def run_parsed(args: argparse.Namespace) -> int:
     try:
         # keep_every_program: a repeated command compiles nothing, not even small programs
         # all_or_nothing: a command's outputs replace the earlier ones together, when complete
-        with _exit_on_interrupt(), keep_every_program(), all_or_nothing(), \
-                silenced(getattr(args, "quiet", False)):
+        # recording: the kept programs it used load ahead of its next run (_cachethreads)
+        with _exit_on_interrupt(), keep_every_program(), recording(exported_dir), \
+                all_or_nothing(), silenced(getattr(args, "quiet", False)):
             return run(args)
     except (ValueError, OSError) as err:
         message = " ".join(str(err).split())

@@ -36,7 +36,7 @@ from .._fit import (
 )
 from .._io import write_text
 from .._oscillator import Oscillator
-from .._plot_fit import plot_fit, plot_joint_fit
+from .._plot_fit import import_figure_modules, plot_fit, plot_joint_fit
 from .._trace import load_trace
 from ._common import PROG, beside, compile_clock, error, fmt, prepare_out_dir, split_names
 
@@ -182,7 +182,7 @@ def run_fit(args: argparse.Namespace) -> int:
             # the ranking (the ansatz's fits) does not wait for this fit unless it is one of
             # them: it runs beside it (two fits at once: _fit._linalg's note on threads)
             early = not args.no_compare and args.model != "ansatz"
-            ranking = beside(_ranking, args, trace, None, kw) if early else _no_thread()
+            ranking = beside(_ranking_early, args, trace, kw) if early else _no_thread()
             # (the ranking builds the ansatz's program: the fit's start runs it too)
             with ranking as ranked, full_starts() if early else contextlib.nullcontext():
                 result = fit(trace, free=free, model=args.model, mu_s=args.mu_s, **kw)
@@ -259,6 +259,16 @@ def _ranking(args: argparse.Namespace, trace, result, kw: dict):
         # per candidate, 6x the work); the reported fit keeps --starts
         kw = dict(kw, solver=kw["solver"]._replace(starts=EXAMPLE_RANKING_STARTS))
     return compare_models(trace, model="ansatz", fitted=done, **kw)
+
+
+def _ranking_early(args: argparse.Namespace, trace, kw: dict):
+    """:func:`_ranking` beside the fit, then the figure's matplotlib imported in the same
+    thread (0.3-0.5 s of Python) while the fit still runs: the figure, drawn once the fit
+    has ended, then only draws."""
+    try:
+        return _ranking(args, trace, None, kw)
+    finally:
+        import_figure_modules()
 
 
 def _posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
