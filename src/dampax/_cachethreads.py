@@ -119,7 +119,8 @@ class _Claimable:
             self._future.set_exception(err)
 
     def result(self):
-        """The loaded (executable, treedef, static): loaded here if no thread has begun."""
+        """What the load returns (a kept program, or a file's parts loaded ahead): loaded
+        here if no thread has begun."""
         self.run()
         return self._future.result()
 

@@ -14,6 +14,9 @@ program, is tested, and it compiles in milliseconds.
 import os
 import pickle
 import stat
+import subprocess
+import sys
+import threading
 import time
 import warnings
 
@@ -21,7 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dampax import _cache, _cachefiles
+import dampax_cli
+from dampax import _cache, _cachefiles, _cachethreads
 
 
 def _fn(x):
@@ -344,10 +348,7 @@ def test_kept_programs_are_held_to_their_size_least_recently_used_first(cache, m
 def command(cache, monkeypatch):
     """The console script's command line set (``dampax_cli.COMMAND``), and the loads ahead of
     an earlier command forgotten, as in a new process."""
-    import dampax_cli
-
-    from dampax import _cachethreads as threads
-
+    threads = _cachethreads
     monkeypatch.setattr(dampax_cli, "COMMAND", ("safety", "--example"))
     for name in ("_PENDING", "_USED", "_LISTED"):
         monkeypatch.setattr(threads, name, type(getattr(threads, name))())
@@ -357,8 +358,6 @@ def command(cache, monkeypatch):
 
 def _prefetch(threads):
     """Start the loads ahead of the command (as ``import dampax`` does) and wait for them."""
-    import threading
-
     threads.start_prefetch(_cache.exported_dir)
     for t in threading.enumerate():
         if t.name == "dampax-prefetch":
@@ -398,7 +397,7 @@ def test_a_command_s_programs_load_ahead_of_its_next_run(command):
     assert not command._PENDING
 
 
-def test_a_planted_or_foreign_list_loads_nothing(command, tmp_path):
+def test_a_planted_or_foreign_list_loads_nothing(command):
     """A list file another user planted (its checksum does not verify) is set aside and loads
     nothing; a verified list's names outside the folder (a path, not a file name) are
     skipped; without the console script's command (library use) nothing starts."""
@@ -418,8 +417,6 @@ def test_a_planted_or_foreign_list_loads_nothing(command, tmp_path):
         assert _prefetch(command) == {}
     assert _aside(_cache.exported_dir().parent)
 
-    import dampax_cli
-
     dampax_cli.COMMAND = None  # (the fixture restores it)
     called = []
     command.start_prefetch(lambda: called.append(1))
@@ -430,9 +427,6 @@ def test_import_dampax_loads_the_console_command_s_programs_ahead(command):
     """The wiring: the console script names its command before it imports dampax
     (``dampax_cli.COMMAND``), and ``import dampax`` starts loading that command's programs
     (a fresh process, the list and the program of this test's cache)."""
-    import subprocess
-    import sys
-
     with command.recording(_cache.exported_dir):
         _call()
     exe = _kept(_cache.exported_dir().parent, ".jaxexe")
