@@ -172,9 +172,9 @@ def start_prefetch(folder_of) -> None:
     first: the longest load takes the core the import leaves idle, and the small ones that a
     command calls first load quickly where it calls them (``dampax fit --example``: 3.50 ->
     3.40 s, median of 20 alternations, 15 faster; in the order of use the exact model's
-    program still loaded while its fit waited). LAPACK's
-    pointers are set later, before the first program runs (``dampax._cache._load_executable``):
-    scipy's import here would take Python's lock from dampax's import.
+    program still loaded while its fit waited). LAPACK's pointers are set later, before the
+    first program runs (``dampax._cache._load_executable``): scipy's import here would take
+    Python's lock from dampax's import.
 
     Arguments:
         folder_of: returns the folder of kept programs, or None

@@ -579,3 +579,18 @@ def test_the_k3_hint_follows_the_data_frequency(k3_share, hinted):
     assert bool(hint) == hinted, hint
     if hinted:
         assert "rises with the amplitude" in hint and 'free=(..., "k3")' in hint
+
+
+@pytest.mark.parametrize("n", [1, 2, 6, 20])
+def test_gauss_legendre_rules_are_numpys(n):
+    """The phase integral's rules (``_cubic._leggauss``, computed without importing
+    numpy.polynomial) against numpy's ``leggauss``, and exact for every monomial of degree
+    < 2n (int_-1^1 x^k dx = 2/(k+1) for even k, 0 for odd)."""
+    from dampax._models._cubic import _leggauss
+
+    x, w = _leggauss(n)
+    nodes, weights = np.polynomial.legendre.leggauss(n)
+    np.testing.assert_allclose(x, nodes, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(w, weights, rtol=1e-12)
+    for k in range(2 * n):
+        assert abs(np.sum(w * x**k) - (2.0 / (k + 1) if k % 2 == 0 else 0.0)) < 1e-14

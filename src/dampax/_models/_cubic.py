@@ -15,13 +15,6 @@ import numpy as np
 
 from ._decay import _decay_from, _DecayConstants, decay_rate
 
-# ----------------------------------------------------------------------------------------------
-# cubic stiffness (issue 14, docs/cubic_stiffness.md): the amplitude-dependent phase
-# theta(t) = phi + int_0^t w(A f(s)) ds with w(a) = w0 sqrt(1 + (3/4) (k3/k) a^2) (harmonic
-# balance), the first (Lindstedt) harmonic correction A f eps (cos 3 theta - cos theta) with
-# eps = (k3/(32 k)) (A f)^2, and the matched amplitude and phase extended to both
-
-
 
 def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
     """(nodes, weights) of the n-point Gauss--Legendre rule on [-1, 1], by the steps of
@@ -40,12 +33,18 @@ def _leggauss(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _legendre(n: int, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(P_n(x), P_(n-1)(x)) by the three-term recurrence."""
+    """(P_n(x), P_(n-1)(x)) by the three-term recurrence (n >= 1)."""
     p0, p1 = np.ones_like(x), x
     for j in range(1, n):
         p0, p1 = p1, ((2 * j + 1) * x * p1 - j * p0) / (j + 1)
-    return (p1, p0) if n > 0 else (p0, p0)
+    return p1, p0
 
+
+# ----------------------------------------------------------------------------------------------
+# cubic stiffness (issue 14, docs/cubic_stiffness.md): the amplitude-dependent phase
+# theta(t) = phi + int_0^t w(A f(s)) ds with w(a) = w0 sqrt(1 + (3/4) (k3/k) a^2) (harmonic
+# balance), the first (Lindstedt) harmonic correction A f eps (cos 3 theta - cos theta) with
+# eps = (k3/(32 k)) (A f)^2, and the matched amplitude and phase extended to both
 
 #: Gauss--Legendre rules of the phase integral: over t while f changes by less than
 #: _F_SWITCH, over f (ds = -df / (a f^2 + b' f + c)) beyond
