@@ -7,6 +7,8 @@ fit() pads every trace to a power of two.
 
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -1018,6 +1020,28 @@ def test_distribution_functions_equal_scipy_stats():
         for x in (0.0, 0.5, 1.0, 2.5, 10.0):
             assert _dist.f_sf(x, d1, d2) == pytest.approx(stats.f.sf(x, d1, d2), rel=1e-10,
                                                           abs=1e-300)
+    # the closed forms of integer k (every check's) over a denser set, the tails included,
+    # and scipy.special behind a k that is not an integer
+    for k in (*range(1, 31), 75, 301, 1999):
+        for x in (1e-9, 0.5 * k, k + 3.0 * math.sqrt(2.0 * k), 5.0 * k + 50.0, 1400.0):
+            assert _dist.chi2_sf(x, k) == pytest.approx(stats.chi2.sf(x, k), rel=1e-11,
+                                                        abs=1e-300)
+        for p in (1e-12, 1e-6, 0.001, 0.01, 0.05, 0.5, 0.9):
+            assert _dist.chi2_isf(p, k) == pytest.approx(stats.chi2.isf(p, k), rel=1e-11)
+    for k in (0.5, 2.5, 7.25):
+        assert _dist.chi2_sf(3.2, k) == pytest.approx(stats.chi2.sf(3.2, k), rel=1e-12)
+        assert _dist.chi2_isf(0.05, k) == pytest.approx(stats.chi2.isf(0.05, k), rel=1e-10)
+
+
+def test_the_checks_chi_square_needs_no_scipy_import():
+    """The chi-square of integer degrees of freedom (every check's) imports no scipy module:
+    scipy.special took a tenth of a second of the first fit's critical path (issue 36)."""
+    code = ("import sys; from dampax._fit import _dist; _dist.chi2_sf(12.5, 9); "
+            "_dist.chi2_isf(0.05, 3); print(sorted(m for m in sys.modules if "
+            "m.startswith('scipy')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120)
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_collinear_damping_constants_no_crash_truth_inside_or_named(benchmark_module):
