@@ -110,7 +110,7 @@ from ._cachethreads import _end_turn as _end_turn
 from ._cachethreads import _loader as _loader
 from ._cachethreads import _pool as _pool
 from ._cachethreads import _turn as _turn
-from ._cachethreads import note_used, prefetched
+from ._cachethreads import note_used, prefetched, prepare_loading, prepare_loading_beside
 
 _OFF = ("0", "off", "false", "no")
 _MIN_COMPILE_S = 0.5
@@ -343,13 +343,14 @@ def _load_executable(where, devices=None):
     if where is None:
         return None
     path, digest = where
+    prepare_loading_beside()  # (scipy's import under Python's lock, the load without it)
     ahead = prefetched(path, digest) if devices is None else None
     entry = (ahead[0], b"") if ahead is not None else _read_entry(path, digest)
     if entry is None:
         return None
     header, payload = entry
     try:
-        _prepare_loading()
+        prepare_loading()
         in_tree, out_tree, extra = _load_tree(header["trees"].encode())
         executable = load_executable_bytes(payload, in_tree, out_tree, devices,
                                            ahead[1] if ahead is not None else None)
@@ -361,7 +362,7 @@ def _load_executable(where, devices=None):
 
 
 #: custom calls an executable may make and still be kept: XLA's sharding markers, and LAPACK
-#: (its function pointers are set by :func:`_prepare_loading` before a kept executable loads)
+#: (its function pointers are set by :func:`prepare_loading` before a kept executable loads)
 _SAFE_CUSTOM_CALLS = ("Sharding", "SPMDFullToShardShape", "SPMDShardToFullShape")
 
 
@@ -380,24 +381,6 @@ def _keepable(lowered) -> bool:
     except Exception:  # noqa: BLE001 - in doubt, not kept
         return False
     return all(t in _SAFE_CUSTOM_CALLS or t.startswith("lapack_") for t in targets)
-
-
-_LOADING = threading.Lock()
-
-
-def _prepare_loading() -> None:
-    """Set up what a kept executable may call that jaxlib otherwise sets up while lowering:
-    LAPACK's function pointers (taken from scipy; a kept fit or linear solve would call null
-    pointers without them). Once per process, also where threads load at once."""
-    with _LOADING:
-        _prepare_loading_once()
-
-
-@functools.lru_cache(maxsize=1)
-def _prepare_loading_once() -> None:
-    from jax._src.lax import linalg
-
-    linalg.initialize_lapack()
 
 
 @contextlib.contextmanager

@@ -258,3 +258,32 @@ def _write_list(command, names: list[str], folder_of) -> None:
     if folder is not None:
         path, digest = _list_file(folder, command)
         _write_entry(path, digest, {"kind": "loads", "names": names}, b"")
+
+
+# ----------------------------------------------------------------------------------------------
+# what a kept executable calls that jaxlib sets up only while lowering
+
+_LOADING = threading.Lock()
+
+
+def prepare_loading() -> None:
+    """Set up what a kept executable may call that jaxlib otherwise sets up while lowering:
+    LAPACK's function pointers (taken from scipy; a kept fit or linear solve would call null
+    pointers without them). Once per process, also where threads load at once."""
+    with _LOADING:
+        _prepare_loading_once()
+
+
+@functools.lru_cache(maxsize=1)
+def prepare_loading_beside() -> None:
+    """Start :func:`prepare_loading` in a thread, once: the first program's load (XLA,
+    without Python's lock) and LAPACK's set-up (scipy.linalg's import, 0.07 s of Python) then
+    overlap instead of following each other on a fresh process's critical path."""
+    threading.Thread(target=prepare_loading, name="dampax-lapack", daemon=True).start()
+
+
+@functools.lru_cache(maxsize=1)
+def _prepare_loading_once() -> None:
+    from jax._src.lax import linalg
+
+    linalg.initialize_lapack()
