@@ -94,6 +94,10 @@ def _damped_step(A, g, step_size):
 #: the accepted point is the optimum when the undamped Gauss-Newton step would lower the cost
 #: by less than this share of one noise variance (:func:`resolved`)
 GN_DECREMENT = 1e-10
+#: ... or by less than this share of the cost itself: the most an integrating model's cost
+#: can be resolved (it moves by ~1e-13 of itself as the integrator's steps change with the
+#: parameters; the trust region's test of a smaller reduction is a coin flip)
+COST_RESOLUTION = 1e-12
 
 
 def gauss_newton(A, g):
@@ -148,13 +152,16 @@ def resolved(r, g, newton):
     undamped Gauss-Newton decrement 0.5 g^T (J^T J)^-1 g (g = J^T r: the most the local
     quadratic model can gain) is below :data:`GN_DECREMENT` times the noise variance per
     row, 0.5 |r|^2 / (rows - parameters) (rows: the nonzero residuals, so padding and
-    satisfied pins are not counted). There the parameters lie within sqrt(2 x 1e-10) =
-    1.4e-5 standard errors of the model's optimum, and the trust-region test no longer
-    decides anything: the actual reduction is rounding (an integrating model's cost moves by
-    ~1e-13 of itself as its step sizes change), so optimistix's rule rejected step after
-    step and shrank the step size 4x each time until it met the step tolerance: 10-20 wasted
-    Jacobians of the exact model per fit (issue 36: 28 steps of which 22 rejected at the
-    optimum, on the example trace). NaN (a singular J^T J) resolves nothing.
+    satisfied pins are not counted), or below :data:`COST_RESOLUTION` times the cost. There
+    the parameters lie within sqrt(2 x 1e-10) = 1.4e-5 standard errors of the model's
+    optimum (sqrt(1e-12 rows) of them by the second rule: 7e-5 at 5,000 rows), and the
+    trust-region test no longer decides anything: the actual reduction is rounding (an
+    integrating model's cost moves by ~1e-13 of itself as its step sizes change), so
+    optimistix's rule rejected step after step and shrank the step size 4x each time until
+    it met the step tolerance: 10-20 wasted Jacobians of the exact model per fit (issue 36:
+    28 steps of which 22 rejected at the optimum, on the example trace; with the first rule
+    alone a held fit of the example's profile still made 19 rejected steps from a point at
+    2.1e-10 noise variances). NaN (a singular J^T J) resolves nothing.
 
     Arguments:
         r: the residuals at the point; g = J^T r there and ``newton`` = (J^T J)^-1 g
@@ -164,7 +171,8 @@ def resolved(r, g, newton):
     decrement = 0.5 * g @ newton
     rows = jnp.sum(r != 0.0)
     s2 = 0.5 * jnp.sum(r * r) / jnp.maximum(rows - p, 1)
-    return (rows > p) & (decrement <= GN_DECREMENT * s2)
+    cost = 0.5 * jnp.sum(r * r)
+    return (rows > p) & (decrement <= jnp.maximum(GN_DECREMENT * s2, COST_RESOLUTION * cost))
 
 
 class _State(NamedTuple):
