@@ -13,6 +13,7 @@ from scipy.stats import norm
 import dampax as dp
 from dampax._fit._intervals import normal_intervals
 from dampax._fit._profile import (
+    BATCH_Z,
     BOUND_Z,
     LR_CHI2,
     LR_Z,
@@ -66,6 +67,35 @@ def test_the_bound_test_of_a_linear_model_is_the_wald_test(rho):
         assert widening_toward(fitted, point, chi2) == {}
     scale = {}
     assert bound_verdict(lr, fitted, scale) == ("", "") and scale == {}
+
+
+def test_the_batch_at_the_bound_runs_unless_the_cost_is_quadratic_far_from_0():
+    """A constant beyond BATCH_Z interval sd from 0 whose held fit rose by about z^2 (a linear
+    model's cost) makes no batch of starts; one below it does, and so does one beyond it
+    whose held fit from the fit's values rose far less than z^2 (a cost that bends)."""
+    fitted, profile = _linear_problem(0.0, theta=(6.0, 0.6, 0.1))
+    z = {n: fitted.params[n] / fitted.sd[n] for n in ("mu", "b")}
+    assert z["mu"] > BATCH_Z > z["b"] > LR_Z  # the precondition (this seed)
+    batches = []
+
+    def counted(name, value, start=None, batch=False, values=False):
+        batches.extend([name] if batch else [])
+        return profile(name, value, start, batch, values)
+
+    lr = bound_tests(counted, fitted, ["mu", "b"], d_scale={"mu": 1.0, "b": 1.0},
+                     amplitude=1.0)
+    assert batches == ["b"]
+    assert lr["mu"][1] == pytest.approx(z["mu"] ** 2, rel=1e-9)
+
+    def bent(name, value, start=None, batch=False, values=False):  # the held fit's rise: z
+        batches.extend([name] if batch else [])
+        c, point = profile(name, value, start, batch, values=True)
+        c = fitted.chisqr + (c - fitted.chisqr) / z[name] if not batch else c
+        return (c, point) if values else c
+
+    batches.clear()
+    bound_tests(bent, fitted, ["mu", "b"], d_scale={"mu": 1.0, "b": 1.0}, amplitude=1.0)
+    assert batches == ["mu", "b"]
 
 
 def test_a_constant_whose_99_interval_reaches_0_is_held_at_0_too():

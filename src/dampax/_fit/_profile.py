@@ -19,13 +19,10 @@ from ._params import DAMPING, d_per_unit, start_amplitude
 #: c < 1 ``conf_interval`` widens that side by 1/sqrt(c) (c > 1: conservative, kept). Below
 #: c = 1/4 (the bound beyond twice the reported one) one profile point no longer measures it:
 #: the side is followed out (:func:`profile_side`) to where the cost rises as much as the
-#: interval assumes, at most PROFILE_REACH times the reported distance; a side whose bound
-#: lies farther (the cost flat: the data do not bound the parameter there) fails the fit
-PROFILE_MEASURE = 0.25
-PROFILE_REACH = 8.0
-#: profile fits at most spent on following one side out
-PROFILE_EVALS = 4
-#: c of a side whose bound lies beyond PROFILE_REACH (the failure)
+#: interval assumes, at most PROFILE_REACH times the reported distance (PROFILE_EVALS fits); a
+#: side whose bound lies farther (a flat cost: the data do not bound it there) fails the fit,
+#: its c PROFILE_FAIL
+PROFILE_MEASURE, PROFILE_REACH, PROFILE_EVALS = 0.25, 8.0, 4
 PROFILE_FAIL = 1.0 / PROFILE_REACH ** 2
 
 #: the Wald test of a damping constant = 0 and the likelihood-ratio test must agree at this
@@ -36,9 +33,14 @@ LR_CHI2 = LR_Z * LR_Z
 #: a damping constant whose 90 % interval excludes 0 (value / sd above this, 5 % one-sided) is
 #: held at 0 too (:func:`bound_tests`): where its 99 % interval reaches 0 a rise below
 #: LR_CHI2 is what the interval says, but the held fit can move the others beyond theirs
-#: (seed 22 draw 38: b at z = 2.5 carries a decay that friction halting the block explains
-#: at a chi2 of 5.7, mu 8 interval sd up behind a rise of 6.8 at 4 sd)
+#: (seed 22 draw 38: b at z = 2.5, a decay that friction halting the block explains at a chi2
+#: of 5.7, mu 8 interval sd up behind a rise of 6.8 at 4 sd)
 BOUND_Z = 1.6448536269514722
+#: no batch at the bound for a constant beyond this Wald z whose held fit from the fit's values
+#: rose by QUADRATIC_SHARE z^2 or more: a batch matters only below a rise of LR_CHI2 (a valley)
+#: or 0 (a local optimum), z^2 / 1,500 at z = 100: in 385 batches (benchmarks/README.md, issue
+#: 36, 37th session) it did at z = 2.2, 3.0 and 11, never below 0.22 z^2 beyond z = 20
+BATCH_Z, QUADRATIC_SHARE = 100.0, 0.1
 #: a point of the cost at a likelihood-ratio chi2 below this widens the intervals as if it
 #: lay at this rise (:func:`widening_toward`: the quadratic extrapolation beyond a nearly
 #: flat rise reaches nowhere); the widened intervals' coverage is measured only on
@@ -121,12 +123,13 @@ def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,
     interval excludes 0 at 10 % (value / sd > :data:`BOUND_Z`) is held at 0 and the others are
     fitted again (``profile(name, 0)``, from the fit's values, and where that rises beyond the
     test's point ``profile(name, 0, start, batch=True)``: a batch of starts around
-    :func:`transferred_start`, as the fit's own; the lower cost kept); the rise of the cost,
-    in long-run noise variances (s2 (sd / stderr)^2: the intervals' own variance, which allows
-    for correlated noise), is the likelihood-ratio chi2(1) of the same hypothesis. Where the
-    model is linear in its parameters both tests agree (chi2 = z^2); a rise below chi2(1)'s
-    1 % point while the Wald z is beyond it means a valley in the cost: the decay the constant
-    explains is explained nearly as well by the others, far outside the intervals
+    :func:`transferred_start`, as the fit's own, unless z > :data:`BATCH_Z` and the rise is
+    near the quadratic's, :data:`QUADRATIC_SHARE` z^2 or more; the lower cost kept); the rise
+    of the cost, in long-run noise variances (s2 (sd / stderr)^2: the intervals' own variance,
+    which allows for correlated noise), is the likelihood-ratio chi2(1) of the same hypothesis.
+    Where the model is linear in its parameters both tests agree (chi2 = z^2); a rise below
+    chi2(1)'s 1 % point while the Wald z is beyond it means a valley in the cost: the others
+    explain the constant's decay nearly as well, far outside the intervals
     (:func:`widening_toward` widens them to that point).
 
     Arguments:
@@ -154,7 +157,8 @@ def bound_tests(profile, fitted: Optimum, names, *, d_scale: dict | None = None,
         unit = s2 * (s / se) ** 2
         c, point = profile(name, 0.0, values=True)
         start = transferred_start(name, params, names, d_scale or {}, amplitude)
-        if start is not None and not (c - chisqr) / unit < LR_CHI2:
+        quadratic = z > BATCH_Z and (c - chisqr) / unit >= QUADRATIC_SHARE * z * z
+        if start is not None and not (c - chisqr) / unit < LR_CHI2 and not quadratic:
             other, there = profile(name, 0.0, start, batch=True, values=True)
             if math.isfinite(other) and not other >= c:
                 c, point = other, there
@@ -339,8 +343,7 @@ def profile_ratios(profile, fitted: Optimum, names, z: float = 2.0) -> dict:
 #: held fits at most spent following mu's profile out past a motion that halts at another
 #: turning point and fits nearly as well (:func:`followed_out`), each FOLLOW_GROWTH times
 #: farther from the fit's mu than the farthest one below the 1 % point
-FOLLOW_EVALS = 4
-FOLLOW_GROWTH = 1.5
+FOLLOW_EVALS, FOLLOW_GROWTH = 4, 1.5
 
 
 def other_halt_check(res, others: dict, follow=None):
