@@ -38,8 +38,8 @@ LR_CHI2 = LR_Z * LR_Z
 BOUND_Z = 1.6448536269514722
 #: no batch at the bound for a constant beyond this Wald z whose held fit from the fit's values
 #: rose by QUADRATIC_SHARE z^2 or more: a batch matters only below a rise of LR_CHI2 (a valley)
-#: or 0 (a local optimum), z^2 / 1,500 at z = 100: in 385 batches (benchmarks/README.md, issue
-#: 36, 37th session) it did at z = 2.2, 3.0 and 11, never below 0.22 z^2 beyond z = 20
+#: or 0 (a local optimum), z^2 / 1,500 at z = 100: in 562 batches (benchmarks/README.md, issue
+#: 36, 37th session) it did at z = 2.2, 3.0 and 11, never below 0.16 z^2 beyond z = 20
 BATCH_Z, QUADRATIC_SHARE = 100.0, 0.1
 #: a point of the cost at a likelihood-ratio chi2 below this widens the intervals as if it
 #: lay at this rise (:func:`widening_toward`: the quadratic extrapolation beyond a nearly
