@@ -85,6 +85,40 @@ def test_stops_where_the_cost_is_rounding():
     assert np.max(np.abs(np.asarray(ours.value) - sp.x) / _sd(_residuals, sp.x)) < 1e-5
 
 
+T_LONG = np.linspace(0.0, 40.0, 6000)
+DATA_LONG = 2.0 * np.exp(-0.07 * T_LONG) * np.cos(3.0 * T_LONG + 0.4) + \
+    0.01 * np.random.default_rng(1).standard_normal(T_LONG.size)
+
+
+def _long(p):
+    return p[0] * jnp.exp(-p[1] * T_LONG) * jnp.cos(p[2] * T_LONG + p[3]) - DATA_LONG
+
+
+def _long_with_rounding(p):
+    """6,000 rows whose cost moves by 2e-12 of itself as the parameters move (an integrating
+    model's, whose step sizes change): 6e-9 noise variances, far above 1e-10."""
+    return _long(p) * (1.0 + 1e-12 * jax.lax.stop_gradient(jnp.sin(1e9 * jnp.sum(p))))
+
+
+def test_stops_where_the_cost_is_rounding_of_itself():
+    """Where the cost's own rounding exceeds 1e-10 noise variances (many rows), the stop
+    holds once the Gauss-Newton decrement is below 1e-12 of the cost: as many steps as the
+    clean problem takes (or one more), not a run of rejected steps (30 against 5 with the
+    first rule alone); the optimum is scipy's of the clean problem to 1e-4 standard errors."""
+    y0 = jnp.asarray([1.8, 0.06, 3.0, 0.3])
+
+    def run(fn):
+        return jax.jit(lambda y: levenberg_marquardt(fn, y, rtol=1e-10, atol=1e-12,
+                                                     max_steps=200))(y0)
+
+    clean, noisy = run(_long), run(_long_with_rounding)
+    assert bool(clean.converged) and bool(noisy.converged)
+    assert int(noisy.steps) <= int(clean.steps) + 1
+    sp = least_squares(lambda y: np.asarray(_long(jnp.asarray(y))), np.asarray(y0),
+                       xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    assert np.max(np.abs(np.asarray(noisy.value) - sp.x) / _sd(_long, sp.x)) < 1e-4
+
+
 def test_budget_under_vmap_and_a_start_that_is_not_finite():
     """A traced budget stops the loop (not converged, finite); under vmap each lane keeps
     its own; a NaN start is reported as not finite."""

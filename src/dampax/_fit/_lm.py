@@ -169,9 +169,8 @@ def resolved(r, g, newton):
     """
     p = g.shape[0]
     decrement = 0.5 * g @ newton
-    rows = jnp.sum(r != 0.0)
-    s2 = 0.5 * jnp.sum(r * r) / jnp.maximum(rows - p, 1)
-    cost = 0.5 * jnp.sum(r * r)
+    rows, cost = jnp.sum(r != 0.0), 0.5 * jnp.sum(r * r)
+    s2 = cost / jnp.maximum(rows - p, 1)
     return (rows > p) & (decrement <= jnp.maximum(GN_DECREMENT * s2, COST_RESOLUTION * cost))
 
 
