@@ -3,6 +3,8 @@ writes out, and against scipy's least_squares optimum."""
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -11,7 +13,13 @@ import optimistix as optx
 import pytest
 from scipy.optimize import least_squares
 
-from dampax._fit._lm import GIVE_UP_AFTER, LEAVE_AFTER, levenberg_marquardt
+from dampax._fit._lm import (
+    GIVE_UP_AFTER,
+    GIVE_UP_EARLY,
+    GIVE_UP_EARLY_FACTOR,
+    LEAVE_AFTER,
+    levenberg_marquardt,
+)
 
 T = np.linspace(0.0, 4.0, 60)
 DATA = 2.0 * np.exp(-0.7 * T) * np.cos(3.0 * T + 0.4) + 0.01 * np.random.default_rng(
@@ -133,8 +141,10 @@ def test_budget_under_vmap_and_a_start_that_is_not_finite():
 
 def test_give_up_stops_a_fit_far_above_and_leaves_the_others_unchanged():
     """``give_up``: Rosenbrock from (-1.2, 1) takes more than GIVE_UP_AFTER steps; with a
-    bound below its cost at that step it stops there (finite, not converged); with a bound
-    above (or inf) it follows the same iterates to the same optimum (scipy's) as without."""
+    bound below its cost at that step it stops there (finite, not converged), and at
+    GIVE_UP_EARLY where its cost there is above GIVE_UP_EARLY_FACTOR times the bound; with a
+    bound above (or inf) it follows the same iterates to the same optimum (scipy's) as
+    without."""
     y0 = jnp.asarray([-1.2, 1.0])
 
     def run(give_up):
@@ -144,15 +154,21 @@ def test_give_up_stops_a_fit_far_above_and_leaves_the_others_unchanged():
     plain = jax.jit(lambda y: levenberg_marquardt(_rosenbrock, y, rtol=1e-10, atol=1e-12,
                                                   max_steps=200))(y0)
     assert int(plain.steps) > GIVE_UP_AFTER and bool(plain.converged)
-    at16 = jax.jit(lambda y: levenberg_marquardt(_rosenbrock, y, rtol=1e-10, atol=1e-12,
-                                                 max_steps=200, budget=GIVE_UP_AFTER))(y0)
-    cost16 = float(jnp.sum(at16.residual ** 2))
-    assert cost16 > 1e-6  # still far from the optimum (cost 0) after 16 steps
-    stopped = run(0.5 * cost16)
-    assert int(stopped.steps) == GIVE_UP_AFTER
-    assert not bool(stopped.converged) and bool(stopped.finite)
-    np.testing.assert_array_equal(stopped.value, at16.value)
-    for bound in (2.0 * cost16, jnp.inf):
+    at = {k: jax.jit(lambda y, k=k: levenberg_marquardt(
+        _rosenbrock, y, rtol=1e-10, atol=1e-12, max_steps=200, budget=k))(y0)
+        for k in (GIVE_UP_EARLY, GIVE_UP_AFTER)}
+    cost = {k: float(jnp.sum(a.residual ** 2)) for k, a in at.items()}
+    # still far from the optimum (cost 0) after 16 steps, farther after 8
+    assert cost[GIVE_UP_AFTER] > 1e-6
+    assert cost[GIVE_UP_EARLY] / GIVE_UP_EARLY_FACTOR < cost[GIVE_UP_AFTER]
+    for k, bound in ((GIVE_UP_EARLY, 0.5 * cost[GIVE_UP_EARLY] / GIVE_UP_EARLY_FACTOR),
+                     (GIVE_UP_AFTER, math.sqrt(cost[GIVE_UP_EARLY] / GIVE_UP_EARLY_FACTOR *
+                                               cost[GIVE_UP_AFTER]))):
+        stopped = run(bound)
+        assert int(stopped.steps) == k
+        assert not bool(stopped.converged) and bool(stopped.finite)
+        np.testing.assert_array_equal(stopped.value, at[k].value)
+    for bound in (2.0 * cost[GIVE_UP_AFTER], jnp.inf):
         went_on = run(bound)
         assert int(went_on.steps) == int(plain.steps) and bool(went_on.converged)
         np.testing.assert_array_equal(went_on.value, plain.value)

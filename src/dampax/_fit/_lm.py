@@ -26,7 +26,9 @@ The iteration (optimistix 0.1: ``AbstractGaussNewton.step`` with ``ClassicalTrus
   normal equations of [J; sqrt(lambda) I] d = [r; 0], Cholesky);
 - ``give_up`` (traced, optional): after :data:`GIVE_UP_AFTER` steps, a fit whose accepted
   |r|^2 is still above it stops, not converged (the halt search's fits far above the
-  optimum: ``_halts``). A fit that goes on follows the same path as without it;
+  optimum: ``_halts``), after :data:`GIVE_UP_EARLY` steps one above
+  :data:`GIVE_UP_EARLY_FACTOR` times it. A fit that goes on follows the same path as without
+  it;
 - ``leave`` (optional): stop, not converged, where the undamped Gauss-Newton step from the
   last :data:`LEAVE_AFTER` accepted points sends a coordinate past its bound (``_core``'s
   rounds: a damping constant that goes to 0 in log coordinates).
@@ -49,6 +51,12 @@ import jax.numpy as jnp
 LOW_CUTOFF, HIGH_CUTOFF, LOW_CONSTANT, HIGH_CONSTANT = 0.01, 0.99, 0.25, 3.5
 #: the step after which a fit with ``give_up`` stops where its cost is above it
 GIVE_UP_AFTER = 16
+#: ... and an earlier step where it stops above GIVE_UP_EARLY_FACTOR times that bound: the halt
+#: search's held fits that end near the optimum lay at most 3.5e3 bands up after 8 steps, 385
+#: after 16 (benchmarks/README.md, issue 36, ninth session: 1,341 held fits), so 10x the
+#: 16-step bound (1e5 bands and more) keeps its margin (28x against 26x); the example's far
+#: held fits stop 8 steps sooner
+GIVE_UP_EARLY, GIVE_UP_EARLY_FACTOR = 8, 10.0
 #: accepted points in a row at which ``leave`` holds before the loop stops: a creep lasts
 #: 20-100 steps; at 3 the first steps of the global starts' far starts placed constants at
 #: their bound that the data wanted (2 of 200 draws of fit_calibration.py then failed)
@@ -238,7 +246,9 @@ def levenberg_marquardt(fn, y0, *, rtol: float, atol: float, max_steps: int,
         A, g = J.T @ J, J.T @ r  # the normal equations of the step and of the stop
         y_eval = y - _damped_step(A, g, step_size)
         newton = gauss_newton(A, g)
-        gave_up = (s.k + 1 == GIVE_UP_AFTER) & (jnp.sum(r * r) > give_up)
+        rr = jnp.sum(r * r)
+        gave_up = ((s.k + 1 == GIVE_UP_AFTER) & (rr > give_up)) | \
+            ((s.k + 1 == GIVE_UP_EARLY) & (rr > GIVE_UP_EARLY_FACTOR * give_up))
         leaving = s.leaving
         if leave is not None:
             leaving = jnp.where(accept, jnp.where(leave(y, newton), leaving + 1, 0), leaving)
