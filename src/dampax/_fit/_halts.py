@@ -40,7 +40,7 @@ NEAR_RISE = 100.0
 #: family (benchmarks/halt_steps.py, 1341 held fits) the held fits that end within
 #: NEAR_RISE lay at most 385 NEAR_RISE up after 16 steps, 26 times below this bound; about
 #: one held fit in thirteen lies above it and sits on a jump of the halt (the example's three
-#: lie 4e5 NEAR_RISE up)
+#: lie 4e5 NEAR_RISE up); after ``_lm.GIVE_UP_EARLY`` (8) steps, one above 10 times it stops
 GIVE_UP_RISE = 1e4 * NEAR_RISE
 
 

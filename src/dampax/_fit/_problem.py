@@ -168,7 +168,7 @@ class Problem:
             budget: the optimizer's steps (default :attr:`steps`); ``budget=1`` returns the
                 start itself with the model's curve and Jacobian there.
             give_up: a chi-square above which the fit stops after ``_lm.GIVE_UP_AFTER``
-                steps, not converged (the exact model; None: never).
+                steps (10x it after ``GIVE_UP_EARLY``), not converged (None: never).
             at_bound: a varied damping constant that ``p_start`` holds at 0 starts at its
                 lower bound, not its floor (``_core.Tuning``).
             settle: a model of one round that creeps towards a damping constant's bound
