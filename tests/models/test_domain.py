@@ -84,15 +84,39 @@ BAD_CONSTANTS = [("m", math.nan), ("m", 0.0), ("m", -1.0), ("k", -30.0), ("k", m
 @pytest.mark.parametrize("model", MODELS)
 def test_out_of_domain_constants_under_jit(model):
     for field, value in BAD_CONSTANTS:
-        valid, result, x, v, e, _, _ = solve_jit(model, **{field: value})
+        valid, result, x, v, e, halt_t, halt_x = solve_jit(model, **{field: value})
         assert not bool(valid), (model, field, value)
         assert reason(result) == dp.RESULTS[dp.RESULTS.invalid_constants], (model, field)
         assert np.all(np.isnan(x)) and np.all(np.isnan(e)), (model, field, value)
+        assert np.isnan(halt_t) and np.isnan(halt_x), (model, field, value, halt_t)
     for field in ("x0", "v0"):
         valid, result, x, *_ = solve_jit(model, **{field: math.nan})
         assert reason(result) == dp.RESULTS[dp.RESULTS.nonfinite_state], (model, field)
         assert np.all(np.isnan(x))
     assert bool(solve_jit(model)[0]), model  # the same compiled solve, inside the domain
+
+
+@pytest.mark.parametrize("model", [name for name in MODELS if name != "reference"])
+def test_no_halt_where_the_model_does_not_exist(model):
+    # outside each model's own domain (drag for the Coulomb models, overdamping for the
+    # ansatz, static friction above the sliding one for the models that assume mu_s = mu)
+    # the halt is NaN too, not the answer of another model
+    cases = [dict(mu=0.02, D=0.5), dict(mu=0.02, b=20.0), dict(mu=0.02, b=0.3, mu_s=0.05)]
+
+    @jax.jit
+    def run(mu, b, D, mu_s):
+        osc = dp.Oscillator(m=1.0, k=30.0, mu=mu, b=b, D=D, mu_s=mu_s)
+        sol = dp.solve(osc, 0.2, 0.0, **MODELS[model])
+        return sol.valid, sol.x(1.0), sol.halt_time, sol.halt_position
+
+    for case in cases:
+        p = dict(mu=0.02, b=0.0, D=0.0) | case
+        valid, x, halt_t, halt_x = run(p["mu"], p["b"], p["D"], p.get("mu_s", p["mu"]))
+        if not bool(valid):
+            assert np.isnan(x) and np.isnan(halt_t) and np.isnan(halt_x), (model, case)
+        else:
+            assert in_domain(model, [1.0, 30.0, 9.81, p["mu"], p["b"], p["D"], 0.2, 0.0])
+            assert np.isfinite(x) and not np.isnan(halt_t), (model, case)
 
 
 @pytest.mark.parametrize("model", ["matched", "undamped", "matched_tail", "coulomb_exact",
@@ -290,8 +314,9 @@ def rho(p):
 
 def check_property(model, p):
     valid, result, x, v, e, halt_t, halt_x = (np.asarray(a) for a in compiled(model)(p))
-    if not valid:
+    if not valid:  # every value NaN, the halt's too
         assert not np.any(np.isfinite(x)), (model, p, reason(result))
+        assert np.isnan(halt_t) and np.isnan(halt_x), (model, p, reason(result), halt_t)
         return
     assert in_domain(model, p), (model, p)  # valid only inside the stated domain
     assert np.all(np.isfinite(x)) and np.all(np.isfinite(v)) and np.all(np.isfinite(e)), p

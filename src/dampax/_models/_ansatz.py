@@ -148,7 +148,7 @@ class AnsatzSolution(AbstractSolution):
     ``matched=False``: the earlier approach, A = A0, phi = phi0 (eq. 8), velocity without the
     f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
     Where no admissible amplitude exists, ``result`` is ``RESULTS.no_amplitude`` (``valid``
-    False) and the values are NaN; likewise ``RESULTS.ansatz_overdamped`` for d1 >= w0 and
+    False) and the values (``halt_time`` and ``halt_position`` too) are NaN; likewise ``RESULTS.ansatz_overdamped`` for d1 >= w0 and
     ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
     there: x(t) = x0, v = 0, halt time 0.
 
@@ -165,7 +165,7 @@ class AnsatzSolution(AbstractSolution):
     a: Array
     bp: Array
     c: Array
-    halt_time: Array
+    tau: Array  # the halt time of eq. 37, finite even where invalid (see ``halt_time``)
     osc: Oscillator
     result: RESULTS
     stuck: Array  # started at rest inside the band: x(t) = x0 (the model's A is then 0)
@@ -207,16 +207,22 @@ class AnsatzSolution(AbstractSolution):
         return jnp.where(self.stuck, x + self.x0, x)
 
     @property
+    def halt_time(self) -> Array:
+        """tau of eq. 37: when the model comes to rest (inf when it never does, 0 for a start
+        at rest inside the band); NaN where the model does not exist."""
+        return self._mask(self.tau)
+
+    @property
     def halt_position(self) -> Array:
         """Where the model comes to rest: x(tau) = 0 when it halts (x0 for a start at rest
         inside the band), NaN when it never does."""
         return self._mask(jnp.where(self.stuck, self.x0,
-                                    jnp.where(jnp.isfinite(self.halt_time), 0.0, jnp.nan)))
+                                    jnp.where(jnp.isfinite(self.tau), 0.0, jnp.nan)))
 
     def _decay(self) -> _DecayConstants:
         """The per-point constants of f(t), shared by x, v and energy (computed once per call,
         outside the per-sample work)."""
-        return _decay_constants(self.a, self.bp, self.c, self.halt_time)
+        return _decay_constants(self.a, self.bp, self.c, self.tau)
 
     def f(self, t) -> Array:
         """Amplitude factor f(t) (eq. 20 in closed form), 0 after the halt."""
@@ -316,7 +322,7 @@ class AnsatzSolution(AbstractSolution):
             1.0 + r * r)
 
     def _params(self):
-        return (self.omega0, self.phi, self.a, self.bp, self.c, self.halt_time, self.kappa,
+        return (self.omega0, self.phi, self.a, self.bp, self.c, self.tau, self.kappa,
                 self.beta)
 
     def _turning_newton(self, n):
@@ -360,7 +366,7 @@ class AnsatzSolution(AbstractSolution):
         """First n turning points (t_k, x_k), t_k > 0, before the halt; NaN-padded."""
         ks = self._first_index() + jnp.arange(n, dtype=float)
         ts = jax.vmap(self._turning_time)(ks)
-        ok = (ts > 0.0) & (ts < self.halt_time) & self.valid
+        ok = (ts > 0.0) & (ts < self.tau) & self.valid
         ts_safe = jnp.where(ok, ts, 0.0)
         xs = self.x(ts_safe)
         return jnp.where(ok, ts, jnp.nan), jnp.where(ok, xs, jnp.nan)
@@ -439,7 +445,7 @@ def solve_ansatz(osc: Oscillator, x0, v0, *, phase: str = "matched",
                            (~stuck & ~(d1 < w0), RESULTS.ansatz_overdamped),
                            (~stuck & ~valid, RESULTS.no_amplitude))
     return AnsatzSolution(A=A, phi=phi, omega0=w0 + 0.0 * A, a=a, bp=bp, c=c,
-                          halt_time=tau, osc=osc, result=result, stuck=stuck,
+                          tau=tau, osc=osc, result=result, stuck=stuck,
                           x0=x_start, kappa=kappa, beta=beta, matched=phase == "matched",
                           linear=linear)
 

@@ -119,14 +119,17 @@ class SwingSolution(_PiecewiseSolution):
 
     @property
     def halt_time(self):
-        return jnp.where(jnp.isfinite(self.n_swings),
-                         self.t1 + jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
-                         * self.half_period, jnp.inf)
+        """When the block comes to rest (inf without friction; NaN where not valid)."""
+        t = jnp.where(jnp.isfinite(self.n_swings),
+                      self.t1 + jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
+                      * self.half_period, jnp.inf)
+        return jnp.where(self.valid, t, jnp.nan)
 
     @property
     def halt_position(self):
+        """Where the block comes to rest (NaN where it never does or not valid)."""
         J = jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
-        return jnp.where(jnp.isfinite(self.n_swings), self._x_turn(J), jnp.nan)
+        return jnp.where(jnp.isfinite(self.n_swings) & self.valid, self._x_turn(J), jnp.nan)
 
     def _state(self, t):
         t = jnp.asarray(t, dtype=float)
@@ -308,11 +311,13 @@ class TailSolution(AbstractSolution):
 
     @property
     def halt_time(self):
-        return self.tail.halt_time
+        """The tail's halt time (NaN where the solution is not valid)."""
+        return jnp.where(self.valid, self.tail.halt_time, jnp.nan)
 
     @property
     def halt_position(self):
-        return self.tail.halt_position
+        """The tail's halt position (NaN where the solution is not valid)."""
+        return jnp.where(self.valid, self.tail.halt_position, jnp.nan)
 
     def _pick(self, t, head, tail):
         t = jnp.asarray(t, dtype=float)
@@ -377,12 +382,12 @@ def with_coulomb_tail(sol: AnsatzSolution, osc: Oscillator, x0, v0, *, back: int
     T_star = (1.0 - F) / (c_ + 0.5 * bp_ + (a_ + 0.5 * bp_) * F)
     t_star = jnp.where(F >= 1.0, 0.0, _atanc(0.25 * bp_ * bp_ - a_ * c_, T_star))
     n_first = sol._first_index()
-    n_est = jnp.floor((w0_ * jnp.minimum(t_star, sol.halt_time) + ph_) / jnp.pi)
+    n_est = jnp.floor((w0_ * jnp.minimum(t_star, sol.tau) + ph_) / jnp.pi)
     n_lo = jnp.maximum(n_first, jnp.where(jnp.isfinite(n_est), n_est, n_first) - 3.0)
     ns = n_lo - back + jnp.arange(window + back, dtype=float)  # back reaches into the window
     ts = jax.vmap(sol._turning_newton)(ns)
     xs = sol.x(jnp.where(jnp.isfinite(ts), ts, 0.0))
-    ok = (ts > 0.0) & (ts < sol.halt_time) & (jnp.abs(xs) > xc_)
+    ok = (ts > 0.0) & (ts < sol.tau) & (jnp.abs(xs) > xc_)
     n_last = jnp.max(jnp.where(ok, ns, -jnp.inf))
     n_s = n_last - back
     from_start = ~(n_s >= n_first) | (xc_ <= 0.0)
@@ -419,8 +424,8 @@ class RizcallahSolution(_PiecewiseSolution):
     omega0: Array
     d: Array
     xc: Array
-    halt_time: Array
-    halt_position: Array
+    t_halt: Array  # the halt, also where not valid (see ``halt_time``)
+    x_halt: Array
     osc: Oscillator
     result: RESULTS
 
@@ -428,6 +433,17 @@ class RizcallahSolution(_PiecewiseSolution):
     def model(self) -> str:
         """"rizcallah" (the registry name)."""
         return "rizcallah"
+
+    @property
+    def halt_time(self) -> Array:
+        """The first turning point inside the band (inf without friction); NaN where not
+        valid."""
+        return jnp.where(self.valid, self.t_halt, jnp.nan)
+
+    @property
+    def halt_position(self) -> Array:
+        """Where the block comes to rest; NaN where it never does or not valid."""
+        return jnp.where(self.valid, self.x_halt, jnp.nan)
 
     def _atlas_start(self):
         A0, ph = self.amplitude0, self.phase0
@@ -451,9 +467,9 @@ class RizcallahSolution(_PiecewiseSolution):
 
     def _state(self, t):
         t = jnp.asarray(t, dtype=float)
-        done = t >= self.halt_time
+        done = t >= self.t_halt
         x, v = self._free(jnp.where(done, 0.0, t))
-        x = jnp.where(done, self.halt_position, x)
+        x = jnp.where(done, self.x_halt, x)
         v = jnp.where(done, 0.0, v)
         bad = (t < 0.0) | ~self.valid
         return jnp.where(bad, jnp.nan, x), jnp.where(bad, jnp.nan, v)
@@ -515,7 +531,7 @@ class RizcallahSolution(_PiecewiseSolution):
         """First n turning points with t > 0; the halting point is the last; NaN-padded."""
         ts, xs = self._candidates(self._first_index(), n + 1)
         eps = 1e-9 / self.omega0
-        ok = (ts > eps) & (ts <= self.halt_time * (1 + 1e-12) + eps) & self.valid
+        ok = (ts > eps) & (ts <= self.t_halt * (1 + 1e-12) + eps) & self.valid
         # past the envelope's zero Newton may land on an earlier root again: keep increasing t
         ok = ok & (ts > jnp.concatenate([jnp.array([-jnp.inf]), ts[:-1]]) + eps)
         return compact(ts, xs, ok, n)
@@ -547,7 +563,7 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
     xc = osc.xc
     coulomb = (osc.b == 0.0) & (osc.D == 0.0)
     proto = RizcallahSolution(amplitude0=A0, phase0=phi0, omega0=w0, d=d, xc=xc,
-                              halt_time=jnp.inf + 0.0 * A0, halt_position=jnp.nan + 0.0 * A0,
+                              t_halt=jnp.inf + 0.0 * A0, x_halt=jnp.nan + 0.0 * A0,
                               osc=osc, result=first_failure((~coulomb, RESULTS.coulomb_only)))
     # the envelope A0 - d t reaches xc near t*; search the turning points around it
     frozen = jax.lax.stop_gradient((A0, phi0, w0, d, xc))
@@ -589,5 +605,4 @@ def solve_rizcallah(osc: Oscillator, x0, v0, *, kappa: float = 4.0 / math.pi,
                            (~(coulomb | stuck), RESULTS.coulomb_only),
                            (~bracketed, RESULTS.halt_not_found),
                            (gains, RESULTS.rizcallah_gains_energy))
-    return eqx.tree_at(lambda s: (s.halt_time, s.halt_position, s.result), proto,
-                       (t_h, x_h, result))
+    return eqx.tree_at(lambda s: (s.t_halt, s.x_halt, s.result), proto, (t_h, x_h, result))
