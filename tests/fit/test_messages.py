@@ -64,6 +64,27 @@ def test_residual_structure_finds_a_swing_and_skips_a_curve_that_is_not_finite()
     assert np.isnan(residual_structure(t, r, w0)["p"])
 
 
+def test_residual_structure_finds_a_level_the_model_lacks():
+    """White noise about a level of 10 noise sd (a fit that holds the offset at 0 where the
+    data have one) is structure: the level is not read as AR(1) noise of phi -> 1 (the lag-1
+    autocorrelation about 0 is 0.99 there, and prewhitening by it removed the level); white
+    noise about 0 still passes, and AR(1) noise of phi = 0.9 about 0 too."""
+    import numpy as np
+
+    from dampax._fit._checks import residual_structure
+
+    rng = np.random.default_rng(3)
+    t = np.arange(4000) * 0.01
+    w0 = 2.0 * np.pi
+    e = rng.standard_normal(t.size)
+    assert residual_structure(t, e, w0)["p"] > 0.01
+    assert residual_structure(t, e + 10.0, w0)["p"] < 1e-12
+    ar = np.zeros(t.size)
+    for i in range(1, t.size):
+        ar[i] = 0.9 * ar[i - 1] + e[i]
+    assert residual_structure(t, ar, w0)["p"] > 1e-3
+
+
 def test_residual_structure_equals_a_least_squares_fit_per_block():
     """The blocks' regressions, all at once by their normal equations, give what a
     least-squares fit per block gives (numpy's lstsq on the prewhitened 1, cos and sin of
@@ -89,7 +110,7 @@ def test_residual_structure_equals_a_least_squares_fit_per_block():
         size = int(max(round(math.pi / w0 / dt), 16))
         J = max(n // size, 1)
         edges = np.linspace(0, n, J + 1).astype(int)
-        a = ar1_coefficient(r, clip=(-0.99, 0.99))
+        a = ar1_coefficient(r - r.mean(), clip=(-0.99, 0.99))  # about the residuals' mean
         q, rss, dof = np.zeros(J), 0.0, 0
         for j, (lo, hi) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
             tt = t[lo:hi] - t[lo]

@@ -322,7 +322,9 @@ def residual_structure(t: np.ndarray, r: np.ndarray, w0: float) -> dict:
     size = int(max(round(math.pi / w0 / dt), 16))
     J = max(n // size, 1)
     edges = np.linspace(0, n, J + 1).astype(int)
-    phi = ar1_coefficient(r, clip=(-0.99, 0.99))
+    # phi of the residuals about their mean: AR(1) noise has none, and a level that the model
+    # lacks (an offset held at 0 that the data have) read as phi -> 1 whitened itself away
+    phi = ar1_coefficient(r - np.mean(r), clip=(-0.99, 0.99))
     q, rss = _block_regressions(t, r, w0, phi, edges)
     dof = n - J * 4  # each block: its rows but the first, less 3 coefficients
     s2 = rss / max(dof, 1)
