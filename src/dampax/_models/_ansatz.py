@@ -148,8 +148,8 @@ class AnsatzSolution(AbstractSolution):
     ``matched=False``: the earlier approach, A = A0, phi = phi0 (eq. 8), velocity without the
     f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
     Where no admissible amplitude exists, ``result`` is ``RESULTS.no_amplitude`` (``valid``
-    False) and the values (``halt_time`` and ``halt_position`` too) are NaN; likewise ``RESULTS.ansatz_overdamped`` for d1 >= w0 and
-    ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
+    False) and the values (``halt_time`` and ``halt_position`` too) are NaN; likewise
+    ``RESULTS.ansatz_overdamped`` for d1 >= w0 and ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
     there: x(t) = x0, v = 0, halt time 0.
 
     With a cubic stiffness k3 (matched phase only; docs/cubic_stiffness.md):
