@@ -149,8 +149,8 @@ class AnsatzSolution(AbstractSolution):
     f' term (eq. 9), energy m w0^2 A0^2 f^2 / 2 (eq. 10).
     Where no admissible amplitude exists, ``result`` is ``RESULTS.no_amplitude`` (``valid``
     False) and the values (``halt_time`` and ``halt_position`` too) are NaN; likewise
-    ``RESULTS.ansatz_overdamped`` for d1 >= w0 and ``RESULTS.invalid_constants``. A start at rest inside the sticking band (``stuck``) stays
-    there: x(t) = x0, v = 0, halt time 0.
+    ``RESULTS.ansatz_overdamped`` for d1 >= w0 and ``RESULTS.invalid_constants``. A start at
+    rest inside the sticking band (``stuck``) stays there: x(t) = x0, v = 0, halt time 0.
 
     With a cubic stiffness k3 (matched phase only; docs/cubic_stiffness.md):
         x(t) = A f [cos th + eps f^2 (cos 3th - cos th)],  eps = beta = k3 A^2 / (32 k),
