@@ -199,9 +199,6 @@ class AnsatzSolution(AbstractSolution):
             x0, v0 = self.A * jnp.cos(self.phi), -self.omega0 * self.A * jnp.sin(self.phi)
         return self.osc, x0, v0
 
-    def _mask(self, value):
-        return jnp.where(self.valid, value, jnp.nan)
-
     def _rest(self, x):
         """x0 where the block is stuck from the start (there A = 0: x is 0, NaN for t < 0)."""
         return jnp.where(self.stuck, x + self.x0, x)

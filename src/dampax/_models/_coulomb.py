@@ -123,7 +123,7 @@ class SwingSolution(_PiecewiseSolution):
         t = jnp.where(jnp.isfinite(self.n_swings),
                       self.t1 + jnp.where(jnp.isfinite(self.n_swings), self.n_swings, 0.0)
                       * self.half_period, jnp.inf)
-        return jnp.where(self.valid, t, jnp.nan)
+        return self._mask(t)
 
     @property
     def halt_position(self):
@@ -312,12 +312,12 @@ class TailSolution(AbstractSolution):
     @property
     def halt_time(self):
         """The tail's halt time (NaN where the solution is not valid)."""
-        return jnp.where(self.valid, self.tail.halt_time, jnp.nan)
+        return self._mask(self.tail.halt_time)
 
     @property
     def halt_position(self):
         """The tail's halt position (NaN where the solution is not valid)."""
-        return jnp.where(self.valid, self.tail.halt_position, jnp.nan)
+        return self._mask(self.tail.halt_position)
 
     def _pick(self, t, head, tail):
         t = jnp.asarray(t, dtype=float)
@@ -438,12 +438,12 @@ class RizcallahSolution(_PiecewiseSolution):
     def halt_time(self) -> Array:
         """The first turning point inside the band (inf without friction); NaN where not
         valid."""
-        return jnp.where(self.valid, self.t_halt, jnp.nan)
+        return self._mask(self.t_halt)
 
     @property
     def halt_position(self) -> Array:
         """Where the block comes to rest; NaN where it never does or not valid."""
-        return jnp.where(self.valid, self.x_halt, jnp.nan)
+        return self._mask(self.x_halt)
 
     def _atlas_start(self):
         A0, ph = self.amplitude0, self.phase0

@@ -182,6 +182,10 @@ class AbstractSolution(eqx.Module):
         """True where the model gives values (``result`` is successful); else they are NaN."""
         return is_successful(self.result)
 
+    def _mask(self, value):
+        """``value`` where the solution is valid, NaN elsewhere (every model's values)."""
+        return jnp.where(self.valid, value, jnp.nan)
+
     @property
     def model(self) -> str:
         """The registry name of the model (``dampax.MODELS``), e.g. "matched_tail"."""
