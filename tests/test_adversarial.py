@@ -100,7 +100,9 @@ def _time_axes():
         "offset by 1e300": (t + 1e300, x, "beyond"),
         "offset by 1e14, steps of 10 ms": (t + 1e14, x, "spacings"),
         "one stray stamp": (gap, x, "gap"),
-        "shuffled": (np.random.default_rng(37).permutation(t), x, "goes back"),
+        "three runs end to end": (np.tile(t, 3), np.tile(x, 3), "goes back 2 time"),
+        # told apart from a reset by how often (the message said "a clock that resets")
+        "shuffled": (np.random.default_rng(37).permutation(t), x, "not in order"),
         "steps of 1e-302 s": (t * 1e-300, x, "below 1e-12 s"),
     }
 
@@ -112,6 +114,19 @@ def test_fit_refuses_garbage_time_axes_at_once(case):
     with pytest.raises(ValueError, match=rf"^t: .*{words}"):
         dp.fit(t, x, oscillator=dp.Oscillator(m=1.0, k=64.0), model="ansatz")
     assert time.perf_counter() - began < 5.0
+
+
+def test_fit_names_the_samples_it_leaves_out():
+    """NaN or inf samples are left out of a fit with a warning that counts them (they were
+    dropped silently)."""
+    from dampax._fit._problem import read_arrays
+
+    t, x = _decay()
+    x[[5, 17, 300]] = [np.nan, np.inf, np.nan]
+    t[40] = np.nan
+    with pytest.warns(UserWarning, match=r"^t, x: 4 of 400 samples hold NaN or inf"):
+        got, _, _ = read_arrays(t, x)
+    assert got.size == 396
 
 
 @pytest.mark.parametrize("scale", [1e200, 1e-200, 1e-150, 1e150])

@@ -78,12 +78,17 @@ MIN_STEPS_PER_SPACING = 1e3
 MAX_GAP_SHARE, MAX_GAP_STEPS = 0.5, 100.0
 
 
+#: more steps back than these (a count, a share of the samples) are unsorted samples, not a
+#: clock that resets: a reset or a few runs put end to end go back a few times
+UNSORTED_STEPS, UNSORTED_SHARE = 10, 0.01
+
+
 def check_time_axis(t: np.ndarray) -> None:
     """ValueError naming ``t`` for a time axis that is not one trace's: times that go back
-    (a clock that resets, runs put end to end), times beyond :data:`MAX_TIME`, steps below
-    :data:`MIN_STEP` or the float format's resolution, or mostly repeated stamps (every
-    sample twice). One gap over most of the window is :func:`check_gaps`'s (on the window:
-    ``Window.end`` can leave it out).
+    (a clock that resets, runs put end to end; unsorted samples, told apart by how often),
+    times beyond :data:`MAX_TIME`, steps below :data:`MIN_STEP` or the float format's
+    resolution, or mostly repeated stamps (every sample twice). One gap over most of the
+    window is :func:`check_gaps`'s (on the window: ``Window.end`` can leave it out).
 
     Arguments:
         t: the finite sample times, in the order given (not sorted).
@@ -98,6 +103,10 @@ def check_time_axis(t: np.ndarray) -> None:
     if float(np.ptp(t)) == 0.0:  # constant time: check_sampling says so
         return
     back = np.flatnonzero(np.diff(t) < 0)
+    if back.size > max(UNSORTED_STEPS, UNSORTED_SHARE * t.size):
+        raise ValueError(f"t: the times are not in order ({back.size} of {t.size - 1} steps go "
+                         "back, as in shuffled or unsorted samples): sort the samples by time "
+                         "first (order = np.argsort(t); t, x = t[order], x[order])")
     if back.size:
         i = int(back[0])
         raise ValueError(f"t: the time column goes back {back.size} time(s), first after sample "

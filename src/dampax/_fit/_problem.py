@@ -315,8 +315,9 @@ def _checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
 
 def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
                 noun: str = "samples"):
-    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped;
-    at least ``least`` finite samples (the error: "{what} at least {least} finite {noun}")."""
+    """(t, x, source) from a Trace, a path or two arrays; sorted by t, non-finite dropped
+    (with a warning, outside :func:`quiet_windows`); at least ``least`` finite samples (the
+    error: "{what} at least {least} finite {noun}")."""
     source = ""
     if isinstance(trace_or_t, Trace):
         if x is not None:
@@ -334,6 +335,9 @@ def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
     if t.shape != x.shape:
         raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
     ok = np.isfinite(t) & np.isfinite(x)
+    if not ok.all() and not getattr(_QUIET, "on", False):
+        warnings.warn(f"t, x: {int(ok.size - ok.sum())} of {ok.size} {noun} hold NaN or inf "
+                      "(a gap in the logger?) and were left out", stacklevel=4)
     t, x = t[ok], x[ok]
     check_time_axis(t)
     check_positions(x)
