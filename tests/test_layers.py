@@ -237,7 +237,8 @@ FIT_LAYERS = (
      "_linalg"),  # ground
     ("_curves", "_lm"),  # the fit models: their curves and settings
     ("_core",),  # the solver core
-    ("_analysis", "_noise", "_guess", "_checks", "_measures", "_assess", "_options"),  # checks
+    ("_analysis", "_noise", "_guess", "_inputs", "_checks", "_measures", "_assess",
+     "_options"),  # checks
     ("_problem", "_context", "_report", "_result", "_example"),  # problem, result, example
     ("_starts", "_halts", "_answer"),  # stages: the batch of starts, the neighbouring halts
     ("_pipeline",),  # the plan of stages and the assessment

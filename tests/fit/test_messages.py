@@ -219,3 +219,56 @@ def test_draws_that_never_moved_are_named_not_divided_by():
     assert "D 4x" in text and "draws of mu, b never moved" in text and "mu 0" not in text
     assert "never moved" not in narrow_text({"D": 0.25})
     assert narrow_text({"mu": 0.0}).startswith("the draws of mu never moved")
+
+
+@pytest.mark.parametrize("level", [0.0, 10.0])
+def test_an_unidentifiable_split_names_a_level_the_fit_holds(level):
+    """mu and D measured together, neither alone (each 1 sd from 0, correlation -0.99): not
+    separately identifiable. Where the residuals sit about a level (the offset held at 0 on
+    data with an offset of 0.06, 60 noise sd: the refusal named only the split), the reason
+    names the level and offset=True; about 0 it does not."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from dampax._fit._assess import Inputs, split
+    from dampax._fit._measures import Measures
+
+    t = np.linspace(0.0, 20.0, 2000)
+    r = np.random.default_rng(4).standard_normal(t.size) + level
+    names = ("mu", "D", "w0")
+    cov = np.array([[1.0, -0.99, 0.0], [-0.99, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    a = Inputs(t=t, x=r, curve=np.zeros_like(t), params={"mu": 1.0, "D": 1.0, "w0": 8.0},
+               stderr=dict.fromkeys(names, 1.0), varied=names, derived={},
+               an=SimpleNamespace(n_turns=54), converged=True, message="")
+    m = Measures(r=r, rms=float(np.sqrt(np.mean(r**2))), period=0.8, cov=cov,
+                 sd=dict.fromkeys(names, 1.0), st={})
+    text = split(a, m, None).diag["unidentifiable"]
+    assert text.startswith("mu and D are not separately identifiable")
+    assert ("offset=True fits it" in text) == (level > 0), text
+
+
+@pytest.mark.parametrize("level, held, noted", [(0.06, 0.0, True), (0.0, 0.0, False),
+                                                (0.06, 0.06, False), (0.002, 0.0, False)])
+def test_a_held_offset_away_from_the_data_is_noted(level, held, noted):
+    """The offset held (offset=False) 0.06 from the centre of swings of 0.1 (scipy's
+    integrator, mu and D, 1 % noise): the fit stuck at the level after one swing and was
+    refused as "not separately identifiable", naming neither; the note names the level. Held
+    at the data's level, or 2 % of the amplitude away, nothing is noted."""
+    import numpy as np
+    from helpers import evaluate, scipy_stick_slip
+
+    from dampax._fit._analysis import analyse
+    from dampax._fit._inputs import held_offset_warning
+
+    t = np.linspace(0.0, 20.0, 2000)
+    seg, _, rest = scipy_stick_slip(0.2, 15.0, 0.002, 0.0, 0.02, 0.1, 0.0, t[-1] + 1e-9)
+    x = evaluate(seg, rest, t)[0] + level + 0.001 * np.random.default_rng(1).standard_normal(
+        t.size)
+    an = analyse(t, x, omega0=np.sqrt(15.0 / 0.2))
+    notes = held_offset_warning(an, held, False)
+    assert bool(notes) == noted, notes
+    assert not held_offset_warning(an, held, True)
+    if noted:
+        assert re.match(r"the data swing about 0\.0(59|6)", notes[0]), notes
+        assert "offset=True" in notes[0]

@@ -30,6 +30,7 @@ from ._measures import (
     SETTLE_RTOL,
     Measures,
     gross_ends,
+    level_text,
     measures,
     settled_starts,
     settles,
@@ -323,7 +324,7 @@ def split(a: Inputs, m: Measures, v: Verdict) -> Finding:
             f"from this window ({turns} turning point{'s' if turns != 1 else ''}): "
             f"together they are measured (Wald chi2 = {wald:.3g}), none of them alone "
             "(each within 1.96 sd of zero); fix all but one of them (pass their "
-            "values in the oscillator) or fit a longer record")
+            "values in the oscillator) or fit a longer record" + level_text(a, m))
     return Finding(diag=diag)
 
 

@@ -54,6 +54,7 @@ import numpy as np
 from ._core import FIT_RESULTS, is_code
 from ._dist import chi2_sf, f_sf
 from ._guess import Analysis, despike
+from ._inputs import check_sampling
 from ._intervals import ar1_coefficient, hac_covariance
 from ._noise import above_noise, noise_excursion
 
@@ -63,134 +64,6 @@ STRUCTURE_P = 1e-3
 #: the residuals between the motion ends of model and data exceed those elsewhere below this
 #: p-value (:func:`end_mismatch`): a failure
 END_P = 1e-3
-
-#: the largest |time| [s] a fit takes (about 3e7 years; beyond it the time axis is not one of
-#: a free decay, and times near 1e300 overflowed the fit's sums)
-MAX_TIME = 1e15
-#: the smallest median time step [s] a fit takes (a sampling rate of 1 THz: the squares of the
-#: frequencies of finer steps overflowed)
-MIN_STEP = 1e-12
-#: the median time step must exceed this many float64 spacings of the largest |time|: else
-#: the stamps are quantised by the float format itself (subtract the first stamp first)
-MIN_STEPS_PER_SPACING = 1e3
-#: one gap between samples longer than this share of the span (and this many median steps)
-#: is a stray time stamp, not a pause of the logger
-MAX_GAP_SHARE, MAX_GAP_STEPS = 0.5, 100.0
-
-
-#: more steps back than these (a count, a share of the samples) are unsorted samples, not a
-#: clock that resets: a reset or a few runs put end to end go back a few times
-UNSORTED_STEPS, UNSORTED_SHARE = 10, 0.01
-
-
-def check_time_axis(t: np.ndarray) -> None:
-    """ValueError naming ``t`` for a time axis that is not one trace's: times that go back
-    (a clock that resets, runs put end to end; unsorted samples, told apart by how often),
-    times beyond :data:`MAX_TIME`, steps below :data:`MIN_STEP` or the float format's
-    resolution, or mostly repeated stamps (every sample twice). One gap over most of the
-    window is :func:`check_gaps`'s (on the window: ``Window.end`` can leave it out).
-
-    Arguments:
-        t: the finite sample times, in the order given (not sorted).
-    """
-    t = np.asarray(t, dtype=float)
-    if t.size < 2:
-        return
-    top = float(np.max(np.abs(t)))
-    if top > MAX_TIME:  # first: times near 1e300 are also equal in float64
-        raise ValueError(f"t: times up to {top:.3g} s, beyond the {MAX_TIME:g} s a trace's "
-                         "clock can hold; give the times in seconds from the start")
-    if float(np.ptp(t)) == 0.0:  # constant time: check_sampling says so
-        return
-    back = np.flatnonzero(np.diff(t) < 0)
-    if back.size > max(UNSORTED_STEPS, UNSORTED_SHARE * t.size):
-        raise ValueError(f"t: the times are not in order ({back.size} of {t.size - 1} steps go "
-                         "back, as in shuffled or unsorted samples): sort the samples by time "
-                         "first (order = np.argsort(t); t, x = t[order], x[order])")
-    if back.size:
-        i = int(back[0])
-        raise ValueError(f"t: the time column goes back {back.size} time(s), first after sample "
-                         f"{i} ({t[i]:g} s -> {t[i + 1]:g} s): a clock that resets or runs put "
-                         "end to end; fit each run alone (dp.fit([run1, run2, ...]) fits them "
-                         "jointly) or rebuild time from the sample rate (load_trace(rate=...), "
-                         "dampax fit --rate)")
-    steps = np.diff(t)
-    step = float(np.median(steps))
-    if not step > 0.0:
-        raise ValueError(f"t: at least half of the {t.size} time stamps repeat the one before "
-                         "(samples written twice, or buffered stamps); rebuild time from the "
-                         "sample rate (load_trace(rate=...), dampax fit --rate) or drop the "
-                         "repeated rows")
-    if step < MIN_STEP:
-        raise ValueError(f"t: the median time step ({step:.3g} s) is below {MIN_STEP:g} s (a "
-                         "sampling rate above 1 THz); give the times in seconds")
-    if step < MIN_STEPS_PER_SPACING * float(np.spacing(top)):
-        raise ValueError(f"t: the median time step ({step:.3g} s) is within "
-                         f"{MIN_STEPS_PER_SPACING:g} float64 spacings of the times ({top:.3g} "
-                         "s): the stamps are rounded by the number format; subtract the first "
-                         "time stamp before storing them")
-
-
-#: the range of the largest |position| a fit takes: beyond it the sums of squares of the
-#: residuals leave float64's range (positions of 1e200 or 1e-150 stopped the linear algebra
-#: with "SVD did not converge")
-POSITION_RANGE = (1e-100, 1e100)
-
-
-def check_positions(x: np.ndarray) -> None:
-    """ValueError naming ``x`` when the largest |position| lies outside
-    :data:`POSITION_RANGE` (all zero is left to :func:`check_sampling`: a constant trace).
-
-    Arguments:
-        x: the finite positions.
-    """
-    top = float(np.max(np.abs(x))) if np.size(x) else 0.0
-    low, high = POSITION_RANGE
-    if top != 0.0 and not low <= top <= high:
-        raise ValueError(f"x: positions up to {top:.3g}, outside the [{low:g}, {high:g}] a fit "
-                         "takes (its sums of squares leave float64's range); rescale them "
-                         "(load_trace(scale=...), dampax fit --scale) and name the unit "
-                         "(Window(units=...))")
-
-
-def check_gaps(t: np.ndarray) -> None:
-    """ValueError naming ``t`` when one gap between the (sorted) samples of a fit window covers
-    more than :data:`MAX_GAP_SHARE` of its span and :data:`MAX_GAP_STEPS` median steps: a stray
-    time stamp, not a pause of the logger.
-
-    Arguments:
-        t: the window's sorted sample times.
-    """
-    t = np.asarray(t, dtype=float)
-    if t.size < 3:
-        return
-    steps = np.diff(t)
-    step = float(np.median(steps))
-    span = float(t[-1] - t[0])
-    i = int(np.argmax(steps))
-    gap = float(steps[i])
-    if span > 0 and gap > MAX_GAP_SHARE * span and gap > MAX_GAP_STEPS * step:
-        raise ValueError(f"t: one gap of {gap:.3g} s between samples {i} and {i + 1} "
-                         f"({t[i]:g} s -> {t[i + 1]:g} s) covers {100 * gap / span:.0f} % of "
-                         f"the trace's span (median step {step:.3g} s): a stray time stamp? "
-                         "Drop it, or end the window before it (Window(end=...), --end)")
-
-
-def check_sampling(t: np.ndarray, x: np.ndarray) -> None:
-    """ValueError for constant time, mostly repeated time stamps or a constant trace (the
-    checks that must come before any analysis)."""
-    span = float(t[-1] - t[0])
-    if not span > 0.0:
-        raise ValueError("t: all sample times are equal (constant time): nothing to fit")
-    distinct = np.unique(t).size
-    if distinct < 0.5 * t.size:
-        raise ValueError(f"t: only {distinct} distinct times among {t.size} samples; "
-                         "rebuild time from the sample rate (load_trace(rate=...), "
-                         "dampax fit --rate)")
-    ptp = float(np.ptp(x))
-    if not ptp > 1e-12 * max(float(np.max(np.abs(x))), 1e-300):
-        raise ValueError("x: the trace is constant: nothing oscillates")
-
 
 def check_trace(t: np.ndarray, x: np.ndarray, an: Analysis) -> None:
     """ValueError when the (sorted, finite) trace holds no free decay to fit.

@@ -71,7 +71,7 @@ def structure_text(a, m: Measures) -> str:
     noise, A = a.an.noise, a.derived["A"]
     times = f"{rms / noise:.0f} times the noise, " if noise > 0 else ""
     return (f"p = {m.st['p']:.1g}; largest in the swing at t = {time_span(lo, hi)}: rms "
-            f"{rms:.3g} ({times}{100 * rms / A:.1f} % of the amplitude)" + _level_text(a, m))
+            f"{rms:.3g} ({times}{100 * rms / A:.1f} % of the amplitude)" + level_text(a, m))
 
 
 #: where the offset is held, a mean of the residuals above this share of their rms is named
@@ -79,7 +79,7 @@ def structure_text(a, m: Measures) -> str:
 LEVEL_SHARE = 0.5
 
 
-def _level_text(a, m: Measures) -> str:
+def level_text(a, m: Measures) -> str:
     """A level the residuals sit about where the fit holds the offset, else ""."""
     mean = float(np.mean(m.r))
     if "offset" in a.varied or not abs(mean) > LEVEL_SHARE * m.rms:

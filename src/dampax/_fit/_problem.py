@@ -24,14 +24,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .._trace import Trace, load_trace
-from ._checks import (
-    check_gaps,
-    check_positions,
-    check_sampling,
-    check_time_axis,
-    check_trace,
-    data_rows,
-)
+from ._checks import check_trace, data_rows
 from ._core import (
     FIT_MODELS,
     FIT_RESULTS,
@@ -43,6 +36,14 @@ from ._core import (
     swing_budget,
 )
 from ._guess import Analysis, analyse, guess_trace
+from ._inputs import (
+    check_gaps,
+    check_positions,
+    check_sampling,
+    check_time_axis,
+    held_offset_warning,
+    omega_warning,
+)
 from ._params import (
     DAMPING,
     MAD,
@@ -388,22 +389,11 @@ def units_of(trace_or_t, units):
     return "m"
 
 
-def _omega_warning(an: Analysis, osc: dict, fit_omega0: bool) -> list:
-    """A note when the data's turning points disagree with sqrt(k/m) (w0 not fitted)."""
-    if not fit_omega0 and an.n_turns >= 5 and \
-            abs(an.omega / osc["w0"] - 1.0) > 0.03 + 2.0 * an.omega_spread:
-        # the turning points (not the zero crossings, which friction moves) keep the clock
-        return [f"the data's turning points are {math.pi / an.omega:.5g} s apart, "
-                f"half a period of {an.omega:.5g} rad/s, but sqrt(k/m) = "
-                f"{osc['w0']:.5g} rad/s: pass fit_omega0=True or the right m and k"]
-    return []
-
-
 def _window(t_all, x_all, s: Settings, osc: dict, fit_omega0: bool):
     """(t, x, analysis of the window, notes): the window of the settings, checked."""
     an = analyse(t_all, x_all, omega0=None if fit_omega0 else osc["w0"],
                  window=(s.start, s.end))
-    warn = _omega_warning(an.whole, osc, fit_omega0)
+    warn = omega_warning(an.whole, osc, fit_omega0)
     t, xw = t_all[slice(*an.window)], x_all[slice(*an.window)]
     check_gaps(t)
     check_trace(t, xw, an)
@@ -486,6 +476,7 @@ def prepare(trace_or_t, x, settings: Settings) -> Problem:
         if unknown:
             raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
         guess = guess._replace(**{k: float(v) for k, v in s.p0.items()})
+    warn += held_offset_warning(an_w, guess.offset, s.offset)
     if not getattr(_QUIET, "on", False):
         for w in warn:
             warnings.warn(w, stacklevel=3)
