@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 import pytest
@@ -272,3 +273,41 @@ def test_a_held_offset_away_from_the_data_is_noted(level, held, noted):
     if noted:
         assert re.match(r"the data swing about 0\.0(59|6)", notes[0]), notes
         assert "offset=True" in notes[0]
+
+
+@pytest.mark.parametrize("case, wanders", [("random walk", True), ("AR(1) 0.95", False),
+                                           ("AR(1) 0.95 at 6/period", False)])
+def test_residuals_that_wander_as_large_as_the_motion_are_inadequate(case, wanders):
+    """A random walk fitted with a known oscillator (2,000 steps of 1 mm) was success and
+    adequate: AR(1) noise of phi -> 1 took it. Its residuals, correlated over more than a
+    period and larger than half the fitted motion, now make the fit inadequate, named. AR(1)
+    noise of the generated families (phi up to 0.95, 10 % of the amplitude, 20 or 6 samples
+    per period: correlated over 1 or 3.3 periods) is not flagged."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from dampax._fit._assess import Inputs, wander
+    from dampax._fit._measures import Measures
+
+    rng = np.random.default_rng(5)
+    n, w0 = 2000, 8.66
+    e = rng.standard_normal(n)
+    if case == "random walk":
+        r, per = np.cumsum(0.001 * e), 84.0  # 0.01 s steps, period 0.7255 s
+    else:
+        r = np.zeros(n)
+        for i in range(1, n):
+            r[i] = 0.95 * r[i - 1] + math.sqrt(1 - 0.95**2) * e[i]
+        r, per = 0.002 * r, (20.0 if case == "AR(1) 0.95" else 6.0)
+    t = np.arange(n) * (2 * np.pi / w0) / per
+    params = dict(mu=0.01, b=0.0, D=0.01, w0=w0, x0=0.0, v0=0.02 * w0, offset=0.0)  # A 0.02
+    a = Inputs(t=t, x=r, curve=np.zeros(n), params=params, stderr={}, varied=("mu", "D"),
+               derived={"A": 0.02}, an=SimpleNamespace(noise=0.001), converged=True,
+               message="", model="reference")
+    rms = float(np.sqrt(np.mean(r**2)))
+    m = Measures(r=r, rms=rms, period=2 * np.pi / w0, cov=None, sd={}, st={})
+    found = wander(a, m, None).bad
+    assert bool(found) == wanders, (found, rms)
+    if wanders:
+        assert found[0].startswith("the residuals wander: correlated over"), found

@@ -26,9 +26,12 @@ from ._checks import (
     phase_drift,
 )
 from ._dist import chi2_isf, norm_ppf
+from ._intervals import ar1_coefficient
 from ._measures import (
     SETTLE_RTOL,
+    Finding,
     Measures,
+    Verdict,
     gross_ends,
     level_text,
     measures,
@@ -104,31 +107,6 @@ class Inputs(NamedTuple):
     d_scale: dict | None = None
     search: object = None
     exact: bool = False
-
-
-class Finding(NamedTuple):
-    """What one check found: failures, inadequacies (one-line reasons), measured numbers, and
-    whether the later checks no longer apply."""
-
-    fails: tuple = ()
-    bad: tuple = ()
-    diag: dict = {}
-    stop: bool = False
-
-
-class Verdict(NamedTuple):
-    """The findings so far (what a check may consult)."""
-
-    fails: tuple
-    bad: tuple
-    diag: dict
-
-    def add(self, f: Finding) -> Verdict:
-        return Verdict(self.fails + f.fails, self.bad + f.bad, {**self.diag, **f.diag})
-
-    @property
-    def converged(self) -> bool:
-        return "note_steps" in self.diag
 
 
 def _damping(a: Inputs) -> tuple[list, list]:
@@ -334,6 +312,27 @@ def structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
                          "residual_blocks": m.st["blocks"]})
 
 
+#: residuals correlated over more than this many periods (their AR(1) phi about their mean)
+#: and larger than :data:`WANDER_SHARE` of the start amplitude wander: a moving level, not
+#: noise the intervals can allow for (a pure random walk fitted with a known oscillator was
+#: adequate: AR(1) noise of phi 0.996 took it). Measured: see benchmarks/README.md
+WANDER_PERIODS, WANDER_SHARE = 1.0, 0.5
+
+
+def wander(a: Inputs, m: Measures, v: Verdict) -> Finding:
+    """Residuals that wander slowly and as large as the motion: inadequate, named."""
+    phi = ar1_coefficient(m.r - np.mean(m.r), clip=(-0.99, 1.0))  # (the test clips at 0.99)
+    dt = float(np.median(np.diff(a.t)))
+    A = start_amplitude(a.params) if a.model == "reference" else a.derived["A"]
+    periods = -dt / math.log(phi) / m.period if 0.0 < phi < 1.0 else math.inf
+    if not (phi > 0.0 and periods > WANDER_PERIODS and m.rms > WANDER_SHARE * A):
+        return Finding()
+    return Finding(bad=(f"the residuals wander: correlated over {periods:.3g} periods (AR(1) "
+                        f"phi = {phi:.4f}) with an rms of {m.rms:.3g}, {100 * m.rms / A:.0f} % "
+                        "of the fitted motion's amplitude: a moving level or a motion the "
+                        "model lacks (a random walk?), not noise",))
+
+
 def _gross_end(a: Inputs, m: Measures) -> Finding:
     """A gross mismatch of the motion ends whatever the noise (``_measures.gross_ends``): the
     model's halt and the end of the data's swings above max(6 noise, A/50) are
@@ -475,7 +474,7 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
 FIRST = (step_budget, convergence, finite, degeneracy, standard_errors, envelope_decay,
          amplitude, absurd)
 #: the checks of a trace fit on its measures, in order
-CHECKS = (residual_size, decay, split, structure, motion_ends, exact_structure, size, drift,
+CHECKS = (residual_size, decay, split, structure, wander, motion_ends, exact_structure, size, drift,
           intervals)
 
 

@@ -1,7 +1,8 @@
 """What the checks of a trace fit measure on its residuals (``_assess``'s :data:`CHECKS`
 share them): the residuals, their rms, the period, the intervals' covariance, the test
 against AR(1) noise (:func:`measures`), and where structure in them sits: the half swing
-whose residuals beyond the noise are largest against its amplitude (:func:`worst_swing`)."""
+whose residuals beyond the noise are largest against its amplitude (:func:`worst_swing`).
+Also what each check returns (:class:`Finding`) and the findings so far (:class:`Verdict`)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,31 @@ class Measures(NamedTuple):
     cov: np.ndarray | None
     sd: dict
     st: dict
+
+
+class Finding(NamedTuple):
+    """What one check found: failures, inadequacies (one-line reasons), measured numbers, and
+    whether the later checks no longer apply."""
+
+    fails: tuple = ()
+    bad: tuple = ()
+    diag: dict = {}
+    stop: bool = False
+
+
+class Verdict(NamedTuple):
+    """The findings so far (what a check may consult)."""
+
+    fails: tuple
+    bad: tuple
+    diag: dict
+
+    def add(self, f: Finding) -> Verdict:
+        return Verdict(self.fails + f.fails, self.bad + f.bad, {**self.diag, **f.diag})
+
+    @property
+    def converged(self) -> bool:
+        return "note_steps" in self.diag
 
 
 def measures(a) -> Measures:
