@@ -906,6 +906,35 @@ def test_a_trace_without_decay_is_not_searched_as_a_local_optimum():
     assert ci["mu"][1] < 0.005 and ci["D"][1] < 0.1, ci
 
 
+def test_a_constant_the_data_lack_settles_at_its_bound(monkeypatch):
+    """mu and D (scipy's integrator), fitted with b free too: b's optimum is its bound, 0.
+    The exact model's fit and the profile's held refits crept toward it until their step
+    budget ran out (256 steps each: 15,000 samples over 200 periods took 60 s, 9.6 s now),
+    and the capped fit ran a batch of 30 starts that found nothing. They now stop where they
+    creep and restart at the bound (``Problem.solve(settle=...)``): no fit of the exact
+    model runs out of steps, no batch runs, and the truth lies inside the 99 % intervals."""
+    from dampax._fit import _problem
+
+    steps, solve = [], _problem.Problem.solve
+
+    def counted(self, *args, **kwargs):
+        out = solve(self, *args, **kwargs)
+        if args[1] == "reference":
+            steps.append(int(out.out.steps))
+        return out
+
+    monkeypatch.setattr(_problem.Problem, "solve", counted)
+    t, x = _issue25_trace(0.02, 0.0, 0.5)
+    res = fit(t, x, oscillator=dp.Oscillator(m=1, k=30), free=("mu", "b", "D"))
+    assert res.success and res.model == "reference", res.reason
+    assert "jittered starts" not in res.message and "continued" not in res.message
+    budget = _problem.MAX_STEPS["lm"]
+    assert steps and max(steps) < budget, (steps, budget, res.message)
+    ci = res.conf_interval(0.99)
+    for name, value in (("mu", 0.02), ("b", 0.0), ("D", 0.5)):
+        assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
+
+
 def test_a_failed_search_goes_on_at_the_bound():
     """Quadratic drag with a little friction, four swings to a halt in a 15.6 s record, fitted
     per unit mass with mu, b and D free (fit_calibration.py --wide, seed 13, draw 33, at 8,192
