@@ -173,3 +173,20 @@ def held_offset_warning(an: Analysis, held: float, fitted: bool) -> list:
     return [f"the data swing about {an.offset:.4g}, {100 * abs(away) / size:.0f} % of their "
             f"amplitude from the offset held at {held:.4g} (offset=False): pass offset=True, "
             "or hold the right value (p0={'offset': ...})"]
+
+
+def checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
+    """(k3, mu_s) as floats (or None), checked: finite, mu_s >= 0 and (``against_mu``) >= a
+    held mu."""
+    if mu_s is not None:
+        mu_s = float(mu_s)
+        if not (math.isfinite(mu_s) and mu_s >= 0.0):
+            raise ValueError(f"mu_s must be a finite number >= 0, got {mu_s!r}")
+        if against_mu and "mu" not in free and mu_s < osc["mu"]:
+            raise ValueError(f"mu_s must be >= mu (static friction is at least the sliding "
+                             f"friction), got mu_s={mu_s!r} and mu={osc['mu']!r}")
+    if k3 is not None:
+        k3 = float(k3)
+        if not math.isfinite(k3):
+            raise ValueError(f"k3 must be a finite number, got {k3!r}")
+    return k3, mu_s
