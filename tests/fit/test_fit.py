@@ -935,6 +935,25 @@ def test_a_constant_the_data_lack_settles_at_its_bound(monkeypatch):
         assert ci[name][0] <= value <= ci[name][1], (name, value, ci[name])
 
 
+def test_a_constant_settled_at_its_bound_keeps_a_standard_error(benchmark_module):
+    """Draw 38 of fit_calibration.py seed 44 (per unit mass, mu, b and D free, mu's truth 0;
+    scipy's integrator): settled at mu's bound, where the clamp leaves its Jacobian column 0,
+    the fit failed "the standard error of mu is not finite". Its statistics are taken one
+    unit above the bound: a success, mu's 99 % interval from 0 holding the truth, and b, D
+    inside theirs."""
+    cal = benchmark_module("fit_calibration")
+    spec = cal.traces("reference", 39, 44)[0][38]
+    assert spec["mu"] == 0.0 and spec["free"] == ("mu", "b", "D") and not spec["given"]
+    t, x = cal.simulate(spec)
+    res = fit(t, x, free=spec["free"])
+    assert res.success, res.reason
+    assert math.isfinite(res.stderr["mu"]) and res.stderr["mu"] > 0
+    ci = res.conf_interval(0.99)
+    assert ci["mu"][0] == 0.0 < ci["mu"][1]
+    for name in ("b", "D"):
+        assert ci[name][0] <= spec[name] / spec["m"] <= ci[name][1], (name, ci[name])
+
+
 def test_a_failed_search_goes_on_at_the_bound():
     """Quadratic drag with a little friction, four swings to a halt in a 15.6 s record, fitted
     per unit mass with mu, b and D free (fit_calibration.py --wide, seed 13, draw 33, at 8,192

@@ -239,8 +239,10 @@ class Problem:
         and Jacobian there, its derivative the model's; the cost moves by a 1e-9 of mu); its
         code and steps kept."""
         out = last.out
-        bare = {n: 0.0 for n in DAMPING if getattr(self.vary, n) and
-                not math.isfinite(float(getattr(out.stderr, n)))}
+        jac, _ = data_rows(out, self.vary, self.n)
+        cols = dict(zip(varied_names(self.vary), jac.T, strict=True)) if jac is not None else {}
+        bare = {n: 0.0 for n in DAMPING if n in cols and not np.any(cols[n]) and
+                not math.isfinite(float(getattr(out.stderr, n)))}  # (the clamp's zero column)
         if not bare:
             return last
         there = self.solve(out.params._replace(**bare), last.model, last.fs, like=last,
