@@ -118,15 +118,16 @@ def test_fit_refuses_garbage_time_axes_at_once(case):
 
 def test_fit_names_the_samples_it_leaves_out():
     """NaN or inf samples are left out of a fit with a warning that counts them (they were
-    dropped silently)."""
+    dropped silently), attributed to the caller's line, not to a frame inside dampax."""
     from dampax._fit._problem import read_arrays
 
     t, x = _decay()
     x[[5, 17, 300]] = [np.nan, np.inf, np.nan]
     t[40] = np.nan
-    with pytest.warns(UserWarning, match=r"^t, x: 4 of 400 samples hold NaN or inf"):
-        got, _, _ = read_arrays(t, x)
-    assert got.size == 396
+    with pytest.warns(UserWarning, match=r"^t, x: 4 of 400 samples hold NaN or inf") as got:
+        kept, _, _ = read_arrays(t, x)
+    assert kept.size == 396
+    assert got[0].filename == __file__, got[0].filename
 
 
 @pytest.mark.parametrize("scale", [1e200, 1e-200, 1e-150, 1e150])

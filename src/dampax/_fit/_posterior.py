@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -83,6 +82,7 @@ from ._sampler import (
     physical,
     sample,
 )
+from ._text import warn_user
 
 # ----------------------------------------------------------------------------------------------
 # one trace
@@ -367,7 +367,7 @@ def _finish(out: Draws, draws, observed, res, model, began, stride, *, free) -> 
     st = out.stats
     narrow = narrow_parameters(draws, res)
     if narrow:
-        warnings.warn(narrow_text(narrow), stacklevel=3)
+        warn_user(narrow_text(narrow))
     coords = {"chain": draws.coords["chain"].values, "draw": draws.coords["draw"].values}
     stats = xr.Dataset(
         {"lp": (("chain", "draw"), st["lp"].astype(float)),

@@ -17,7 +17,6 @@ import dataclasses
 import math
 import re
 import threading
-import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -55,6 +54,7 @@ from ._params import (
     varied_names,
     vary_mask,
 )
+from ._text import warn_user
 
 
 class Settings(NamedTuple):
@@ -340,8 +340,8 @@ def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
         raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
     ok = np.isfinite(t) & np.isfinite(x)
     if not ok.all() and not getattr(_QUIET, "on", False):
-        warnings.warn(f"t, x: {int(ok.size - ok.sum())} of {ok.size} {noun} hold NaN or inf "
-                      "(a gap in the logger?) and were left out", stacklevel=4)
+        warn_user(f"t, x: {int(ok.size - ok.sum())} of {ok.size} {noun} hold NaN or inf "
+                  "(a gap in the logger?) and were left out")
     t, x = t[ok], x[ok]
     check_time_axis(t)
     check_positions(x)
@@ -482,7 +482,7 @@ def prepare(trace_or_t, x, settings: Settings) -> Problem:
     warn += held_offset_warning(an_w, guess.offset, s.offset)
     if not getattr(_QUIET, "on", False):
         for w in warn:
-            warnings.warn(w, stacklevel=3)
+            warn_user(w)
     vary = vary_mask(TraceParams, s.free, fit_omega0=fit_omega0, offset=s.offset)
     k3, mu_s = checked_consts(k3, mu_s, s.free, osc)
     tp, xp, wt = pad(t, xw, bucket(len(t)))

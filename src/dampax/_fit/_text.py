@@ -5,6 +5,8 @@ ends (issue 36: "found a lower cost (0.03239 < 0.03239)", "worst around t = 2333
 from __future__ import annotations
 
 import math
+import sys
+import warnings
 
 
 def _digits(a: float, b: float, least: int = 4) -> int:
@@ -28,3 +30,15 @@ def time_span(lo: float, hi: float) -> str:
         return f"{lo:.6g} s"
     d = _digits(lo, hi)
     return f"{lo:.{d}g}-{hi:.{d}g} s"
+
+
+def warn_user(message: str) -> None:
+    """``warnings.warn(message)`` attributed to the first frame outside dampax: the user's
+    line that called ``dp.fit`` (a fixed ``stacklevel`` pointed into dampax, e.g.
+    ``_linalg.py``, as the depth of the call differs by path); in a thread that dampax
+    started, its outermost frame."""
+    frame, level = sys._getframe(1), 2
+    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith(
+            "dampax"):
+        frame, level = frame.f_back, level + 1
+    warnings.warn(message, stacklevel=level)
