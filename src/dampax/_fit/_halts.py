@@ -20,8 +20,8 @@ import numpy as np
 from .._oscillator import Oscillator
 from .._solve import default_swings, prepare_reference, solve
 from ._core import FIT_MODELS, FIT_RESULTS
-from ._params import DAMPING, varied_names
-from ._problem import predicted_start
+from ._params import varied_names
+from ._problem import SETTLE, predicted_start
 from ._profile import LR_Z
 from ._starts import REACHED_RTOL
 from ._text import lower_cost
@@ -374,7 +374,7 @@ def _free_fit(problem, best, start, name: str, fs: float, like=None):
     last = problem.solve(start, name, fs, like=like, budget=min(problem.steps, HALT_STEPS),
                          give_up=_far(problem, best))
     if _unfinished(last.out) and _near(last.out, best, problem):
-        last = problem.solve(last.out.params, name, fs, like=last, settle=len(DAMPING))
+        last = problem.solve(last.out.params, name, fs, like=last, settle=SETTLE)
     return last
 
 
@@ -405,13 +405,13 @@ def _held_fit(held, full, best, mu_alt: float, last, swing=None):
     if not _near(out, best, full):
         return last
     if _unfinished(out):
-        last = full.solve(out.params, name, fs, like=last, settle=len(DAMPING))
+        last = full.solve(out.params, name, fs, like=last, settle=SETTLE)
     se = float(best.stderr.mu)
     if math.isfinite(se) and abs(mu_alt - float(best.params.mu)) > LR_Z * se:
         # a motion the check weighs: the linearised start may have led into another valley
         # (draw 134: a held cost 75 noise variances up, 4.7 from the optimum's own start)
         plain = full.solve(best.params._replace(mu=mu_alt), name, fs, like=last,
-                           settle=len(DAMPING))
+                           settle=SETTLE)
         if float(plain.out.chisqr) < float(last.out.chisqr):
             last = plain
     return last

@@ -58,7 +58,7 @@ from ._halts import (
 )
 from ._measures import k3_hint
 from ._params import DAMPING, varied_names
-from ._problem import Problem, Solved, predicted_start, robust_scale
+from ._problem import SETTLE, Problem, Solved, predicted_start, robust_scale
 from ._profile import other_halt_check, shared_start
 from ._result import FitContext, FitResult, build_result
 from ._starts import prepare_starts, run_starts
@@ -123,7 +123,7 @@ def global_starts(problem: Problem, plan: Plan) -> Fit:
     if batch_of_starts(problem, plan):
         found = run_starts(problem, problem.guess, first, math.inf, seed=int(s.seed))
         start = found.params
-    last = problem.solve(start, first, math.inf, settle=len(DAMPING))  # (one-round models)
+    last = problem.solve(start, first, math.inf, settle=SETTLE)  # (one-round models)
     return Fit(last.out, last, found)
 
 
@@ -149,7 +149,7 @@ def exact_model(problem: Problem, plan: Plan, state: Fit) -> Fit:
     first, fs = state.last.model, state.last.fs
     text = f"started from the {first} fit ({int(state.best.steps)} steps)"
     approx = state.best.params
-    last = problem.solve(approx, spec.name, fs, settle=len(DAMPING))
+    last = problem.solve(approx, spec.name, fs, settle=SETTLE)
     out, found, s, data = last.out, state.starts, problem.settings, problem.data
     if s.starts > 1 and looks_stuck(data.t, data.x, np.asarray(out.curve)[:problem.n],
                                     data.analysis, float(out.params.w0), _code(problem, out)):
@@ -266,7 +266,7 @@ def profile_refit(problem: Problem, state: Fit, first: str, name: str, value, st
     starts = [p] + (held_mu_starts(problem, best, state.last.model, value, own=not start)
                     if name == "mu" and not batch else [])
     out = min((problem.holding(name).solve(q, state.last.model, state.last.fs, like=state.last,
-                                           settle=len(DAMPING)).out for q in starts),
+                                           settle=SETTLE).out for q in starts),
               key=lambda o: float(o.chisqr))
     if not values:
         return float(out.chisqr)

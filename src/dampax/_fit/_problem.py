@@ -56,6 +56,10 @@ from ._params import (
 )
 from ._text import warn_user
 
+#: restarts at a bound that a fit of the exact model creeping toward one takes (the ``settle``
+#: of :meth:`Problem.solve`): one per damping constant
+SETTLE = len(DAMPING)
+
 
 class Settings(NamedTuple):
     """What the caller asked of a single-trace fit (checked at the edge, ``_options``)."""
