@@ -228,14 +228,17 @@ def amplitude(a: Inputs, v: Verdict) -> Finding:
                    stop=True)
 
 
+def _motion_amplitude(a: Inputs) -> float:
+    """The exact model's start's own amplitude, hypot(x0, v0/w0), else the model's A."""
+    exact = a.model == "reference" and math.isfinite(a.params.get("v0", math.nan))
+    return start_amplitude(a.params) if exact else a.derived["A"]
+
+
 def absurd(a: Inputs, v: Verdict) -> Finding:
-    """Damping ratios above :data:`ABSURD`, or an amplitude far beyond the data's range. For
-    the exact model the amplitude is the start's own, hypot(x0, v0/w0): the ansatz matched
-    to a start under strong drag has an amplitude many times the motion's (14.6x on a draw of
-    ``fit_calibration.py --wide``, d2 A0/w0 = 1.1, which failed with the truth inside)."""
-    w0, A = a.params["w0"], a.derived["A"]
-    if a.model == "reference" and math.isfinite(a.params.get("v0", math.nan)):
-        A = start_amplitude(a.params)
+    """Damping ratios above :data:`ABSURD`, or an amplitude far beyond the data's range, of
+    :func:`_motion_amplitude`: the ansatz matched to a start under strong drag has one many
+    times the motion's (14.6x on a wide draw, d2 A0/w0 = 1.1: it failed, the truth inside)."""
+    w0, A = a.params["w0"], _motion_amplitude(a)
     d = a.derived
     ratios = {"d0/(w0 A)": d["d0"] / (w0 * A), "d1/w0": d["d1"] / w0, "d2 A/w0": d["d2"] * A / w0}
     span_x = float(np.ptp(a.x))
@@ -312,19 +315,17 @@ def structure(a: Inputs, m: Measures, v: Verdict) -> Finding:
                          "residual_blocks": m.st["blocks"]})
 
 
-#: residuals correlated over more than this many periods (their AR(1) phi about their mean)
-#: and larger than :data:`WANDER_SHARE` of the start amplitude wander: a moving level, not
-#: noise the intervals can allow for (a pure random walk fitted with a known oscillator was
-#: adequate: AR(1) noise of phi 0.996 took it). Measured: see benchmarks/README.md
+#: residuals correlated over more than this many periods (AR(1) phi about their mean) and
+#: above WANDER_SHARE of the motion's amplitude wander (a random walk was adequate: AR(1) of
+#: phi 0.996 took it); the families' noise stays 5x below (benchmarks/README.md)
 WANDER_PERIODS, WANDER_SHARE = 1.0, 0.5
 
 
 def wander(a: Inputs, m: Measures, v: Verdict) -> Finding:
     """Residuals that wander slowly and as large as the motion: inadequate, named."""
     phi = ar1_coefficient(m.r - np.mean(m.r), clip=(-0.99, 1.0))  # (the test clips at 0.99)
-    dt = float(np.median(np.diff(a.t)))
-    A = start_amplitude(a.params) if a.model == "reference" else a.derived["A"]
-    periods = -dt / math.log(phi) / m.period if 0.0 < phi < 1.0 else math.inf
+    dt, A = float(np.median(np.diff(a.t))), _motion_amplitude(a)
+    periods = -dt / math.log(phi) / m.period if 0.0 < phi < 1.0 else math.inf  # (phi 1: inf)
     if not (phi > 0.0 and periods > WANDER_PERIODS and m.rms > WANDER_SHARE * A):
         return Finding()
     return Finding(bad=(f"the residuals wander: correlated over {periods:.3g} periods (AR(1) "
@@ -470,12 +471,12 @@ def intervals(a: Inputs, m: Measures, v: Verdict) -> Finding:
     return Finding(diag=diag, fails=(fail,) if fail else ())
 
 
-#: the checks before the residuals are measured (a ``stop`` ends the assessment)
+#: the checks before the residuals are measured (a ``stop`` ends the assessment), then those
+#: of a trace fit on its measures, in order
 FIRST = (step_budget, convergence, finite, degeneracy, standard_errors, envelope_decay,
          amplitude, absurd)
-#: the checks of a trace fit on its measures, in order
-CHECKS = (residual_size, decay, split, structure, wander, motion_ends, exact_structure, size, drift,
-          intervals)
+CHECKS = (residual_size, decay, split, structure, wander, motion_ends, exact_structure, size,
+          drift, intervals)
 
 
 def assess(a: Inputs):

@@ -53,8 +53,9 @@ def noise_sigma(x: np.ndarray) -> float:
     return predicted if predicted < PREDICTION_SHARE * best else best
 
 
-#: the differences' noise gives way to the prediction error below this share of it: pure
-#: white noise gives the two within 10-20 % of each other (both estimate sigma)
+#: the differences' noise gives way to the prediction error below this share of it: on pure
+#: white noise (1,000 draws of 50-200 samples) the prediction error's sigma is at least 0.65 of
+#: the differences' in 99 % of draws, 0.42 at the least (both estimate sigma)
 PREDICTION_SHARE = 0.5
 
 

@@ -38,7 +38,11 @@ def warn_user(message: str) -> None:
     ``_linalg.py``, as the depth of the call differs by path); in a thread that dampax
     started, its outermost frame."""
     frame, level = sys._getframe(1), 2
-    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith(
-            "dampax"):
+    while frame.f_back is not None and _ours(frame.f_globals.get("__name__", "")):
         frame, level = frame.f_back, level + 1
     warnings.warn(message, stacklevel=level)
+
+
+def _ours(module: str) -> bool:
+    """Whether ``module`` is dampax's (not a user's module that only starts with its name)."""
+    return module == "dampax" or module.startswith("dampax.")
