@@ -43,6 +43,31 @@ def test_a_held_k3_is_reported_as_fixed():
     assert any(line.split()[:3] == ["k3:", "2", "(fixed)"] for line in res.report().splitlines())
 
 
+def test_an_oscillators_own_k3_is_held_by_the_fit():
+    """An oscillator's k3 is held by the fit as k3=... is (it was left out without a word: a
+    linear spring fitted); a different k3= beside it, and an envelope fit of it, are refused
+    with the reason."""
+    import numpy as np
+
+    import dampax as dp
+
+    ts = np.linspace(0.0, 12.0, 300)  # (the shapes of the test above: its programs)
+    osc = dp.Oscillator(m=1.0, k=4.0, D=0.5, k3=2.0)
+    sol = dp.solve(osc, 0.3, 0.0, method="reference", t_end=12.0, ts=ts)
+    x = np.asarray(sol.x(ts)) + 0.002 * np.random.default_rng(0).standard_normal(ts.size)
+    held = dp.Oscillator(m=1.0, k=4.0, k3=2.0)
+    res = dp.fit(ts, x, oscillator=held, free=("D",), model="ansatz")
+    ref = dp.fit(ts, x, oscillator=dp.Oscillator(m=1.0, k=4.0), free=("D",), k3=2.0,
+                 model="ansatz")
+    assert res.fixed["k3"] == 2.0 and res.params["D"] == ref.params["D"]
+    lo, hi = res.conf_interval(0.99)["D"]
+    assert lo <= 0.5 <= hi
+    with pytest.raises(ValueError, match="k3: the oscillator holds k3=2.0"):
+        dp.fit(ts, x, oscillator=held, free=("D",), k3=1.0, model="ansatz")
+    with pytest.raises(ValueError, match="oscillator: an envelope fit"):
+        dp.fit_envelope([1.0, 2.0, 3.0, 4.0], [1.0, 0.8, 0.6, 0.45], oscillator=held)
+
+
 def test_residual_structure_finds_a_swing_and_skips_a_curve_that_is_not_finite():
     """The residual test of the fit's verdict (_checks.residual_structure): white noise passes,
     a swing at w0 in two periods of the window is found there, and residuals that are not

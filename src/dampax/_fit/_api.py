@@ -28,6 +28,7 @@ from ._core import (
     swing_budget,
 )
 from ._guess import analyse, guess_envelope
+from ._inputs import held_constants
 from ._linalg import one_blas_thread
 from ._options import Window, options
 from ._params import (
@@ -129,7 +130,8 @@ def fit(trace_or_t, x, settings: Settings) -> FitResult:
         plan = DEFAULT
         settings = settings._replace(model="reference")
     free = check_free(settings.free, allowed=FREE)
-    k3, mu_s = settings.k3, settings.mu_s
+    k3, mu_s = held_constants(settings.oscillator, free, settings.k3, settings.mu_s)
+    settings = settings._replace(k3=k3, mu_s=mu_s)
     if mu_s is not None or "mu_s" in free:
         if settings.model != "reference":
             raise ValueError(f"mu_s: static friction needs model='reference' (the "
@@ -187,6 +189,9 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     check_choice("optimizer", optimizer, OPTIMIZERS)
     units = Window(units=units).checked().units
     free = check_free(free)
+    if held_constants(oscillator, (), None, None) != (None, None):
+        raise ValueError("oscillator: an envelope fit is of eq. 3 with a linear spring and "
+                         "mu_s = mu; fit the trace (dp.fit) to hold its k3 or mu_s")
     osc = oscillator_values(oscillator)
     n_params = 1 + len(free) + bool(offset)  # A, the free constants, the offset
     t, E, source = read_arrays(t_peaks, amplitudes, least=n_params + 1,
@@ -312,7 +317,11 @@ def residual_function(t, x, *, free=("mu", "D"), oscillator=None, fit_omega0: bo
                        x0=0.0, v0=0.0)
     t = jnp.asarray(t, dtype=float)
     x = jnp.asarray(x, dtype=float)
-    consts = as_arrays(Constants(m=osc["m"], g=osc["g"]))
+    k3, mu_s = held_constants(oscillator, free, None, None)
+    if mu_s is not None and not spec.integrates:
+        raise ValueError(f"oscillator.mu_s: static friction needs model='reference' (the "
+                         f"{model} model assumes mu_s = mu)")
+    consts = as_arrays(Constants(m=osc["m"], g=osc["g"], k3=k3, mu_s=mu_s))
     span = jnp.max(t) - t[0]
     if spec.integrates and max_swings is None:
         omega = analyse(np.asarray(t), np.asarray(x)).omega if fit_omega0 else osc["w0"]

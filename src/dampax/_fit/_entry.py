@@ -88,7 +88,8 @@ def fit(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), shared=None,
             each run with its own start, offset and window).
         x: the positions when ``trace_or_t`` holds the times.
         oscillator: the known constants (m, k, g; the damping constants not in ``free`` stay
-            at its values, usually 0). Default None: unit mass, w0 fitted (per-mass b, D).
+            at its values, usually 0; its k3 and mu_s, where set, are held as ``k3=`` and
+            ``mu_s=`` hold them). Default None: unit mass, w0 fitted (per-mass b, D).
         free: the constants to fit, among "mu", "b", "D", "k3" (profiled) and "mu_s"
             (searched; model "reference").
         shared: joint fits only: the parameters common to all runs, among "mu", "b", "D",

@@ -190,3 +190,32 @@ def checked_consts(k3, mu_s, free, osc, *, against_mu: bool = True):
         if not math.isfinite(k3):
             raise ValueError(f"k3 must be a finite number, got {k3!r}")
     return k3, mu_s
+
+
+def held_constants(oscillator, names, k3, mu_s) -> tuple:
+    """(k3, mu_s) that a fit holds: the keywords ``k3`` and ``mu_s``, else the oscillator's
+    own (its ``k3`` where not 0, its ``mu_s`` where set), unless the constant is fitted (in
+    ``names``: ``free``, and a joint fit's ``shared``). Before, a fit left an oscillator's
+    k3 and mu_s out without a word: ``dp.fit(..., oscillator=dp.Oscillator(m, k, k3=...))``
+    fitted a linear spring.
+
+    Raises:
+        ValueError: a keyword and the oscillator hold different values of one constant.
+    """
+    if oscillator is None:
+        return k3, mu_s
+    get = oscillator.get if isinstance(oscillator, dict) else \
+        (lambda name, default: getattr(oscillator, name, default))
+    held = {"k3": k3, "mu_s": mu_s}
+    for name, unset in (("k3", 0.0), ("mu_s", None)):
+        own = get(name, unset)
+        if own is None or name in names or np.shape(own) != ():  # (a batch: refused later)
+            continue
+        own = float(own)
+        if own == unset:
+            continue
+        if held[name] is not None and float(held[name]) != own:
+            raise ValueError(f"{name}: the oscillator holds {name}={own!r} and the fit was "
+                             f"given {name}={held[name]!r}: give it once")
+        held[name] = own
+    return held["k3"], held["mu_s"]

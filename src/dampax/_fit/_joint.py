@@ -43,6 +43,7 @@ from pathlib import Path
 
 from .._trace import Trace, load_trace
 from ._core import MAX_STEPS, MODELS
+from ._inputs import held_constants
 from ._joint_build import JointContext, _result
 from ._joint_problem import SHARED
 from ._joint_result import JointResult
@@ -189,6 +190,12 @@ def fit_joint(traces, *, shared=None, free=("mu", "D"), oscillator=None, model: 
     units = Window(units=units).checked().units
     if fit_omega0 is None:
         fit_omega0 = oscillator is None
+    named = [n.strip() for group in (shared or (), free)
+             for n in (group.split(",") if isinstance(group, str) else group)]
+    k3, mu_s = held_constants(oscillator, named, k3, None)
+    if mu_s is not None:
+        raise ValueError("oscillator.mu_s: static friction is not supported by a joint fit of "
+                         "several runs; fit each run alone")
     shared, free = check_shared(shared, free, fit_omega0=bool(fit_omega0), k3=k3)
     windows = _windows(start, end, len(traces))
     cfg = JointSettings(model=model, shared=shared, free=free, oscillator=oscillator,
