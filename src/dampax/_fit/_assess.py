@@ -182,6 +182,11 @@ def degeneracy(a: Inputs, v: Verdict) -> Finding:
     return Finding(diag=diag)
 
 
+#: the words of :func:`standard_errors`' failure where w0's interval reaches 0 (the k3 search
+#: reads them: ``_stiffness.fit_k3``)
+NO_FREQUENCY = "the window does not determine the frequency"
+
+
 def standard_errors(a: Inputs, v: Verdict) -> Finding:
     """Finite standard errors of every varied parameter and intervals of positive width (a
     variance <= 0, clipped to 0, is a numerically singular Jacobian's, not a parameter the data
@@ -198,7 +203,7 @@ def standard_errors(a: Inputs, v: Verdict) -> Finding:
         ("interval", [n for n, s in sd.items() if not s > 0], "has no width: the Jacobian is "
          "numerically singular (not determined by the data)"),
         ("99 % interval", [f"w0 = {w0:.4g} +- {reach:.2g} rad/s"] if w0 <= reach else [],
-         "reaches 0: the window does not determine the frequency, and the other constants' "
+         f"reaches 0: {NO_FREQUENCY}, and the other constants' "
          "intervals do not hold either; give the stiffness (the oscillator's k) or fit a "
          "record with more swings")) if names))
 

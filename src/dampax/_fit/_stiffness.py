@@ -16,6 +16,7 @@ import numpy as np
 
 from .._oscillator import Oscillator
 from .._solve import solve
+from ._assess import NO_FREQUENCY
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
 from ._halts import first_halt
@@ -47,15 +48,14 @@ class Profile(NamedTuple):
     rho: float
 
 
-def profile_k3(problem) -> Profile:
-    """The linear-spring fit (the plain plan), then S(e) minimised by Brent's method from
+def profile_k3(problem, base) -> Profile:
+    """After the linear-spring fit ``base`` (the plain plan), S(e) minimised by Brent's method from
     fits at fixed k3 started at its optimum and from it with w0 less the rise k3 gives
     (:func:`hardening_shift`), the lower kept (no batch of starts: the global starts were spent
     on the linear fit; the exact model's directly, without its approximate start), and e's
     standard error from the curvature of S at the minimum."""
     from scipy.optimize import minimize_scalar
 
-    base = run(problem, FULL)
     w0 = float(base.params["w0"])
     amp = start_amplitude(base.params)
     scale = problem.consts.m * w0 * w0 / (amp * amp)  # k3 of e = k3 A^2/(m w0^2) = 1
@@ -233,7 +233,10 @@ def fit_k3(problem):
     window does not determine k3 (:func:`undetermined_reason`). Returns the fit at the best
     k3 with "k3" in ``params``, ``stderr``, ``free`` and ``conf_interval``.
     """
-    pr = profile_k3(problem)
+    base = run(problem, FULL)
+    if not base.success and NO_FREQUENCY in base.reason:
+        return _unsearched(base)
+    pr = profile_k3(problem, base)
     (best, others), k3, sd = searched(problem, pr.at(pr.e_best), pr.e_best * pr.scale), \
         pr.e_best * pr.scale, pr.sd_e * pr.scale
     entry = {"value": k3, "stderr": sd, "ratio": pr.e_best, "ratio_scale": pr.scale,
@@ -265,6 +268,20 @@ def fit_k3(problem):
     # k3 they are narrower: wide draw 31, a false failure 3 of those sd away)
     return other_halt_check(res, others, held_mu(problem.with_consts(k3=k3), best)) \
         if success and others else res
+
+
+def _unsearched(base):
+    """The linear-spring fit ``base``, failed because the window does not determine w0, with
+    k3 unsearched (NaN, no interval): a free k3 only adds to what the window leaves open.
+    Its search fitted 20-50 motions of that undetermined frequency, each to the end of its
+    step budget, for the same failure (wide seed 46 draw 80: 1.7 half swings, mu, b, D, w0
+    and k3 free; 105-125 s, 10 s without the search)."""
+    nan = math.nan
+    return dataclasses.replace(
+        base, reason=f"{base.reason}; k3 was not searched (a free k3 leaves the frequency "
+        "more open still)", params={**base.params, "k3": nan},
+        stderr={**base.stderr, "k3": nan}, free=tuple(base.free) + ("k3",),
+        profiled={"k3": {"value": nan, "stderr": nan, "evaluations": 0}})
 
 
 def held_mu(problem, best):
