@@ -102,6 +102,10 @@ class Trace:
         position_column: name (or "#index") of the position column.
         rate: the sample rate [1/s] used to rebuild time, or None when time was read as is.
         n_rows: data rows in the file (read or dropped).
+        scale: the factor applied to the positions (``load_trace(scale=...)``): the position
+            column's unit no longer names them (a fit says "1/scale unit" unless told).
+        time_factor: seconds per unit of the time column (1e-3 for "time(ms)"): times are
+            in seconds.
     """
 
     t: np.ndarray
@@ -112,6 +116,8 @@ class Trace:
     position_column: str = ""
     rate: float | None = None
     n_rows: int = 0
+    scale: float = 1.0
+    time_factor: float = 1.0
 
     def __len__(self) -> int:
         return int(np.shape(self.t)[0])
@@ -130,6 +136,8 @@ class Trace:
             time = f"time from the sample index at {self.rate:.6g} samples/s"
         elif self.time_column:
             time = f"time from column {self.time_column!r}"
+            if self.time_factor != 1.0:
+                time += f" (x {self.time_factor:g} to seconds)"
             if self.rate is not None:
                 time += f" (rebuilt at {self.rate:.6g} samples/s)"
         else:
@@ -150,7 +158,11 @@ class Trace:
 
 jax.tree_util.register_dataclass(
     Trace, data_fields=["t", "x"],
-    meta_fields=["n_dropped", "source", "time_column", "position_column", "rate", "n_rows"])
+    meta_fields=["n_dropped", "source", "time_column", "position_column", "rate", "n_rows",
+                 "scale", "time_factor"])
+
+#: seconds per unit of a time column's unit (the others are seconds)
+_SECONDS = {"ms": 1e-3, "us": 1e-6, "µs": 1e-6, "min": 60.0}
 
 
 def _number(field: str, decimal_comma: bool) -> float:
@@ -495,6 +507,10 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
             xs[r] = _number(fields[i_pos], decimal_comma)
         if i_time is not None and i_time < len(fields):
             times[r] = _number(fields[i_time], decimal_comma)
+    # a time column in ms, us or min (by its header's unit) is read in seconds
+    factor = _SECONDS.get(_name_and_unit(names[i_time])[1], 1.0) \
+        if i_time is not None and names is not None and i_time < len(names) else 1.0
+    times = times * factor
     finite_x = np.isfinite(xs)
     finite_t = np.isfinite(times) if i_time is not None else np.ones(n_rows, bool)
     index = np.arange(n_rows, dtype=float)
@@ -536,4 +552,5 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     return Trace(t=np.asarray(t[keep], dtype=float),
                  x=np.asarray(xs[keep], dtype=float) * float(scale),
                  n_dropped=n_rows - n_keep, source=path_str, time_column=label(i_time),
-                 position_column=label(i_pos), rate=rate_used, n_rows=n_rows)
+                 position_column=label(i_pos), rate=rate_used, n_rows=n_rows,
+                 scale=float(scale), time_factor=factor)

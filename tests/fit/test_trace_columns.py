@@ -175,3 +175,31 @@ def test_shared_torsion_file_reads_the_angle():
     assert 255 < auto.rate < 265
     spring = load_trace(DATA / "spring_mass_airdrag" / "run1.csv")
     assert (spring.time_column, spring.position_column) == ("time", "position")
+
+
+@pytest.mark.parametrize("unit, factor", [("ms", 1e-3), ("us", 1e-6), ("min", 60.0),
+                                          ("s", 1.0)])
+def test_a_time_column_in_other_units_is_read_in_seconds(tmp_path, unit, factor):
+    """A time column headed in ms, us or min is converted to seconds (it was read as seconds:
+    a fit of a trace timed in ms gave w0 1000 times too small, called a success)."""
+    header = [f"time({unit})", "x(m)"]
+    path = tmp_path / "t.csv"
+    path.write_text(",".join(header) + "\n" + "".join(
+        f"{float(t) / factor!r},{float(x)!r}\n" for t, x in zip(TIME, POS, strict=True)))
+    trace = load_trace(path)
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-12)
+    assert trace.time_factor == factor
+    assert ("to seconds" in trace.describe_columns()) == (factor != 1.0)
+
+
+def test_scaled_positions_are_not_named_by_the_columns_unit(tmp_path):
+    """load_trace(scale=...) converts the positions; the fit's unit is then one of 1/scale
+    column units, not the column's unit (a trace in degrees scaled to radians was reported in
+    degrees)."""
+    from dampax._fit._problem import units_of
+
+    path = _write(tmp_path, ["t(s)", "Angle(deg)"], ["time", "pos"])
+    assert units_of(load_trace(path), None) == "deg"
+    scaled = load_trace(path, scale=math.pi / 180.0)
+    np.testing.assert_allclose(scaled.x, np.radians(POS), rtol=1e-12)
+    assert units_of(scaled, None) == "(57.2958 deg)" and units_of(scaled, "rad") == "rad"

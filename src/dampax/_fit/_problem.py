@@ -386,13 +386,15 @@ def pad(t, x, n_pad):
 
 def units_of(trace_or_t, units):
     """The position unit: ``units``, else the unit in the position column's name of a Trace
-    ("Angle(deg)" -> "deg"), else "m"."""
+    ("Angle(deg)" -> "deg"; "(57.2958 deg)" where ``load_trace(scale=pi/180)`` scaled it: one
+    position unit of the fit is 1/scale of the column's), else "m"."""
     if units is not None:  # checked by Window (or fit_envelope)
         return units
     if isinstance(trace_or_t, Trace):
         found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
         if found:
-            return found.group(1)
+            scale = getattr(trace_or_t, "scale", 1.0)
+            return found.group(1) if scale == 1.0 else f"({1.0 / scale:.6g} {found.group(1)})"
     return "m"
 
 
