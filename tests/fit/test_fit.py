@@ -255,6 +255,12 @@ def test_input_errors():
         fit(t, x[:-1], model="ansatz")
     with pytest.raises(ValueError, match="p0: unknown"):
         fit(t, x, solver=dp.LeastSquares(p0={"k": 1.0}), model="ansatz")
+    # p0 of a constant the fit holds (it was held at p0's value, overriding the oscillator's)
+    with pytest.raises(ValueError, match="p0: b not fitted here"):
+        fit(t, x, solver=dp.LeastSquares(p0={"b": 0.01}), model="ansatz")
+    with pytest.raises(ValueError, match="p0: w0 not fitted here"):
+        fit(t, x, oscillator=dp.Oscillator(m=1.0, k=4.0), solver=dp.LeastSquares(p0={"w0": 2.1}),
+            model="ansatz")
     with pytest.raises(ValueError, match="sets free itself"):
         compare_models((t, x), free=("mu",), model="ansatz")
     with pytest.raises(ValueError, match="fit_omega0=False needs an oscillator"):

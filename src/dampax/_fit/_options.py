@@ -194,7 +194,9 @@ class LeastSquares(_LeastSquaresFields):
         starts: global starts (1: the turning-point guess alone); ``seed``: of their jitter,
             an integer >= 0.
         p0: initial values (a mapping by parameter name, finite; mu, b, D >= 0, w0 > 0)
-            overriding the automatic guess.
+            overriding the automatic guess, of fitted parameters only (a damping constant
+            not in ``free`` or w0 without ``fit_omega0`` is a ValueError: the oscillator
+            holds it), except the offset: with ``offset=False`` it is held at p0's value.
         max_swings: the reference model's budget of half-swings (default: from the window).
     """
 
