@@ -534,3 +534,19 @@ def test_cli_swings_and_turning_points(tmp_path, capsys):
     row = next(line for line in lines if line.split()[:1] == ["3"] and "1.962" in line)
     assert row.split()[-2:] == ["1.962", "1.962"], row
     assert "jumps inside the window" in out
+
+
+@pytest.mark.parametrize("wrt, method, options, lacking", [
+    (("mu", "b", "D"), "rizcallah", {}, "b, D"),
+    (("mu", "D"), "coulomb_exact", {}, "D"),
+    (("mu", "k3"), "ansatz", {"phase": "undamped"}, "k3"),
+    (("k3",), "ansatz", {"tail": "coulomb"}, "k3"),
+])
+def test_a_constant_the_model_leaves_out_is_refused(wrt, method, options, lacking):
+    """A derivative in a constant the method's model leaves out (Model.lacks) is a ValueError
+    naming it: it came out 0 (Rizcallah's dx/db and dx/dD, coulomb_exact's dx/dD), where the
+    reference's is not."""
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.05)
+    with pytest.raises(ValueError, match=f"wrt: {lacking} not in the"):
+        dp.sensitivity(osc, 0.2, 0.0, np.array([0.5, 1.0]), wrt=wrt, method=method,
+                       trend=False, **options)

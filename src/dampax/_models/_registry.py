@@ -59,6 +59,8 @@ class Model:
             d2 = 0), for the error-map summary.
         color, linestyle, linewidth, zorder: how it is drawn (the papers' colour code: matched
             ansatz solid red, undamped phase solid blue, reference black dotted).
+        lacks: the constants of the oscillator its equations leave out (held at 0: a
+            derivative in them is no derivative of x, ``sensitivity`` refuses it).
     """
 
     name: str
@@ -72,6 +74,7 @@ class Model:
     linewidth: float = 1.4
     zorder: float = 2.0
     paper_ranges: tuple[str, str] = ("-", "-")
+    lacks: tuple[str, ...] = ()
 
     @property
     def solve_options(self) -> dict:
@@ -100,21 +103,21 @@ MODELS: dict[str, Model] = {m.name: m for m in (
           (("method", "ansatz"), ("phase", "undamped")),
           "Lelas & Pezer eqs. 8-10", "underdamped (b < 2 sqrt(k m))", _underdamped, "tab:blue",
           "-", 1.6, 2.5,
-          ("0.1 (eq. 25)", "0.03 (eq. 25)")),
+          ("0.1 (eq. 25)", "0.03 (eq. 25)"), ("k3",)),
     Model("matched_tail", "matched + Coulomb tail (eqs. 41, 52)",
           (("method", "ansatz"), ("tail", "coulomb")),
           "Lelas & Pezer eqs. 41, 52, 54",
           "sliding friction (mu > 0), underdamped (b < 2 sqrt(k m))", _tail_applies,
-          "tab:green", "-.", 1.6, 2.8, ("0.5 (III)", "0.05 (IV)")),
+          "tab:green", "-.", 1.6, 2.8, ("0.5 (III)", "0.05 (IV)"), ("k3",)),
     Model("rizcallah", "Rizcallah, sinusoidal friction (b = D = 0)", (("method", "rizcallah"),),
           "Rizcallah (2019)",
           "sliding friction only (mu > 0, b = D = 0), 0 < kappa <= 2; at rest no farther out "
           "than A0", _coulomb_only,
-          "tab:orange", (0, (5, 2)), 1.4, 2.2),
+          "tab:orange", (0, (5, 2)), 1.4, 2.2, ("-", "-"), ("b", "D", "k3")),
     Model("coulomb_exact", "exact half-swings (D = 0)", (("method", "coulomb_exact"),),
           "Lelas & Pezer eq. 54 generalised; docs/DESIGN.md 2.6",
           "sliding friction, D = 0, underdamped (b < 2 sqrt(k m))", _exact_applies,
-          "tab:purple", (0, (8, 3, 2, 3)), 1.4, 2.1, ("-", "exact")),
+          "tab:purple", (0, (8, 3, 2, 3)), 1.4, 2.1, ("-", "exact"), ("D", "k3")),
     Model("reference", "reference (DOP853)", (("method", "reference"),),
           "eq. 3 integrated swing by swing (docs/DESIGN.md 2.6)", "every oscillator", _always,
           "black", ":", 2.0, 4.0),

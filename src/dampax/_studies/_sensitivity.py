@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import call_cached
-from .._models._registry import METHODS
+from .._models._registry import METHODS, MODELS
 from .._models._solution import RESULTS, is_successful, message
 from .._oscillator import Oscillator, check_choices, check_count, is_concrete
 from .._solve import check_options, solve_checked
@@ -551,6 +551,22 @@ def _evaluate_cached(osc, x0, v0, ts, t_end, static) -> Sensitivity:
     return Sensitivity(**out, result=result, wrt=static[0], window=static[4])
 
 
+def _check_terms(names, method: str, named: dict) -> None:
+    """ValueError for a name of ``wrt`` that the model of ``method`` (with its phase and
+    tail) leaves out (``Model.lacks`` of every registry entry whose options it holds): its
+    derivative came out 0, no derivative of x (dx/db of Rizcallah's Coulomb-only solution)."""
+    chosen = {"method": method, **{k: named[k] for k in ("phase", "tail")
+                                   if named.get(k) not in (None, "matched")}}
+    models = [m for m in MODELS.values()
+              if all(chosen.get(k) == v for k, v in m.solve_options.items())]
+    bad = [n for n in names if any(n in m.lacks for m in models)]
+    if bad:
+        which = next(m for m in models if bad[0] in m.lacks)
+        raise ValueError(f"wrt: {', '.join(bad)} not in the {which.name} model (method="
+                         f"{method!r}; {which.domain}): its derivative would be 0, not that "
+                         "of x; use method='reference'")
+
+
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
                 method: str = "ansatz", mode: str = "forward", trend: bool = True,
                 window: float = 0.05, window_points: int = 41, swings: bool = False,
@@ -672,6 +688,7 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
     # dampax.solve's checks, once here (x0, v0 finite; the model's options, a misplaced one
     # named); inside the program the solves trust them (_solve.solve_checked)
     named = {k: options.pop(k) for k in ("phase", "tail", "back", "kappa") if k in options}
+    _check_terms(names, method, named)
     kappa, back, checked = check_options(osc, x0, v0, method=method, **named, options=options)
     x0, v0 = _as_float64(x0), _as_float64(v0)
     if method == "reference":
