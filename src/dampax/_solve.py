@@ -39,7 +39,7 @@ KAPPA_MAX = 2.0
 
 def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matched",
           tail: str | None = None, back: int = 0, kappa: float | None = None,
-          tolerance: float = 1e-2, throw: bool = False, **options):
+          tolerance: float | None = None, throw: bool = False, **options):
     """Solve eq. 3, m x'' = -k x - mu m g sgn(x') - b x' - D x'|x'|, with one of the models.
 
     The models and their options are listed in ``dampax._models._registry.MODELS`` (the
@@ -63,8 +63,9 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
             an integer >= 0.
         kappa: rizcallah only: 4/pi (least squares, the default), pi/2 (impulse) or sqrt(2)
             (rms); a number in (0, 2].
-        tolerance: auto only: the largest acceptable expected error of the ansatz, in A0
-            (``solution.error_estimate``), > 0.
+        tolerance: auto only (a ValueError with another method): the largest acceptable
+            expected error of the ansatz, in A0 (``solution.error_estimate``), > 0; default
+            1e-2.
         throw: under ``jit``/``vmap``, raise the failure's message at run time
             (``equinox.error_if``, as ``diffrax.diffeqsolve(throw=True)``) instead of
             returning ``valid = False`` and NaN. Eager calls always raise ValueError.
@@ -95,7 +96,11 @@ def solve(osc: Oscillator, x0, v0, *, method: str = "ansatz", phase: str = "matc
         if tail is not None or phase != "matched" or back != 0 or kappa is not None:
             raise ValueError("method='auto' chooses between the matched ansatz and the "
                              "reference: phase, tail, back and kappa do not apply")
-        return _solve_auto(osc, x0, v0, tolerance=tolerance, throw=throw, options=options)
+        return _solve_auto(osc, x0, v0, tolerance=1e-2 if tolerance is None else tolerance,
+                           throw=throw, options=options)
+    if tolerance is not None:  # (it was ignored unsaid)
+        raise ValueError(f"tolerance: applies to method='auto' only (its choice of model), "
+                         f"not to method={method!r}")
     kappa, back, options = check_options(osc, x0, v0, method=method, phase=phase, tail=tail,
                                          back=back, kappa=kappa, options=options)
     return solve_checked(osc, x0, v0, method=method, phase=phase, tail=tail, back=back,

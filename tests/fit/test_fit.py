@@ -1300,3 +1300,19 @@ def test_fit_options_are_objects_checked_when_made():
         dp.Window().start = 1.0  # immutable
     ok = dp.LeastSquares(starts=np.int64(8), p0={"mu": 0.1}).checked()
     assert ok.starts == 8 and isinstance(ok.starts, int) and ok.p0 == {"mu": 0.1}
+
+
+def test_an_envelope_fit_of_turning_points_takes_w0_from_the_oscillator_or_their_signs():
+    """fit_envelope's omega0: the oscillator's sqrt(k/m) (k was not used), else from the
+    spacing of the extremes, half a period apart where their signs alternate (mu and D came
+    out twice and half the truth from turning points of both signs). Against the truth of the
+    reference's own turning points."""
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=0.005, D=0.5)
+    sol = dp.solve(osc, 0.2, 0.0, method="reference")
+    tp, xp = (np.asarray(a) for a in dp.turning_points(sol, 30))
+    ok = np.isfinite(tp)
+    for kw, (t, x) in ((dict(oscillator=dp.Oscillator(m=1.0, k=30.0)), (tp[ok], xp[ok])),
+                       ({}, (tp[ok], xp[ok])), ({}, (tp[ok][::2], xp[ok][::2]))):
+        res = dp.fit_envelope(t, x, **kw)
+        assert res.params["mu"] == pytest.approx(0.005, rel=1e-3), kw
+        assert res.params["D"] == pytest.approx(0.5, rel=1e-3), kw

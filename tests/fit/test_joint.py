@@ -96,6 +96,11 @@ def test_joint_fit_input_errors(runs, joint):
                      start_fit=joint)
     with pytest.raises(ValueError, match="shared: names constants common to several runs"):
         dp.posterior(*runs[0], oscillator=OSC, shared=("D",), model="ansatz")
+    for kw in (dict(mu_s=0.01), dict(free=("mu", "D", "mu_s"))):  # (mu_s was dropped unsaid)
+        with pytest.raises(ValueError, match="mu_s: static friction is not supported by a "
+                                             "joint posterior"):
+            dp.posterior(runs, oscillator=OSC, model="reference", start_fit=joint,
+                         **{"free": ("b", "D"), **kw})
     with pytest.raises(ValueError, match="shared"):
         dp.fit(*runs[0], oscillator=OSC, shared=("mu", "D"), model="ansatz")
     with pytest.raises(ValueError, match="traces"):

@@ -141,6 +141,13 @@ def test_auto_bad_options(kwargs, match):
         dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=0.02), 0.2, 0.0, method="auto", **kwargs)
 
 
+@pytest.mark.parametrize("method", ["ansatz", "reference"])
+def test_tolerance_with_another_method_is_refused(method):
+    """tolerance chooses auto's model; with another method it was ignored without a word."""
+    with pytest.raises(ValueError, match="^tolerance: applies to method='auto' only"):
+        dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=0.02), 0.2, 0.0, method=method, tolerance=1e-9)
+
+
 def test_auto_needs_concrete_scalar_input():
     with pytest.raises(ValueError, match="concrete"):
         jax.jit(lambda mu: dp.solve(dp.Oscillator(m=1.0, k=30.0, mu=mu), 0.2, 0.0,

@@ -625,3 +625,22 @@ def test_grad_through_many_samples_matches_finite_differences():
         g = np.asarray(grad(q, with_ts))
         fd = _finite_differences(lambda p, w=with_ts: np.asarray(f(p, w))[None], q, eps=1e-6)[0]
         np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_samples_past_the_default_span_are_solved_and_past_t_end_refused():
+    """solve(ts=...) without t_end reaches the last sample (the default span, 25 periods, left
+    x NaN after it with a successful result): a linear viscous decay against its closed form;
+    an explicit t_end before the last sample is a ValueError naming ts."""
+    import math
+
+    import dampax as dp
+
+    m, k, b, x0 = 1.0, 30.0, 0.01, 0.2
+    ts = np.array([0.0, 10.0, 100.0])
+    sol = dp.solve(dp.Oscillator(m=m, k=k, b=b), x0, 0.0, method="reference", ts=ts)
+    gamma = b / (2.0 * m)
+    wd = math.sqrt(k / m - gamma**2)
+    exact = x0 * np.exp(-gamma * ts) * (np.cos(wd * ts) + gamma / wd * np.sin(wd * ts))
+    np.testing.assert_allclose(np.asarray(sol.x(ts)), exact, rtol=0, atol=1e-8)
+    with pytest.raises(ValueError, match="ts: samples up to 100 s lie beyond t_end = 50 s"):
+        dp.solve(dp.Oscillator(m=m, k=k, b=b), x0, 0.0, method="reference", ts=ts, t_end=50.0)

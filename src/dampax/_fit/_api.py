@@ -173,9 +173,11 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
             a :class:`Trace` (or a path) holding them, with ``amplitudes`` left out.
         free: damping constants to fit ("mu", "b", "D").
         omega0: angular frequency [rad/s] used to convert (d0, d2) to (mu, D) (eq. 21);
-            default 2 pi / the median spacing of t_peaks (maxima of one sign, one per period).
-        oscillator: m and g (default m = 1 kg, g = 9.81); non-free damping constants stay at
-            its values.
+            default the oscillator's sqrt(k/m), else from the median spacing of t_peaks:
+            2 pi / spacing for maxima of one sign (one per period), pi / spacing for
+            extremes whose signs alternate (turning points, two per period).
+        oscillator: m, k and g (default m = 1 kg, g = 9.81, omega0 from the spacing);
+            non-free damping constants stay at its values.
         offset: also fit a constant added to the envelope (a zero offset of the angle).
         loss, optimizer, max_steps, rtol, atol: as in :func:`fit`.
         units: the unit of the amplitudes (as in :func:`fit`).
@@ -197,9 +199,12 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     t, E, source = read_arrays(t_peaks, amplitudes, least=n_params + 1,
                                what=f"an envelope fit of {n_params} parameters needs",
                                noun="maxima")
+    turns = np.mean(np.sign(E[1:]) != np.sign(E[:-1])) > 0.5  # extremes of both signs
     E = np.abs(E)
-    if omega0 is None:
-        omega0 = 2.0 * math.pi / float(np.median(np.diff(t)))
+    if omega0 is None and oscillator is not None:  # (k was not used: the spacing was)
+        omega0 = osc["w0"]
+    elif omega0 is None:  # a period between maxima, half of one between turning points
+        omega0 = (1.0 if turns else 2.0) * math.pi / float(np.median(np.diff(t)))
     omega0 = float(omega0)
     if not (math.isfinite(omega0) and omega0 > 0):
         raise ValueError(f"omega0 must be > 0, got {omega0}")

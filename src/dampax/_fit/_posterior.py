@@ -457,6 +457,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     if isinstance(trace_or_t, (list, tuple)) and x is None:
         if vary_k3:
             raise ValueError("free: a joint posterior samples k3 only as shared=(..., 'k3')")
+        if mu_s is not None or "mu_s" in names_in:  # (it was dropped, mu_s = mu sampled)
+            raise ValueError("mu_s: static friction is not supported by a joint posterior of "
+                             "several runs; sample each run alone")
         req = Request("reference" if model == "auto" else model, num_samples, num_chains,
                       num_warmup, seed, bar, began)
         return _joint_posterior(trace_or_t, req, start_fit=start_fit, shared=shared, free=free,

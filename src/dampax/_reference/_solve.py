@@ -396,8 +396,16 @@ def solve_reference_checked(osc: Oscillator, x0, v0, *, t_end=None, rtol: float 
     the integration, and eagerly the failure's ValueError (budget named)."""
     x0 = jnp.asarray(x0, dtype=float)
     v0 = jnp.asarray(v0, dtype=float)
+    last = None if ts is None or not np.size(ts) else jnp.max(ts)
     if t_end is None:
         t_end = DEFAULT_PERIODS * 2.0 * math.pi / osc.omega0
+        if last is not None:  # the default span reaches the last sample asked for
+            t_end = jnp.maximum(t_end, last)
+    elif last is not None and is_concrete(t_end, last) and \
+            float(last) > float(np.min(np.asarray(t_end, dtype=float))):
+        raise ValueError(f"ts: samples up to {float(last):.6g} s lie beyond t_end = "
+                         f"{float(np.min(np.asarray(t_end, dtype=float))):.6g} s, where x is "
+                         "not solved (NaN): give a t_end that covers them, or leave it out")
     t_end = jnp.asarray(t_end, dtype=float)
     if max_swings is None:
         max_swings = (default_swings(osc, x0, v0, t_end) if is_concrete(osc, x0, v0, t_end)
