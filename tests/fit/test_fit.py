@@ -261,6 +261,13 @@ def test_input_errors():
     with pytest.raises(ValueError, match="p0: w0 not fitted here"):
         fit(t, x, oscillator=dp.Oscillator(m=1.0, k=4.0), solver=dp.LeastSquares(p0={"w0": 2.1}),
             model="ansatz")
+    # a fit of other data handed to a ranking or a posterior (it was used as it was)
+    other = fit(t, 1.5 * x, free=("mu", "D"), model="ansatz")
+    with pytest.raises(ValueError, match="fitted: a fit of other data"):
+        compare_models(t, x, candidates=(("mu", "D"),), fitted={("mu", "D"): other},
+                       model="ansatz")
+    with pytest.raises(ValueError, match="start_fit: a fit of other data"):
+        dp.posterior(t, x, model="ansatz", start_fit=other)
     with pytest.raises(ValueError, match="sets free itself"):
         compare_models((t, x), free=("mu",), model="ansatz")
     with pytest.raises(ValueError, match="fit_omega0=False needs an oscillator"):

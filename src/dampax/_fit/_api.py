@@ -28,7 +28,7 @@ from ._core import (
     swing_budget,
 )
 from ._guess import analyse, guess_envelope
-from ._inputs import held_constants
+from ._inputs import check_fitted_on, held_constants
 from ._linalg import one_blas_thread
 from ._options import Window, options
 from ._params import (
@@ -383,6 +383,11 @@ def compare_models(trace=None, x=None, *, candidates=CANDIDATES, criterion: str 
         fit_kwargs.update(options(fit_kwargs.pop("window", None),
                                   fit_kwargs.pop("solver", None)))
     known = {tuple(check_free(k)): r for k, r in (fitted or {}).items()}
+    if known:  # (they were ranked whatever data came with them)
+        with quiet_windows():
+            t_all, x_all, _ = read_arrays(trace, x)
+        for r in known.values():
+            check_fitted_on(r, t_all, x_all, "fitted")
     with quiet_windows():  # (thread-local: a ranking may run beside the fit, dampax fit)
         return _ranked(candidates, criterion, lambda cand: known[cand] if cand in known else
                        fit(trace, x, Settings(**{**fit_kwargs, "free": cand})))

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from ._analysis import Analysis
+from ._params import DAMPING, PARAMS
 
 #: the largest |time| [s] a fit takes (about 3e7 years; beyond it the time axis is not one of
 #: a free decay, and times near 1e300 overflowed the fit's sums)
@@ -219,3 +220,30 @@ def held_constants(oscillator, names, k3, mu_s) -> tuple:
                              f"given {name}={held[name]!r}: give it once")
         held[name] = own
     return held["k3"], held["mu_s"]
+
+
+def check_p0_fitted(p0, free, fit_omega0: bool) -> None:
+    """ValueError for an entry of ``p0`` that the fit holds: a damping constant not in
+    ``free``, or w0 without ``fit_omega0`` (they were held at p0's values, overriding the
+    oscillator's, unsaid). The offset with ``offset=False`` is held at p0's value, as
+    documented. Unknown names are a ValueError too."""
+    unknown = set(p0) - set(PARAMS)
+    if unknown:
+        raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
+    held = [k for k in p0 if (k in DAMPING and k not in free) or (k == "w0" and not fit_omega0)]
+    if held:
+        raise ValueError(f"p0: {', '.join(held)} not fitted here (a damping constant not in "
+                         "free, w0 without fit_omega0): its value is the oscillator's; set it "
+                         "there, or fit it")
+
+
+def check_fitted_on(res, t_all: np.ndarray, x_all: np.ndarray, name: str) -> None:
+    """ValueError naming ``name`` where the fit ``res`` is not of the data (t_all, x_all):
+    the samples of its window must be a run of theirs (``start_fit`` of a posterior,
+    ``fitted`` of a ranking were used whatever data came with them)."""
+    n = len(res.t)
+    i = int(np.searchsorted(t_all, res.t[0])) if n else 0
+    if not (n and i + n <= len(t_all) and np.array_equal(t_all[i:i + n], res.t)
+            and np.array_equal(x_all[i:i + n], res.x)):
+        raise ValueError(f"{name}: a fit of other data (its {n} samples are not a run of the "
+                         f"{len(t_all)} given); fit these data, or pass the data it fitted")

@@ -54,6 +54,7 @@ import numpy as np
 
 from ._core import FIT_MODELS, MODELS, ReferenceOptions, reference_solution, swing_budget
 from ._entry import fit_flat
+from ._inputs import check_fitted_on
 from ._joint_result import JointResult
 from ._linalg import one_blas_thread
 from ._options import LeastSquares, Window, options
@@ -68,6 +69,7 @@ from ._params import (
 )
 from ._posterior_joint import _joint_groups, _joint_setup
 from ._posterior_result import Posterior, narrow_text
+from ._problem import quiet_windows, read_arrays
 from ._sampler import (
     GRADIENTS,
     MAX_DOUBLINGS,
@@ -467,6 +469,9 @@ def posterior(trace_or_t, x=None, *, oscillator=None, free=("mu", "D"), model: s
     if shared is not None:
         raise ValueError("shared: names constants common to several runs; it needs a list of "
                          "two or more traces, not a single trace")
+    if start_fit is not None:  # (it was sampled whatever data came with it)
+        with quiet_windows():
+            check_fitted_on(start_fit, *read_arrays(trace_or_t, x)[:2], "start_fit")
     res = start_fit if start_fit is not None else fit_flat(
         trace_or_t, x, free=names_in, model=model, mu_s=mu_s,
         **fit_kw)

@@ -37,6 +37,7 @@ from ._core import (
 from ._guess import Analysis, analyse, guess_trace
 from ._inputs import (
     check_gaps,
+    check_p0_fitted,
     check_positions,
     check_sampling,
     check_time_axis,
@@ -481,15 +482,7 @@ def prepare(trace_or_t, x, settings: Settings) -> Problem:
         osc = {**osc, "w0": an_w.omega, "k": an_w.omega ** 2}
     guess = guess_trace(t, xw, s.free, osc, fit_omega0, s.offset, an=an_w)
     if s.p0:
-        unknown = set(s.p0) - set(PARAMS)
-        if unknown:
-            raise ValueError(f"p0: unknown parameters {sorted(unknown)}; use {PARAMS}")
-        held = [k for k in s.p0 if (k in DAMPING and k not in s.free)
-                or (k == "w0" and not fit_omega0)]
-        if held:  # (they were held at p0's values, overriding the oscillator's, unsaid)
-            raise ValueError(f"p0: {', '.join(held)} not fitted here (a damping constant not "
-                             "in free, w0 without fit_omega0): its value is the oscillator's; "
-                             "set it there, or fit it")
+        check_p0_fitted(s.p0, s.free, fit_omega0)
         guess = guess._replace(**{k: float(v) for k, v in s.p0.items()})
     warn += held_offset_warning(an_w, guess.offset, s.offset)
     if not getattr(_QUIET, "on", False):
