@@ -254,6 +254,8 @@ def test_chunk_size_from_the_platform_and_clipped_to_the_grid_and_the_memory(qui
     (dict(periods=1e7), "periods"),
     (dict(samples_per_period=1), "samples_per_period"),
     (dict(reference="euler"), "reference"),
+    (dict(reference="coulomb_exact", rtol=1e-3), "rtol"),  # (ignored unsaid before)
+    (dict(reference="coulomb_exact", engine="diffrax"), "engine"),
 ])
 def test_bad_grid_input_names_the_argument(change, name):
     kwargs = dict(d0_ratio=0.01, d2_ratio=0.1, phi0=0.0, progress=False) | change

@@ -563,6 +563,11 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
+    given = [n for n, v, d in (("rtol", rtol, 1e-10), ("atol", atol, 1e-12),
+                               ("engine", engine, "auto")) if v != d]
+    if reference != "reference" and given:  # (they were ignored unsaid)
+        raise ValueError(f"{', '.join(given)}: set the integrator of reference='reference', "
+                         f"not the closed form reference={reference!r}")
     # a ValueError naming engine; "auto" resolved here, outside the compiled step
     engine = check_reference_options(0.0, 0.0, engine=engine)["engine"]
     if chunk_size is not None:
