@@ -140,6 +140,12 @@ def test_fit_envelope_file_gives_coulomb_friction_from_its_exact_decrement(tmp_p
     summary = json.loads((out / "fit.json").read_text())
     assert summary["fit"]["params"]["mu"] == pytest.approx(mu, rel=1e-6), summary["fit"]
     assert summary["ranking"]["supported"] == ["mu"], summary["ranking"]
+    # a mass without k: w0 from the maxima's spacing (the placeholder k = m gave w0 = 1)
+    assert main(["fit", str(path), "--envelope", "--free", "mu", "--m", str(m), "--no-compare",
+                 "--out", str(out)]) == 0
+    capsys.readouterr()
+    fitted = json.loads((out / "fit.json").read_text())["fit"]["params"]["mu"]
+    assert fitted == pytest.approx(mu, rel=1e-6)
     assert "Model ranking by BIC" in text and (out / "fit.png").stat().st_size > 0
     # a short table is refused by what the envelope needs (A and mu: 3 maxima), not by a
     # trace fit's 10 samples
@@ -158,3 +164,25 @@ def test_fit_envelope_file_gives_coulomb_friction_from_its_exact_decrement(tmp_p
     assert ranking["skipped"] == {"mu,b,D": "an envelope fit of 4 parameters needs at least 5 "
                                             "finite maxima, got 4"}, ranking
     assert len(ranking["ranking"]) == 6 and "left out (not fitted): mu,b,D: an envelope" in text
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--example", "--envelope"], "--envelope: not used by --example"),
+    (["--example", "--m", "1", "--scale", "2"], "--m, --scale: not used by --example"),
+    (["PATH", "--envelope", "--start", "3", "--seed", "2"],
+     "--start, --seed: not used by --envelope"),
+    (["PATH", "--omega0", "3"], "--omega0: not used by a trace fit"),
+    (["PATH", "--g", "1.62"], "--g needs --m"),
+    (["PATH", "PATH", "--mu-s", "0.5"], "--mu-s: static friction is not supported by a joint"),
+    (["PATH", "PATH", "--level", "2"], "--level must be in"),
+])
+def test_flags_a_fit_would_ignore_are_refused(tmp_path, capsys, args, words):
+    """Flags that a kind of fit does not use end the command with status 2 and their names,
+    before any work (they were ignored: the example's --m, --envelope's window, a joint fit's
+    --mu-s; --g without --m reported a per-unit-mass fit in kg/s)."""
+    path = tmp_path / "x.csv"
+    path.write_text("t,x\n" + "".join(f"{i * 0.01},{np.cos(i * 0.1)}\n" for i in range(50)))
+    argv = ["fit", *[str(path) if a == "PATH" else a for a in args], "--out",
+            str(tmp_path / "out")]
+    assert main(argv) == 2
+    assert words in capsys.readouterr().err

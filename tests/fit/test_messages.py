@@ -336,3 +336,18 @@ def test_residuals_that_wander_as_large_as_the_motion_are_inadequate(case, wande
     assert bool(found) == wanders, (found, rms)
     if wanders:
         assert found[0].startswith("the residuals wander: correlated over"), found
+
+
+@pytest.mark.parametrize("units, b, D, k, k3", [
+    ("m", "kg/s", "kg/m", "N/m", "N/m^3"),
+    ("mm", "kg/s", "kg/mm", "kg/s^2", "kg/(s^2 mm^2)"),
+    ("deg", "kg/s", "kg/deg", "kg/s^2", "kg/(s^2 deg^2)"),
+])
+def test_units_with_a_mass_are_those_of_the_values(units, b, D, k, k3):
+    """With a given mass the fit's b, D, k = m w0^2 and k3 are the constants of m x'' = -k x
+    - k3 x^3 - b x' - D x'|x'| with x in ``units``: kg/s, kg/unit, kg/s^2 and kg/(s^2 unit^2)
+    (b and D were labelled b/m and D/m "per unit mass" for degrees, k "N/mm" for mm)."""
+    from dampax._fit._params import unit_of
+
+    assert [unit_of(n, units) for n in ("b", "D", "k", "k3")] == [b, D, k, k3]
+    assert unit_of("D", units, per_mass=True) == f"1/{units} (D/m, per unit mass)"

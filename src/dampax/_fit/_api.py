@@ -158,6 +158,16 @@ def fit(trace_or_t, x, settings: Settings) -> FitResult:
     return res
 
 
+def spacing_omega0(t, extremes) -> float:
+    """w0 from the times of a table of extremes: 2 pi / their median spacing for maxima of one
+    sign (one a period), pi / it where the signs alternate (turning points, two a period)."""
+    t, extremes = np.asarray(t, dtype=float), np.asarray(extremes, dtype=float)
+    order = np.argsort(t)
+    t, extremes = t[order], extremes[order]
+    turns = np.mean(np.sign(extremes[1:]) != np.sign(extremes[:-1])) > 0.5
+    return (1.0 if turns else 2.0) * math.pi / float(np.median(np.diff(t)))
+
+
 def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, oscillator=None,
                  offset: bool = False, loss: str = "linear", optimizer: str = "lm",
                  max_steps: int | None = None, rtol: float = 1e-10,
@@ -199,12 +209,11 @@ def fit_envelope(t_peaks, amplitudes=None, *, free=("mu", "D"), omega0=None, osc
     t, E, source = read_arrays(t_peaks, amplitudes, least=n_params + 1,
                                what=f"an envelope fit of {n_params} parameters needs",
                                noun="maxima")
-    turns = np.mean(np.sign(E[1:]) != np.sign(E[:-1])) > 0.5  # extremes of both signs
-    E = np.abs(E)
     if omega0 is None and oscillator is not None:  # (k was not used: the spacing was)
         omega0 = osc["w0"]
-    elif omega0 is None:  # a period between maxima, half of one between turning points
-        omega0 = (1.0 if turns else 2.0) * math.pi / float(np.median(np.diff(t)))
+    elif omega0 is None:
+        omega0 = spacing_omega0(t, E)
+    E = np.abs(E)
     omega0 = float(omega0)
     if not (math.isfinite(omega0) and omega0 > 0):
         raise ValueError(f"omega0 must be > 0, got {omega0}")

@@ -45,31 +45,32 @@ UNITS = {"mu": "", "mu_s": "", "b": "kg/s", "D": "kg/m", "w0": "rad/s", "offset"
 FREE = DAMPING + ("k3", "mu_s")
 #: the parameters that ``fit`` profiles (a search around the core's fits) instead of varying
 PROFILED = ("k3", "mu_s")
-#: position units that are lengths, in metres (b, D in kg/s, kg/m need lengths and a mass)
-LENGTHS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "km": 1e3}
 MAD = 1.482602218505602  # 1 / Phi^-1(3/4): MAD -> sigma for Gaussian noise
 
 
 def unit_of(name: str, units: str = "m", per_mass: bool = False) -> str:
     """The unit of a reported parameter or derived number, with positions in ``units``.
 
-    Per unit mass (no oscillator given: m = 1 kg) b and D are b/m [1/s] and D/m [1/unit]; in
-    kg/s and kg/m only with a given mass and positions that are lengths. mu is a coefficient
-    only for positions in metres (mu g is the friction deceleration, ``mu_g`` [unit/s^2]).
+    Per unit mass (no oscillator given: m = 1 kg) b and D are b/m [1/s] and D/m [1/unit];
+    with a given mass they are b [kg/s] and D [kg/unit], k = m w0^2 [kg/s^2, N/m] and k3
+    [kg/(s^2 unit^2), N/m^3] whatever the position unit (an angle's "kg/deg" is the fit's
+    D with positions in degrees: the values were labelled b/m and D/m per unit mass for
+    positions that are not lengths, which they were not). mu is a coefficient only for
+    positions in metres (mu g is the friction deceleration, ``mu_g`` [unit/s^2]).
     """
     u = units or "m"
-    length = u in LENGTHS
     if name == "mu":
         return "" if u == "m" else f"(= mu_g / 9.81 m/s^2; positions in {u}: use mu_g)"
     if name == "b":
-        return "1/s (b/m, per unit mass)" if per_mass or not length else "kg/s"
+        return "1/s (b/m, per unit mass)" if per_mass else "kg/s"
     if name == "D":
-        return f"1/{u} (D/m, per unit mass)" if per_mass or not length else f"kg/{u}"
+        return f"1/{u} (D/m, per unit mass)" if per_mass else f"kg/{u}"
     if name == "k":
-        return "1/s^2 (k/m = w0^2, per unit mass)" if per_mass or not length else f"N/{u}"
+        return "1/s^2 (k/m = w0^2, per unit mass)" if per_mass else \
+            ("N/m" if u == "m" else "kg/s^2")
     if name == "k3":
-        return (f"1/(s^2 {u}^2) (k3/m, per unit mass)" if per_mass or not length
-                else f"N/{u}^3")
+        return f"1/(s^2 {u}^2) (k3/m, per unit mass)" if per_mass else \
+            ("N/m^3" if u == "m" else f"kg/(s^2 {u}^2)")
     return {"w0": "rad/s", "offset": u, "x0": u, "v0": f"{u}/s", "A": u, "xc": u,
             "mu_g": f"{u}/s^2", "b/m": "1/s", "D/m": f"1/{u}", "d0": f"{u}/s", "d1": "1/s",
             "d2": f"1/({u} s)", "halt_time": "s", "phi": "rad",
