@@ -164,6 +164,8 @@ def test_quantities_at_a_time_and_callable():
     (dict(n=8), "n must be"),
     (dict(quantity="speed"), "quantity"),
     (dict(quantity="x"), "t:"),
+    (dict(t=3.0), "t: quantity='halt_time' does not use a time"),  # (ignored, yet in attrs)
+    (dict(samples=7), "samples: quantity='halt_time' does not sample"),
     (dict(method="euler"), "method"),
     (dict(conf_level=1.5), "conf_level"),
     (dict(x0=float("nan")), "x0"),
@@ -231,3 +233,16 @@ def test_cli_global(tmp_path, capsys, monkeypatch, oscillator_study):
         assert _cli.main(["sensitivity", *argv]) == 2
         err = capsys.readouterr().err
         assert err.startswith("dampax: error:") and word in err, err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--global", "mu=0.01:0.05", "--wrt", "k", "--swings"], "--wrt, --swings: not used by"),
+    (["--quantity", "x", "--time", "1", "--n", "5"], "--quantity, --time, --n: not used by"),
+])
+def test_cli_flags_of_the_other_mode_are_refused(args, words, tmp_path, capsys):
+    """``dampax sensitivity``: a local study's flags with --global, and --global's without it,
+    end the command with status 2 and their names (they were ignored, exit 0)."""
+    from dampax._cli import main
+
+    assert main(["sensitivity", *args, "--plot", str(tmp_path / "s.png")]) == 2
+    assert words in capsys.readouterr().err

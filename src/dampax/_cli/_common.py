@@ -257,3 +257,11 @@ def prepare_out_dir(path, flag: str = "--out") -> Path:
         raise ValueError(f"{flag}: cannot create {str(out)!r} ({err.strerror})") from None
     check_writable_dir(out, flag)
     return out
+
+
+def not_used(args: argparse.Namespace, what: str, flags: dict) -> None:
+    """ValueError naming the flags given (away from their defaults, ``flags``: name ->
+    (value, default)) that ``what`` does not use: they were ignored without a word."""
+    given = [name for name, (value, default) in flags.items() if value != default]
+    if given:
+        raise ValueError(f"{', '.join(given)}: not used by {what}")

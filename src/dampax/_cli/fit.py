@@ -39,7 +39,16 @@ from .._io import write_text
 from .._oscillator import Oscillator
 from .._plot_fit import import_figure_modules, plot_fit, plot_joint_fit
 from .._trace import load_trace
-from ._common import PROG, beside, compile_clock, error, fmt, prepare_out_dir, split_names
+from ._common import (
+    PROG,
+    beside,
+    compile_clock,
+    error,
+    fmt,
+    not_used,
+    prepare_out_dir,
+    split_names,
+)
 
 
 def _parse_rate(text):
@@ -132,18 +141,18 @@ def run_fit(args: argparse.Namespace) -> int:
         raise ValueError("--shared needs two or more trace files (a joint fit of several runs)")
     args.path = paths[0] if paths else None
     if args.example:  # (they were ignored: the example's trace and oscillator are its own)
-        _not_used(args, "--example", {
+        not_used(args, "--example", {
             "--envelope": (args.envelope, False), "--m": (args.m, None), "--k": (args.k, None),
             "--g": (args.g, 9.81), "--scale": (args.scale, 1.0), "--time": (args.time, None),
             "--position": (args.position, None), "--rate": (args.rate, None),
             "--delimiter": (args.delimiter, None)})
     if args.envelope:  # an envelope fit has no window, model, w0 fit or global starts
-        _not_used(args, "--envelope", {
+        not_used(args, "--envelope", {
             "--start": (args.start, "auto"), "--end": (args.end, None),
             "--model": (args.model, "auto"), "--fit-omega0": (args.fit_omega0, False),
             "--starts": (args.starts, 32), "--seed": (args.seed, 0)})
     else:
-        _not_used(args, "a trace fit (it is --envelope's)", {"--omega0": (args.omega0, None)})
+        not_used(args, "a trace fit (it is --envelope's)", {"--omega0": (args.omega0, None)})
     if args.m is None and args.g != 9.81:  # (per unit mass, yet reported in kg/s, kg/m)
         raise ValueError("--g needs --m: a fit without a mass is per unit mass (mu from the "
                          "friction deceleration mu g with g = 9.81 m/s^2)")
@@ -304,14 +313,6 @@ def _posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
                      start_fit=result, mu_s=args.mu_s)
 
 
-def _not_used(args: argparse.Namespace, what: str, flags: dict) -> None:
-    """ValueError naming the flags given (away from their defaults, ``flags``: name ->
-    (value, default)) that ``what`` does not use: they were ignored without a word."""
-    given = [name for name, (value, default) in flags.items() if value != default]
-    if given:
-        raise ValueError(f"{', '.join(given)}: not used by {what}")
-
-
 def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     """``dampax fit run1.csv run2.csv --shared b,D``: a joint fit of several runs (the constants
     of ``--shared`` common to all, each run with its own start, offset and window); prints the
@@ -326,7 +327,7 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     if args.mu_s is not None or "mu_s" in free:
         raise ValueError("--mu-s: static friction is not supported by a joint fit of several "
                          "runs; fit each run alone")
-    _not_used(args, "a joint fit of traces", {"--omega0": (args.omega0, None)})
+    not_used(args, "a joint fit of traces", {"--omega0": (args.omega0, None)})
     if not 0.0 < args.level < 1.0:
         raise ValueError(f"--level must be in (0, 1), got {args.level}")
     out_dir = prepare_out_dir(args.out)

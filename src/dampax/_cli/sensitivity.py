@@ -34,6 +34,7 @@ from ._common import (
     check_digits,
     check_plot_path,
     fmt,
+    not_used,
     oscillator_from,
     oscillator_text,
     split_names,
@@ -96,8 +97,18 @@ def run(args: argparse.Namespace) -> int:
     """Print how the halt time and position depend on the parameters; plot d x(t)/d theta."""
     from .._plot import plot_sensitivity, plot_trend
 
+    # the other mode's flags, given, were ignored without a word
+    local = {"--wrt": (args.wrt, "mu,D"),
+             "--t-end": (args.t_end, None), "--samples": (args.samples, 400),
+             "--window": (args.window, 0.05), "--window-points": (args.window_points, 41),
+             "--swings": (args.swings, False), "--turning-points": (args.turning_points, 0),
+             "--trend-plot": (args.trend_plot, None)}
     if args.global_spec is not None:
+        not_used(args, "--global (a global study over ranges)", local)
         return run_global(args)
+    not_used(args, "a local study (they are --global's)", {
+        "--quantity": (args.quantity, "halt_time"), "--time": (args.time, None),
+        "--n": (args.n, 4096), "--seed": (args.seed, 0)})
     names = check_wrt(split_names(args.wrt))
     models = check_models(args.models or "matched,reference", "--models")
     if args.samples < 2:

@@ -378,6 +378,12 @@ def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator:
                          f"solution -> scalar, got {quantity!r}")
     if quantity in _NEEDS_T and t is None:
         raise ValueError(f"t: quantity={quantity!r} needs the time t [s]")
+    uses = "a callable" if callable(quantity) else repr(quantity)
+    if t is not None and quantity not in (*_NEEDS_T, "max_error"):  # (ignored, yet in attrs)
+        raise ValueError(f"t: quantity={uses} does not use a time (x, energy and max_error "
+                         "do)")
+    if samples != 200 and quantity != "max_error":
+        raise ValueError(f"samples: quantity={uses} does not sample a window (max_error does)")
     if quantity == "max_error":
         if method == "reference":
             raise ValueError("method: max_error compares a model against the reference; "

@@ -580,7 +580,8 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     if not (math.isfinite(periods) and periods > 0.0):
         raise ValueError(f"periods must be a finite number > 0, got {periods!r}")
     for name, tol in (("rtol", rtol), ("atol", atol)):
-        if not (isinstance(tol, (int, float)) and math.isfinite(tol) and tol > 0):
+        if isinstance(tol, bool) or not (isinstance(tol, (int, float)) and math.isfinite(tol)
+                                         and tol > 0):
             raise ValueError(f"{name} must be a number > 0, got {tol!r}")
 
     check_map_size({k: a.size for k, a in axes.items()}, len(models), periods,
