@@ -61,7 +61,8 @@ def build_parser(commands: dict[str, Callable[[argparse.ArgumentParser], None]] 
         epilog="The first run of a command compiles its models with JAX (often 10 s or more); "
                "later runs re-use them from the cache in ~/.cache/dampax (DAMPAX_CACHE=0: "
                "off; DAMPAX_CACHE_DIR: elsewhere). Progress bars are drawn only when stderr "
-               "is a terminal. Exit status: 0 ok, 2 invalid input, 130 interrupted.")
+               "is a terminal. Exit status: 0 ok, 2 invalid input, 130 interrupted; "
+               "fit: 3 failed, 4 inadequate; reproduce: 1 a quoted number mismatched.")
     parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, (summary, add_arguments) in COMMANDS.items():

@@ -115,3 +115,15 @@ def test_bad_figure_selection_is_rejected(spec, capsys, tmp_path):
     assert main(["reproduce", "--out", str(tmp_path), "--figures", spec]) == 2
     assert "dampax: error: figures" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--figures", "none", "--no-numbers"], "nothing to reproduce"),
+    (["--format", "xyz"], "--format: unsupported image format 'xyz'"),
+])
+def test_a_reproduce_with_nothing_to_do_or_no_format_is_refused(args, words, capsys, tmp_path):
+    """Nothing asked (it exited 0 having done nothing), or a format matplotlib cannot write,
+    named by its flag before any work (PNG is png)."""
+    assert main(["reproduce", "--out", str(tmp_path), *args]) == 2
+    assert words in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

@@ -18,7 +18,13 @@ def run(args: argparse.Namespace) -> int:
 
     if args.dpi <= 0:
         raise ValueError(f"--dpi must be > 0, got {args.dpi}")
-    select_figures(args.figures)  # fail on a bad list before any work
+    args.format = str(args.format).lower()  # PNG is png
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    if args.format not in FigureCanvasBase.get_supported_filetypes():
+        raise ValueError(f"--format: unsupported image format {args.format!r}")
+    if not select_figures(args.figures) and args.no_numbers:  # (a bad list fails here)
+        raise ValueError("--figures none with --no-numbers: nothing to reproduce")
     prepare_out_dir(args.out)
     start = time.perf_counter()
     res = reproduce(args.out, figures=args.figures, numbers=not args.no_numbers,
