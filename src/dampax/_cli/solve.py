@@ -93,7 +93,10 @@ def run(args: argparse.Namespace) -> int:
             reason = "not available" if r.name == "reference" else f"not available: {r.error}"
             print(f"  {r.label:<{width}}  {reason}")
             continue
-        print(f"  {r.label:<{width}}  {fmt(r.halt_time, d, inf='never'):>13}  "
+        # the reference integrates [0, t_end]: no halt there is none before t_end, not never
+        never = "never" if r.name != "reference" or not float(np.asarray(osc.mu)) > 0 else \
+            f"> {fmt(run.t_end, d)}"
+        print(f"  {r.label:<{width}}  {fmt(r.halt_time, d, inf=never):>13}  "
               f"{fmt(r.halt_position, d):>17}")
 
     if args.turning > 0:
