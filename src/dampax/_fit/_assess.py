@@ -49,7 +49,7 @@ from ._profile import (
     bound_verdict,
     profile_ratios,
 )
-from ._text import time_span
+from ._text import NO_FREQUENCY, time_span
 
 #: a damping ratio above this is absurd for a trace that oscillates (d0/(w0 A), d1/w0, d2 A/w0)
 ABSURD = 10.0
@@ -180,11 +180,6 @@ def degeneracy(a: Inputs, v: Verdict) -> Finding:
             "but one of them (damping constants in the oscillator, the offset with "
             "offset=False and p0={'offset': ...}) or fit a longer record")
     return Finding(diag=diag)
-
-
-#: the words of :func:`standard_errors`' failure where w0's interval reaches 0 (the k3 search
-#: reads them: ``_stiffness.fit_k3``)
-NO_FREQUENCY = "the window does not determine the frequency"
 
 
 def standard_errors(a: Inputs, v: Verdict) -> Finding:

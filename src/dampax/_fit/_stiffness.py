@@ -16,7 +16,6 @@ import numpy as np
 
 from .._oscillator import Oscillator
 from .._solve import solve
-from ._assess import NO_FREQUENCY
 from ._core import FIT_MODELS
 from ._dist import norm_ppf
 from ._halts import first_halt
@@ -24,6 +23,7 @@ from ._intervals import ar1_coefficient
 from ._params import PARAMS, start_amplitude
 from ._pipeline import DIRECT_INNER, FULL, INNER, finished, fitted, run
 from ._profile import PROFILE_FAIL, PROFILE_REACH, other_halt_check, profile_side
+from ._text import NO_FREQUENCY
 
 #: the reach of k3's search: e = k3 A^2/(m w0^2) within +- this (docs/cubic_stiffness.md)
 K3_REACH = 0.3
@@ -275,7 +275,7 @@ def _unsearched(base):
     k3 unsearched (NaN, no interval): a free k3 only adds to what the window leaves open.
     Its search fitted 20-50 motions of that undetermined frequency, each to the end of its
     step budget, for the same failure (wide seed 46 draw 80: 1.7 half swings, mu, b, D, w0
-    and k3 free; 105-125 s, 10 s without the search)."""
+    and k3 free; 105-125 s, 1.5 s warm without the search)."""
     nan = math.nan
     return dataclasses.replace(
         base, reason=f"{base.reason}; k3 was not searched (a free k3 leaves the frequency "

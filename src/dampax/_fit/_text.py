@@ -46,3 +46,8 @@ def warn_user(message: str) -> None:
 def _ours(module: str) -> bool:
     """Whether ``module`` is dampax's (not a user's module that only starts with its name)."""
     return module == "dampax" or module.startswith("dampax.")
+
+
+#: the words of ``_assess.standard_errors``' failure where w0's interval reaches 0 (the k3
+#: search reads them: ``_stiffness.fit_k3``)
+NO_FREQUENCY = "the window does not determine the frequency"
