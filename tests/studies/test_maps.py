@@ -469,3 +469,22 @@ def test_longest_windows_apart_and_closed_windows_skipped_change_nothing():
         np.testing.assert_array_equal(np.asarray(apart[name]), np.asarray(together[name]),
                                       err_msg=name)
     assert float(apart["window"].max()) == pytest.approx(30.0)  # the undamped motion
+
+
+def test_the_summary_says_dash_where_the_reference_does_not_exist():
+    """The errormap summary's scan along d2 stops where the closed-form reference (D = 0 only)
+    is invalid: "-" (not defined), not "0" as if the model failed at the next d2."""
+    import xarray as xr
+
+    from dampax._cli.errormap import _defined_along
+
+    coords = dict(model=["matched"], d0_ratio=[0.0, 0.05], d1_ratio=[0.0], d2_ratio=[0.0, 0.3],
+                  phi0=[0.0])
+    shape = (1, 2, 1, 2, 1)
+    valid = xr.DataArray(np.ones(shape, bool), coords=coords, dims=list(coords))
+    ref = valid.isel(model=0, drop=True).copy(data=np.ones(shape[1:], bool))
+    ref.loc[dict(d2_ratio=0.3)] = False  # coulomb_exact at D > 0
+    ds = xr.Dataset({"valid": valid, "reference_valid": ref})
+    assert not _defined_along(ds, "matched", "d2_ratio")
+    assert _defined_along(ds, "matched", "d0_ratio")
+    assert _defined_along(ds.drop_vars("reference_valid"), "matched", "d2_ratio")

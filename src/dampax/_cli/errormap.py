@@ -29,7 +29,9 @@ def _ratio_text(value) -> str:
 
 
 def _defined_along(ds, model: str, along: str) -> bool:
-    """Whether the model is valid beyond the first point of ``along`` (other ratios at 0)."""
+    """Whether the model, and the reference it is compared with, are valid beyond the first
+    point of ``along`` (other ratios at 0): the closed-form reference "coulomb_exact" does not
+    exist at d2 > 0, where the scan read "0" as if the model failed there."""
     sel = {}
     for axis in ("d0_ratio", "d1_ratio", "d2_ratio"):
         if axis != along:
@@ -37,7 +39,10 @@ def _defined_along(ds, model: str, along: str) -> bool:
             if zero.size == 0:
                 return True
             sel[axis] = int(zero[0])
-    valid = np.asarray(ds["valid"].sel(model=model).isel(sel).all("phi0"))
+    valid = ds["valid"].sel(model=model)
+    if "reference_valid" in ds:
+        valid = valid & ds["reference_valid"]
+    valid = np.asarray(valid.isel(sel).all("phi0"))
     return valid.size < 2 or bool(np.any(valid[1:]))
 
 
@@ -83,9 +88,9 @@ def _print_errormap_summary(ds) -> None:
             "that box);",
             "undamped-phase ansatz (earlier approach) for d0/(w0 A0) <~ 0.03, d2 A0/w0 <~ 0.1 "
             "(eq. 25).",
-            "\"none\": not even the first grid value; \"-\": the model is not defined there; "
-            "\"n/a\": no 0 on",
-            "the other axis of the grid."):
+            "\"none\": not even the first grid value; \"-\": the model (or the reference) is "
+            "not defined",
+            "there; \"n/a\": no 0 on the other axis of the grid."):
         print(f"  {line}")
 
 
