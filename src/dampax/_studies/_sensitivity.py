@@ -564,7 +564,7 @@ def _check_terms(names, method: str, named: dict) -> None:
         which = next(m for m in models if bad[0] in m.lacks)
         raise ValueError(f"wrt: {', '.join(bad)} not in the {which.name} model (method="
                          f"{method!r}; {which.domain}): its derivative would be 0, not that "
-                         "of x; use method='reference'")
+                         "of x; leave it out of wrt, or use method='reference'")
 
 
 def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b", "D", "x0", "v0"),
@@ -595,7 +595,10 @@ def sensitivity(osc: Oscillator, x0, v0, ts, *, wrt: Sequence[str] = ("mu", "b",
         x0, v0: initial displacement [m] and velocity [m/s] (scalars).
         ts: times [s] >= 0, any shape (scalar, 1-d grid, ...).
         wrt: names to differentiate with respect to, from ("m", "k", "mu", "b", "D", "g",
-            "x0", "v0"); a single name may be given as a string.
+            "x0", "v0"); a single name may be given as a string. A constant the method's
+            model leaves out (``MODELS[...].lacks``: b and D for "rizcallah", D for
+            "coulomb_exact", k3 but for the matched ansatz and the reference) is a
+            ValueError: its derivative there is 0, not that of x.
         method: "ansatz" (default), "reference", "rizcallah" or "coulomb_exact", as in
             :func:`dampax.solve`.
         mode: "forward" (default; ``jax.jacfwd``, one pass for all names: the fast choice
