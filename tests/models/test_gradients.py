@@ -370,3 +370,23 @@ def test_halt_time_gradient_small_coulomb_term(a, bp, c):
             lo[i] -= h
             ref.append((_tau_reference(*hi) - _tau_reference(*lo)) / (2.0 * h))
         np.testing.assert_allclose(g, ref, rtol=1e-7)
+
+
+@pytest.mark.parametrize("x0", [0.2, -0.2])
+@pytest.mark.parametrize("mu, b", [(0.0, 0.0), (0.0288, 0.3)])
+def test_coulomb_exact_derivative_in_v0_at_rest(x0, mu, b):
+    """The exact half-swings started at rest: d x(t)/d v0 is the derivative of a velocity
+    away from the centre (one side of the friction's kink; both sides and the exact
+    sin(w0 t)/w0 without damping), in reverse and forward mode. It was cut to 0 (the start's
+    branch masked the tangent; helper audit of the fortieth session)."""
+    osc = dp.Oscillator(m=1.0, k=30.0, mu=mu, b=b)
+
+    def x_at(v0):
+        return dp.solve(osc, x0, v0, method="coulomb_exact").x(1.1)
+
+    h = 1e-7 * math.copysign(1.0, x0)  # away from the centre
+    one_sided = float((x_at(h) - x_at(0.0)) / h)
+    if mu == b == 0.0:
+        one_sided = math.sin(math.sqrt(30.0) * 1.1) / math.sqrt(30.0)
+    assert float(jax.grad(x_at)(0.0)) == pytest.approx(one_sided, rel=1e-5)
+    assert float(jax.jacfwd(x_at)(0.0)) == pytest.approx(one_sided, rel=1e-5)

@@ -204,17 +204,22 @@ def swings_from(osc: Oscillator, t_s, x_s, v_s) -> SwingSolution:
     wd = jnp.sqrt(jnp.where(valid & underdamped, w0 * w0 - gamma * gamma, 1.0))
     moving = v_s != 0.0
     # first partial swing: u = x - cen0 is a damped cosine; its velocity vanishes at
-    # wd tau1 = atan2(|V|, sgn(V) K) in (0, pi)
-    sv = _sign(v_s)
+    # wd tau1 = atan2(|V|, sgn(V) K) in (0, pi). A start at rest is the limit of a velocity
+    # away from the centre (sgn(V) = sgn(x_s)): tau1 = 0 and x1 = x_s, as the formulas give
+    # at V = 0, so they are not masked and a derivative in v_s at rest is that one-sided one
+    # (it was cut to 0: dx/dv0 = 0 at v0 = 0, sin(w0 t)/w0 without damping; helper audit)
+    sv = jnp.where(moving, _sign(v_s), _sign(x_s))
     cen0 = -sv * xc
     U = x_s - cen0
-    V = jnp.where(moving, v_s, 1.0)
+    V = v_s
     K = (gamma * V + w0 * w0 * U) / wd
-    th1 = jnp.arctan2(jnp.abs(V), sv * K)
-    tau1 = jnp.where(moving, th1 / wd, 0.0)
+    K = jnp.where(moving | (K != 0.0), K, 1.0)  # (at rest at the centre: no 0/0 in atan2)
+    th1 = jnp.arctan2(sv * V, sv * K)
+    tau1 = th1 / wd
     B = (V + gamma * U) / wd
     x_end = cen0 + jnp.exp(-gamma * tau1) * (U * jnp.cos(th1) + B * jnp.sin(th1))
-    x1 = jnp.where(moving, x_end, x_s)
+    # at rest x_end is x_s to rounding: x_s exactly (x_s - x_end exact, Sterbenz), its tangent
+    x1 = jnp.where(moving, x_end, x_end + jax.lax.stop_gradient(x_s - x_end))
     t1 = t_s + tau1
     # number of whole half-swings until |x| <= xc
     e0 = jnp.abs(x1)
