@@ -162,12 +162,13 @@ jax.tree_util.register_dataclass(
                  "scale", "time_factor"])
 
 #: seconds per unit of a time column's unit (the others are seconds)
-_SECONDS = {"ms": 1e-3, "us": 1e-6, "µs": 1e-6, "min": 60.0}
+_SECONDS = {"ms": 1e-3, "msec": 1e-3, "us": 1e-6, "µs": 1e-6, "μs": 1e-6, "usec": 1e-6,
+            "ns": 1e-9, "min": 60.0}
 
 
 def _number(field: str, decimal_comma: bool) -> float:
     """A float from one field; clock times H:MM:SS(.fff) become seconds. NaN if unreadable."""
-    text = field.strip().strip('"').strip("'").strip()
+    text = field.strip().strip('"').strip("'").strip().replace("\u2212", "-")  # (U+2212)
     if not text:
         return math.nan
     try:
@@ -184,6 +185,49 @@ def _number(field: str, decimal_comma: bool) -> float:
         h, m, s = clock.groups()
         return 3600.0 * int(h) + 60.0 * int(m) + float(s)
     return math.nan
+
+
+def _unit_token(field: str) -> str:
+    return field.strip().strip('"').strip("'").strip("()[] ")
+
+
+def _is_units_row(fields: list[str], decimal_comma: bool) -> bool:
+    """A line under the header that holds units: no number, short tokens, one of them a unit
+    of time or position ("ms,mm", "[s] [deg]")."""
+    units = [_unit_token(f) for f in fields if f.strip()]
+    return _is_header(fields, decimal_comma) and all(len(u) <= 8 for u in units) and any(
+        u.lower() in _TIME_UNITS | _POSITION_UNITS for u in units)
+
+
+def _with_units_row(names: list[str], units: list[str]) -> list[str]:
+    """The header's names with a units row under them ("t,x" then "ms,mm" or "[ms],[mm]")
+    written into them ("t (ms)", "x (mm)"), as the loader reads units: it was dropped as an
+    unreadable row, and times in ms were read as seconds."""
+    out = list(names)
+    for i, unit in enumerate(units[:len(out)]):
+        unit = _unit_token(unit)
+        if unit:
+            out[i] = f"{out[i]} ({unit})"
+    return out
+
+
+def _join_units(fields: list[str]) -> list[str]:
+    """A whitespace-split header's names with each token that is only a unit, "(s)", "[deg]",
+    "/ mm" (two tokens), joined to the name before it: "Time [s]   Angle [deg]" split into
+    four tokens, and position "Angle" read the third data column (a velocity)."""
+    out: list[str] = []
+    i = 0
+    while i < len(fields):
+        tok = fields[i]
+        if out and re.fullmatch(r"[\(\[][^\)\]]*[\)\]]", tok):
+            out[-1] += " " + tok
+        elif out and tok == "/" and i + 1 < len(fields):
+            out[-1] += " / " + fields[i + 1]
+            i += 1
+        else:
+            out.append(tok)
+        i += 1
+    return out
 
 
 def _split(line: str, delimiter: str | None) -> list[str]:
@@ -251,7 +295,8 @@ _OTHER_WORDS = frozenset({"vel", "velocity", "speed", "omega", "acc", "accel", "
 #: short names of other quantities, when they are the whole name ("v", but "Channel A" says
 #: nothing)
 _OTHER_ALONE = frozenset({"v", "vx", "vy", "vz", "a", "ax", "ay", "az", "n", "no", "i"})
-_TIME_UNITS = frozenset({"s", "sec", "secs", "second", "seconds", "ms", "us", "µs", "min"})
+_TIME_UNITS = frozenset({"s", "sec", "secs", "second", "seconds", "ms", "msec", "us", "µs",
+                         "μs", "usec", "ns", "min"})
 _POSITION_UNITS = frozenset({"m", "mm", "cm", "um", "µm", "nm", "in", "ft", "deg", "degree",
                              "degrees", "°", "rad", "radian", "radians", "mrad"})
 
@@ -271,6 +316,12 @@ def _name_and_unit(name: str) -> tuple[list[str], str]:
     text = re.sub(r"([a-z])([A-Z])", r"\1 \2", text)  # TimeElapsed -> Time Elapsed
     words = [w for w in re.split(r"[\s_\-.:,;]+", text.lower()) if w]
     return words, unit.strip().lower()
+
+
+def column_unit(name: str) -> str:
+    """The unit a column's name gives, as the loader reads it ("x / mm", "Angle(deg)",
+    '"x (mm)"' -> "mm", "deg", "mm"), or ""."""
+    return _name_and_unit(name)[1]
 
 
 def _meaning(name: str) -> tuple[str, int]:
@@ -450,7 +501,10 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     """
     path_str = str(path)
     raw = read_regular_file(path)
-    text = raw.decode("utf-8-sig", errors="replace")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError:  # a Windows export: cp1252 ("°", "µ" were U+FFFD)
+        text = raw.decode("cp1252", errors="replace")
     lines = _content_lines(text)
     if not lines:
         raise ValueError(f"{path_str}: no data (the file is empty or holds only comments)")
@@ -473,8 +527,12 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     decimal_comma = delim != ","
     first = _split(lines[0][1], delim)
     header = _is_header(first, decimal_comma)
+    if header and delim is None:  # "Time [s]  Angle [deg]": a unit token is its name's
+        first = _join_units(first)
     names = first if header else None
     body = lines[1:] if header else lines
+    if header and body and _is_units_row(_split(body[0][1], delim), decimal_comma):
+        names, body = _with_units_row(names, _split(body[0][1], delim)), body[1:]
     counts = [len(_split(line, delim)) for _, line in body[:_SAMPLE_LINES]] or [len(first)]
     n_fields = max(len(first), max(set(counts), key=counts.count))
 

@@ -261,6 +261,12 @@ def test_input_errors():
     with pytest.raises(ValueError, match="p0: w0 not fitted here"):
         fit(t, x, oscillator=dp.Oscillator(m=1.0, k=4.0), solver=dp.LeastSquares(p0={"w0": 2.1}),
             model="ansatz")
+    # elapsed times as timedelta64 (pandas) are seconds (they were read as ns: w0 1e9 small)
+    from dampax._fit._inputs import as_times
+
+    np.testing.assert_allclose(as_times((t * 1e9).astype("timedelta64[ns]")), t, atol=1e-9)
+    with pytest.raises(ValueError, match="t: datetimes"):
+        fit(np.datetime64("2026-01-01") + (t * 1e3).astype("timedelta64[ms]"), x)
     # a fit of other data handed to a ranking or a posterior (it was used as it was)
     other = fit(t, 1.5 * x, free=("mu", "D"), model="ansatz")
     with pytest.raises(ValueError, match="fitted: a fit of other data"):

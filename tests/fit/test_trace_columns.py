@@ -203,3 +203,55 @@ def test_scaled_positions_are_not_named_by_the_columns_unit(tmp_path):
     scaled = load_trace(path, scale=math.pi / 180.0)
     np.testing.assert_allclose(scaled.x, np.radians(POS), rtol=1e-12)
     assert units_of(scaled, None) == "(57.2958 deg)" and units_of(scaled, "rad") == "rad"
+
+
+MINUS = "\u2212"
+PAIRS = list(zip(TIME.tolist(), POS.tolist(), strict=True))
+
+
+@pytest.mark.parametrize("name, text, time_factor, unit", [
+    ("aligned", "Time [s]   Angle [deg]   Velocity [deg/s]\n{rows_ws3}", 1.0, "deg"),
+    ("slash", "t / s,x / mm\n{rows_csv}", 1.0, "mm"),
+    ("quoted", '"t (s)","x (mm)"\n{rows_csv}', 1.0, "mm"),
+    ("units_row", "t,x\nms,mm\n{rows_ms}", 1e-3, "mm"),
+    ("greek_mu", "Time (\u03bcs),x (mm)\n{rows_us}", 1e-6, "mm"),
+    ("minus", "t;x\n{rows_minus}", 1.0, "m"),
+])
+def test_lab_files_read_as_written(tmp_path, name, text, time_factor, unit):
+    """Files as lab software writes them read the numbers written, in seconds, with the
+    position unit the header names (each was misread without a word: an aligned header
+    with spaces in its names read the velocity as the angle; "x / mm" and '"x (mm)"' were
+    reported in metres; a units row was dropped and ms read as s; "\u03bcs" (Greek mu) was
+    seconds; U+2212 minus signs dropped every negative sample)."""
+    from dampax._fit._problem import units_of
+
+    rows = {
+        "rows_ws3": "".join(f"{t:.4f}   {x:.6f}   {-8 * x:.6f}\n" for t, x in PAIRS),
+        "rows_csv": "".join(f"{t!r},{x!r}\n" for t, x in PAIRS),
+        "rows_ms": "".join(f"{t * 1e3!r},{x!r}\n" for t, x in PAIRS),
+        "rows_us": "".join(f"{t * 1e6!r},{x!r}\n" for t, x in PAIRS),
+        "rows_minus": "".join(f"{t!r};{-x!r}\n".replace("-", MINUS).replace(".", ",")
+                              for t, x in PAIRS),
+    }
+    path = tmp_path / f"{name}.txt"
+    path.write_text(text.format(**rows), encoding="utf-8")
+    trace = load_trace(path)
+    want_x = -POS if name == "minus" else POS
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-9)
+    np.testing.assert_allclose(trace.x, want_x, rtol=1e-9)
+    assert trace.time_factor == time_factor and trace.n_dropped == 0
+    assert units_of(trace, None) == unit
+
+
+def test_a_windows_file_is_read_in_its_code_page(tmp_path):
+    """A cp1252 export (not UTF-8): its "\u00b0" and "\u00b5s" headers are read, not U+FFFD
+    (the unit came out as "\ufffd", and \u00b5s times as seconds)."""
+    from dampax._fit._problem import units_of
+
+    path = tmp_path / "latin.csv"
+    path.write_bytes(("Zeit (\u00b5s);Winkel (\u00b0)\n" + "".join(
+        f"{t * 1e6!r};{x!r}\n".replace(".", ",") for t, x in PAIRS)
+    ).encode("cp1252"))
+    trace = load_trace(path)
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-9)
+    assert units_of(trace, None) == "\u00b0"

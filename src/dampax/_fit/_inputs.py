@@ -247,3 +247,19 @@ def check_fitted_on(res, t_all: np.ndarray, x_all: np.ndarray, name: str) -> Non
             and np.array_equal(x_all[i:i + n], res.x)):
         raise ValueError(f"{name}: a fit of other data (its {n} samples are not a run of the "
                          f"{len(t_all)} given); fit these data, or pass the data it fitted")
+
+
+def as_times(t) -> np.ndarray:
+    """``t`` as float64 seconds: a timedelta64 array (pandas' elapsed times) in seconds (it
+    was read as a count of its own unit, ns: w0 1e9 times small); datetimes and what is not
+    a number are a ValueError naming ``t``."""
+    arr = np.asarray(t)
+    if np.issubdtype(arr.dtype, np.timedelta64):
+        return arr / np.timedelta64(1, "s")
+    if np.issubdtype(arr.dtype, np.datetime64):
+        raise ValueError("t: datetimes; pass the elapsed seconds, (t - t[0]) / "
+                         "np.timedelta64(1, 's')")
+    try:
+        return np.asarray(arr, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"t: not numbers (an array of {arr.dtype})") from None

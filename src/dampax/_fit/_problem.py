@@ -15,14 +15,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import re
 import threading
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from .._trace import Trace, load_trace
+from .._trace import Trace, column_unit, load_trace
 from ._checks import check_trace, data_rows
 from ._core import (
     FIT_MODELS,
@@ -36,6 +35,7 @@ from ._core import (
 )
 from ._guess import Analysis, analyse, guess_trace
 from ._inputs import (
+    as_times,
     check_gaps,
     check_p0_fitted,
     check_positions,
@@ -339,7 +339,7 @@ def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
         if x is None:
             raise ValueError("fit(t, x): x is missing (or pass a dampax.Trace)")
         t = trace_or_t
-    t = np.asarray(t, dtype=float).reshape(-1)
+    t = as_times(t).reshape(-1)
     x = np.asarray(x, dtype=float).reshape(-1)
     if t.shape != x.shape:
         raise ValueError(f"t and x must have the same length, got {t.size} and {x.size}")
@@ -391,11 +391,11 @@ def units_of(trace_or_t, units):
     position unit of the fit is 1/scale of the column's), else "m"."""
     if units is not None:  # checked by Window (or fit_envelope)
         return units
-    if isinstance(trace_or_t, Trace):
-        found = re.search(r"[\(\[]\s*([^\)\]]+?)\s*[\)\]]\s*$", trace_or_t.position_column)
-        if found:
+    if isinstance(trace_or_t, Trace):  # "x (mm)", "x [mm]", "x / mm", quoted: the loader's
+        unit = column_unit(trace_or_t.position_column)
+        if unit:
             scale = getattr(trace_or_t, "scale", 1.0)
-            return found.group(1) if scale == 1.0 else f"({1.0 / scale:.6g} {found.group(1)})"
+            return unit if scale == 1.0 else f"({1.0 / scale:.6g} {unit})"
     return "m"
 
 
