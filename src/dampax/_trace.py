@@ -23,6 +23,7 @@ import math
 import os
 import re
 import stat
+import warnings
 
 import jax
 import numpy as np
@@ -160,6 +161,11 @@ jax.tree_util.register_dataclass(
     Trace, data_fields=["t", "x"],
     meta_fields=["n_dropped", "source", "time_column", "position_column", "rate", "n_rows",
                  "scale", "time_factor"])
+
+#: more unreadable rows than this share of a file's rows (and more than one: a units or
+#: title line) are warned about: a column misread (thousands separators, U+2212 minus
+#: signs dropped 600 of 800 and 2,497 of 5,000 rows of an audit's files without a word)
+DROPPED_SHARE = 0.01
 
 #: seconds per unit of a time column's unit (the others are seconds)
 _SECONDS = {"ms": 1e-3, "msec": 1e-3, "us": 1e-6, "µs": 1e-6, "μs": 1e-6, "usec": 1e-6,
@@ -607,6 +613,11 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
                          "the columns: load_trace(time=..., position=...), dampax fit --time "
                          "... --position ...)")
 
+    dropped = n_rows - n_keep
+    if dropped > max(1, DROPPED_SHARE * n_rows):  # (a note in dampax fit; silent here before)
+        warnings.warn(f"{path_str}: {dropped} of {n_rows} data rows have no number in the time "
+                      f"or position column and were left out (a thousands separator, text, "
+                      f"an empty field?)", UserWarning, stacklevel=2)
     return Trace(t=np.asarray(t[keep], dtype=float),
                  x=np.asarray(xs[keep], dtype=float) * float(scale),
                  n_dropped=n_rows - n_keep, source=path_str, time_column=label(i_time),

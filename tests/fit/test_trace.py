@@ -71,7 +71,8 @@ def test_comments_separator_lines_trailing_empty_fields(tmp_path):
     # an empty field in the chosen column drops the row (and counts it)
     tr3 = load_trace(path, time=1, position=3)
     assert len(tr3) == len(T) - 1 and tr3.n_dropped == 1
-    tr4 = load_trace(path, time=1, position="acceleration")
+    with pytest.warns(UserWarning, match="2 of 8 data rows have no number"):  # (> 1 %)
+        tr4 = load_trace(path, time=1, position="acceleration")
     assert len(tr4) == len(T) - 2 and tr4.n_dropped == 2
 
 
@@ -132,13 +133,15 @@ def test_text_in_numeric_columns_dropped_and_counted(tmp_path):
     lines[5] = "n/a;0.41"
     lines[6] = "0.06;nan"
     path = _write(tmp_path, "time;position\n" + "\n".join(lines) + "\n")
-    tr = load_trace(path)
+    with pytest.warns(UserWarning, match="3 of 8 data rows have no number"):
+        tr = load_trace(path)
     assert len(tr) == len(T) - 3 and tr.n_dropped == 3 and tr.n_rows == len(T)
     keep = np.ones(len(T), bool)
     keep[[2, 5, 6]] = False
     np.testing.assert_array_equal(tr.x, X[keep])
     # time rebuilt from the row index keeps the dropped rows' slots
-    tr2 = load_trace(path, rate=100.0)
+    with pytest.warns(UserWarning, match="2 of 8 data rows"):
+        tr2 = load_trace(path, rate=100.0)
     np.testing.assert_allclose(tr2.t[2], 0.03)
 
 

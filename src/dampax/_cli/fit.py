@@ -184,9 +184,11 @@ def run_fit(args: argparse.Namespace) -> int:
         trace, truth = example_trace()
         osc, fit_omega0 = Oscillator(m=truth["m"], k=truth["k"]), bool(args.fit_omega0)
     else:
-        trace = load_trace(args.path, time=args.time, position=args.position,
-                           rate=_parse_rate(args.rate), delimiter=args.delimiter,
-                           scale=args.scale)
+        with warnings.catch_warnings():  # (the dropped rows are noted below)
+            warnings.simplefilter("ignore")
+            trace = load_trace(args.path, time=args.time, position=args.position,
+                               rate=_parse_rate(args.rate), delimiter=args.delimiter,
+                               scale=args.scale)
         osc, fit_omega0 = _oscillator(args)
     print(f"{PROG} fit: {trace!r}")
     if trace.n_dropped:
