@@ -259,9 +259,14 @@ def prepare_out_dir(path, flag: str = "--out") -> Path:
     return out
 
 
-def not_used(args: argparse.Namespace, what: str, flags: dict) -> None:
-    """ValueError naming the flags given (away from their defaults, ``flags``: name ->
-    (value, default)) that ``what`` does not use: they were ignored without a word."""
-    given = [name for name, (value, default) in flags.items() if value != default]
+def not_used(args: argparse.Namespace, what: str, flags: tuple, add_arguments) -> None:
+    """ValueError naming the ``flags`` given, away from their defaults in the command's own
+    definitions (``add_arguments``, the subcommand's), that ``what`` does not use: they were
+    ignored without a word."""
+    parser = argparse.ArgumentParser(add_help=False)
+    add_arguments(parser)
+    actions = parser._option_string_actions
+    given = [flag for flag in flags
+             if getattr(args, actions[flag].dest) != actions[flag].default]
     if given:
         raise ValueError(f"{', '.join(given)}: not used by {what}")

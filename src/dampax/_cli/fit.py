@@ -141,18 +141,13 @@ def run_fit(args: argparse.Namespace) -> int:
         raise ValueError("--shared needs two or more trace files (a joint fit of several runs)")
     args.path = paths[0] if paths else None
     if args.example:  # (they were ignored: the example's trace and oscillator are its own)
-        not_used(args, "--example", {
-            "--envelope": (args.envelope, False), "--m": (args.m, None), "--k": (args.k, None),
-            "--g": (args.g, 9.81), "--scale": (args.scale, 1.0), "--time": (args.time, None),
-            "--position": (args.position, None), "--rate": (args.rate, None),
-            "--delimiter": (args.delimiter, None)})
+        not_used(args, "--example", ("--envelope", "--m", "--k", "--g", "--scale", "--time",
+                                     "--position", "--rate", "--delimiter"), add_arguments)
     if args.envelope:  # an envelope fit has no window, model, w0 fit or global starts
-        not_used(args, "--envelope", {
-            "--start": (args.start, "auto"), "--end": (args.end, None),
-            "--model": (args.model, "auto"), "--fit-omega0": (args.fit_omega0, False),
-            "--starts": (args.starts, 32), "--seed": (args.seed, 0)})
+        not_used(args, "--envelope", ("--start", "--end", "--model", "--fit-omega0",
+                                      "--starts", "--seed"), add_arguments)
     else:
-        not_used(args, "a trace fit (it is --envelope's)", {"--omega0": (args.omega0, None)})
+        not_used(args, "a trace fit (it is --envelope's)", ("--omega0",), add_arguments)
     if args.m is None and args.g != 9.81:  # (per unit mass, yet reported in kg/s, kg/m)
         raise ValueError("--g needs --m: a fit without a mass is per unit mass (mu from the "
                          "friction deceleration mu g with g = 9.81 m/s^2)")
@@ -329,7 +324,7 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
     if args.mu_s is not None or "mu_s" in free:
         raise ValueError("--mu-s: static friction is not supported by a joint fit of several "
                          "runs; fit each run alone")
-    not_used(args, "a joint fit of traces", {"--omega0": (args.omega0, None)})
+    not_used(args, "a joint fit of traces", ("--omega0",), add_arguments)
     if not 0.0 < args.level < 1.0:
         raise ValueError(f"--level must be in (0, 1), got {args.level}")
     out_dir = prepare_out_dir(args.out)

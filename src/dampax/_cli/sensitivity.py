@@ -98,17 +98,13 @@ def run(args: argparse.Namespace) -> int:
     from .._plot import plot_sensitivity, plot_trend
 
     # the other mode's flags, given, were ignored without a word
-    local = {"--wrt": (args.wrt, "mu,D"),
-             "--t-end": (args.t_end, None), "--samples": (args.samples, 400),
-             "--window": (args.window, 0.05), "--window-points": (args.window_points, 41),
-             "--swings": (args.swings, False), "--turning-points": (args.turning_points, 0),
-             "--trend-plot": (args.trend_plot, None)}
     if args.global_spec is not None:
-        not_used(args, "--global (a global study over ranges)", local)
+        not_used(args, "--global (a global study over ranges)",
+                 ("--wrt", "--t-end", "--samples", "--window", "--window-points", "--swings",
+                  "--turning-points", "--trend-plot"), add_arguments)
         return run_global(args)
-    not_used(args, "a local study (they are --global's)", {
-        "--quantity": (args.quantity, "halt_time"), "--time": (args.time, None),
-        "--n": (args.n, 4096), "--seed": (args.seed, 0)})
+    not_used(args, "a local study (they are --global's)",
+             ("--quantity", "--time", "--n", "--seed"), add_arguments)
     names = check_wrt(split_names(args.wrt))
     models = check_models(args.models or "matched,reference", "--models")
     if args.samples < 2:
