@@ -213,7 +213,11 @@ def fit_figure(result, *, title: str | None = None):
         ax.axhspan(off - half, off + half, color="tab:orange" if which == "kinetic"
                    else "tab:purple", alpha=0.22, lw=0, label=_band_label(result, which))
     ax.set_ylabel(f"{'amplitude' if envelope_fit else 'position'} [{unit}]")
-    terms = ", ".join(f"{k} = {result.params[k]:.4g}" for k in result.free)
+    # mu is a coefficient only for positions in metres: else the deceleration mu g (the
+    # report's mu_g; the title read "mu = 1.999" for a trace in mm, 1000x the coefficient)
+    terms = ", ".join(f"mu g = {result.derived['mu_g']:.4g} {unit}/s^2"
+                      if k == "mu" and unit != "m" and "mu_g" in result.derived
+                      else f"{k} = {result.params[k]:.4g}" for k in result.free)
     what = result.source or ("maxima" if envelope_fit else "trace")
     ax.set_title(title or f"{what}: {terms}  (rms {result.rms:.3g} {unit})", fontsize=9)
     ax.legend(fontsize=8, loc="upper right")

@@ -261,6 +261,8 @@ def test_input_errors():
     with pytest.raises(ValueError, match="p0: w0 not fitted here"):
         fit(t, x, oscillator=dp.Oscillator(m=1.0, k=4.0), solver=dp.LeastSquares(p0={"w0": 2.1}),
             model="ansatz")
+    with pytest.raises(ValueError, match="a dampax.Trace is passed alone"):
+        fit(t, dp.Trace(t=t, x=x))  # (a TypeError from float() before)
     # elapsed times as timedelta64 (pandas) are seconds (they were read as ns: w0 1e9 small)
     from dampax._fit._inputs import as_times
 
@@ -700,8 +702,9 @@ def test_conf_interval_covers_and_widens_for_correlated_noise(synthetic):
         # white noise: the HAC sd is the delta-method stderr, within its sampling error
         assert res.hac_stderr[name] == pytest.approx(res.stderr[name], rel=0.35), name
     assert "[[Intervals]] 95 %" in res.report()
-    with pytest.raises(ValueError, match="level"):
-        res.conf_interval(1.5)
+    for level in (1.5, "0.9", None, True):  # (a text or None raised numpy's TypeError)
+        with pytest.raises(ValueError, match="level must be a number in"):
+            res.conf_interval(level)
     # AR(1) noise (coefficient 0.9): the HAC sd exceed the delta-method stderr ~3-4 times
     e = np.zeros(N)
     z = np.random.default_rng(4).standard_normal(N) * NOISE * math.sqrt(1 - 0.81)

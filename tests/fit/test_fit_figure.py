@@ -61,6 +61,17 @@ def test_axes_carry_units(tmp_path):
     assert out == tmp_path / "fit.png" and out.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_the_title_gives_mu_g_where_positions_are_not_metres():
+    """For positions in mm the title gives the deceleration mu g [mm/s^2] (the report's mu_g)
+    and no "mu =": a coefficient read off a trace in mm is 1000x the one in m. In metres
+    the title keeps mu."""
+    res = _result(units="mm")
+    res = type(res)(**{**res.__dict__, "derived": {**res.derived, "mu_g": 0.04 * G * 1e3}})
+    title = fit_figure(res).axes[0].get_title()
+    assert "mu g = 392.4 mm/s^2" in title and "mu =" not in title
+    assert "mu = 0.04" in fit_figure(_result()).axes[0].get_title()
+
+
 def test_static_band_where_mu_s_is_held():
     res = _result(fixed={"mu_s": 0.2})
     (label, lo, hi), = _bands(fit_figure(res))

@@ -33,6 +33,7 @@ how often they contain the truth.
 from __future__ import annotations
 
 import math
+import numbers
 from statistics import NormalDist
 
 import numpy as np
@@ -311,8 +312,8 @@ def normal_intervals(values: dict, sd: dict, level: float, nonneg=(), scale=None
     """{name: (lo, hi)} = value -+ z sd at the two-sided ``level`` (clipped at 0 for
     ``nonneg``); ``scale``: {name: (below, above)} factors of the two sides (the profile's
     correction, ``_profile.PROFILE_FAIL``)."""
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if isinstance(level, bool) or not isinstance(level, numbers.Real) or not 0.0 < level < 1.0:
+        raise ValueError(f"level must be a number in (0, 1), got {level!r}")
     z = NormalDist().inv_cdf(0.5 + 0.5 * level)
     out = {}
     for name, v in values.items():

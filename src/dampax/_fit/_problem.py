@@ -336,8 +336,8 @@ def read_arrays(trace_or_t, x, *, least: int = 10, what: str = "a fit needs",
         trace = load_trace(trace_or_t)
         t, x, source = trace.t, trace.x, trace.source
     else:
-        if x is None:
-            raise ValueError("fit(t, x): x is missing (or pass a dampax.Trace)")
+        if x is None or isinstance(x, Trace):
+            raise ValueError("fit(t, x): x is missing (a dampax.Trace is passed alone)")
         t = trace_or_t
     t = as_times(t).reshape(-1)
     x = np.asarray(x, dtype=float).reshape(-1)
