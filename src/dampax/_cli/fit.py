@@ -135,6 +135,8 @@ def run_fit(args: argparse.Namespace) -> int:
     paths = [args.path] if isinstance(args.path, str) else list(args.path or [])
     if args.example == bool(paths):
         raise ValueError("give a PATH or --example (one of them)")
+    if not 0.0 < args.level < 1.0:  # (before any work, for a joint fit too)
+        raise ValueError(f"--level must be in (0, 1), got {args.level}")
     if len(paths) > 1:
         return _run_joint(args, paths, free)
     if args.shared is not None:
@@ -152,8 +154,6 @@ def run_fit(args: argparse.Namespace) -> int:
         raise ValueError("--g needs --m: a fit without a mass is per unit mass (mu from the "
                          "friction deceleration mu g with g = 9.81 m/s^2)")
     out_dir = prepare_out_dir(args.out)
-    if not 0.0 < args.level < 1.0:
-        raise ValueError(f"--level must be in (0, 1), got {args.level}")
     if args.posterior and (args.envelope or args.draws < 10 or args.chains < 1
                            or args.warmup < 10):
         raise ValueError("--posterior needs a trace (not --envelope), --draws >= 10, "
@@ -325,8 +325,6 @@ def _run_joint(args: argparse.Namespace, paths: list, free: tuple) -> int:
         raise ValueError("--mu-s: static friction is not supported by a joint fit of several "
                          "runs; fit each run alone")
     not_used(args, "a joint fit of traces", ("--omega0",), add_arguments)
-    if not 0.0 < args.level < 1.0:
-        raise ValueError(f"--level must be in (0, 1), got {args.level}")
     out_dir = prepare_out_dir(args.out)
     traces = [load_trace(p, time=args.time, position=args.position, rate=_parse_rate(args.rate),
                          delimiter=args.delimiter, scale=args.scale) for p in paths]

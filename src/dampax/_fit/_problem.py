@@ -394,7 +394,7 @@ def units_of(trace_or_t, units):
     if isinstance(trace_or_t, Trace):  # "x (mm)", "x [mm]", "x / mm", quoted: the loader's
         unit = column_unit(trace_or_t.position_column)
         if unit:
-            scale = getattr(trace_or_t, "scale", 1.0)
+            scale = trace_or_t.scale
             return unit if scale == 1.0 else f"({1.0 / scale:.6g} {unit})"
     return "m"
 

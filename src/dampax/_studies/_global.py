@@ -304,7 +304,7 @@ _REFERENCE_KEYS = ("t_end", "rtol", "atol", "max_swings", "max_steps_per_swing",
 
 def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator: Oscillator,
                        x0, v0, quantity: str | Callable = "halt_time", method: str = "ansatz",
-                       n: int = 4096, seed: int = 0, t=None, samples: int = 200,
+                       n: int = 4096, seed: int = 0, t=None, samples: int | None = None,
                        num_resamples: int = 100, conf_level: float = 0.95, dgsm: bool = True,
                        batch_size: int = 4096, **solve_options):
     """Sobol' indices S1, ST (with bootstrap half-widths) and DGSM of a model's quantity.
@@ -382,7 +382,7 @@ def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator:
     if t is not None and quantity not in (*_NEEDS_T, "max_error"):  # (ignored, yet in attrs)
         raise ValueError(f"t: quantity={uses} does not use a time (x, energy and max_error "
                          "do)")
-    if samples != 200 and quantity != "max_error":
+    if samples is not None and quantity != "max_error":
         raise ValueError(f"samples: quantity={uses} does not sample a window (max_error does)")
     if quantity == "max_error":
         if method == "reference":
@@ -390,7 +390,7 @@ def global_sensitivity(*, bounds: Mapping[str, tuple[float, float]], oscillator:
                              "choose an analytic method")
         if t is None:
             t = 10.0 * 2.0 * math.pi / float(np.asarray(oscillator.omega0))
-    samples = _check_int("samples", samples, 2)
+    samples = _check_int("samples", 200 if samples is None else samples, 2)
     if t is not None:
         check_finite("t", t)
         if is_concrete(t) and (np.ndim(t) != 0 or float(t) < 0.0):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import inspect
 import math
 from collections.abc import Sequence
 
@@ -563,8 +564,9 @@ def error_map(*, d0_ratio, d2_ratio, phi0, d1_ratio=0.0,
     models = check_models(models, allowed=ANALYTIC)
     if reference not in REFERENCES:
         raise ValueError(f"reference must be one of {REFERENCES}, got {reference!r}")
-    given = [n for n, v, d in (("rtol", rtol, 1e-10), ("atol", atol, 1e-12),
-                               ("engine", engine, "auto")) if v != d]
+    defaults = inspect.signature(error_map).parameters  # (the defaults, written once)
+    given = [n for n, v in (("rtol", rtol), ("atol", atol), ("engine", engine))
+             if v != defaults[n].default]
     if reference != "reference" and given:  # (they were ignored unsaid)
         raise ValueError(f"{', '.join(given)}: set the integrator of reference='reference', "
                          f"not the closed form reference={reference!r}")
