@@ -181,12 +181,18 @@ PNG_COMPRESS_LEVEL = 3
 
 def save_figure(fig, path, **kwargs):
     """``fig.savefig`` to ``path`` through :func:`atomic_file`; returns ``path``."""
-    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    with atomic_file(path) as fh:
+        write_figure(fig, fh, Path(path).suffix, **kwargs)
+    return path
+
+
+def write_figure(fig, fh, suffix: str, **kwargs) -> None:
+    """``fig.savefig`` into the open file ``fh`` in the format of ``suffix`` (PNG at
+    :data:`PNG_COMPRESS_LEVEL`); ``kwargs`` are savefig's."""
+    fmt = suffix.lstrip(".").lower() or "png"
     if fmt == "png":
         kwargs.setdefault("pil_kwargs", {"compress_level": PNG_COMPRESS_LEVEL})
-    with atomic_file(path) as fh:
-        fig.savefig(fh, format=fmt, **kwargs)
-    return path
+    fig.savefig(fh, format=fmt, **kwargs)
 
 
 def check_writable_dir(folder, flag: str) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 from ._io import save_figure
 from ._models._registry import MODELS
 from ._oscillator import Oscillator, as_float
+from ._plot_fit import _place
 from ._studies._sensitivity import _SYMBOLS, UNITS, Sensitivity
 from ._studies._summary import ModelRun, damping_ratios
 
@@ -22,29 +23,6 @@ from ._studies._summary import ModelRun, damping_ratios
 def _legend_rows(n_labels: int, ncols: int = 4) -> int:
     """Rows of a figure legend of ``n_labels`` entries in ``ncols`` columns."""
     return max(1, math.ceil(n_labels / ncols))
-
-
-def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bottom: float,
-           top: float, wspace: float = 0.0, hspace: float = 0.0) -> None:
-    """Place the subplot grid with fixed margins and gaps given in inches.
-
-    The figures are drawn without matplotlib's constrained layout, which measures every text
-    of a figure before placing the panels (about half the time of a heat-map figure, issue 26);
-    the margins here leave room for tick labels, axis labels, titles and legends of the sizes
-    this module uses.
-
-    Arguments:
-        fig: the figure (its size is fixed).
-        nrows, ncols: the subplot grid.
-        left, right, bottom, top: margins [in] between the figure's edges and the grid.
-        wspace, hspace: gaps [in] between columns and between rows.
-    """
-    width, height = fig.get_size_inches()
-    panel_w = max((width - left - right - (ncols - 1) * wspace) / ncols, 0.1)
-    panel_h = max((height - top - bottom - (nrows - 1) * hspace) / nrows, 0.1)
-    fig.subplots_adjust(left=left / width, right=1.0 - right / width, bottom=bottom / height,
-                        top=1.0 - top / height, wspace=wspace / panel_w,
-                        hspace=hspace / panel_h)
 
 
 def _title_in(title: str | None, fontsize: float = 11.0) -> float:

@@ -1,8 +1,10 @@
 """Figures of fits: data, fit and residuals with units and the sticking band (a trace, several
 runs), and the corner plot of a posterior's draws.
 
-Drawn with matplotlib's object API on the Agg canvas, as the other figures (``_plot``, whose
-panel placement this module shares).
+Drawn with matplotlib's object API on the Agg canvas, as the other figures (``_plot`` shares
+this module's panel placement, :func:`_place`). This module imports nothing of dampax but
+``_io`` and nothing of JAX: ``dampax fit`` draws its figure in a process of its own that
+never imports JAX (``dampax_cli._figures``), from :func:`figure_data`.
 """
 
 from __future__ import annotations
@@ -10,11 +12,36 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from ._io import save_figure
-from ._plot import _place
+
+
+def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bottom: float,
+           top: float, wspace: float = 0.0, hspace: float = 0.0) -> None:
+    """Place the subplot grid with fixed margins and gaps given in inches.
+
+    The figures are drawn without matplotlib's constrained layout, which measures every text
+    of a figure before placing the panels (about half the time of a heat-map figure, issue 26);
+    the margins here leave room for tick labels, axis labels, titles and legends of the sizes
+    this module uses.
+
+    Arguments:
+        fig: the figure (its size is fixed).
+        nrows, ncols: the subplot grid.
+        left, right, bottom, top: margins [in] between the figure's edges and the grid.
+        wspace, hspace: gaps [in] between columns and between rows.
+    """
+    width, height = fig.get_size_inches()
+    panel_w = max((width - left - right - (ncols - 1) * wspace) / ncols, 0.1)
+    panel_h = max((height - top - bottom - (nrows - 1) * hspace) / nrows, 0.1)
+    fig.subplots_adjust(left=left / width, right=1.0 - right / width, bottom=bottom / height,
+                        top=1.0 - top / height, wspace=wspace / panel_w,
+                        hspace=hspace / panel_h)
+
+
 
 # ----------------------------------------------------------------------------------------------
 # issue 11: the posterior of a fit (corner plot)
@@ -149,7 +176,11 @@ def import_figure_modules() -> None:
     from matplotlib.figure import Figure  # noqa: F401
 
 
-def plot_fit(result, path, *, title: str | None = None, dpi: int = 110):
+#: resolution of a fit's figure
+FIT_DPI = 110
+
+
+def plot_fit(result, path, *, title: str | None = None, dpi: int = FIT_DPI):
     """Save the figure of a fit: data, fit, envelope and sticking band above, residuals below.
 
     The axes carry their units: time in s, positions (and residuals) in the fit's position
@@ -173,11 +204,22 @@ def plot_fit(result, path, *, title: str | None = None, dpi: int = 110):
     return Path(path)
 
 
+#: what :func:`fit_figure` reads of a trace's or maxima's fit (:class:`dampax.FitResult`)
+FIGURE_FIELDS = ("kind", "units", "model", "source", "free", "params", "fixed", "derived", "t",
+                 "x", "model_x", "residuals", "envelope", "full_t", "full_x", "rms")
+
+
+def figure_data(result) -> SimpleNamespace:
+    """What :func:`fit_figure` draws of ``result``, as plain values (numbers, strings, numpy
+    arrays): drawn the same, and picklable without dampax's classes (``dampax_cli._figures``)."""
+    return SimpleNamespace(**{name: getattr(result, name) for name in FIGURE_FIELDS})
+
+
 def fit_figure(result, *, title: str | None = None):
     """The figure of :func:`plot_fit`, not saved (a matplotlib Figure on the Agg canvas).
 
     Arguments:
-        result: a :class:`dampax.FitResult`.
+        result: a :class:`dampax.FitResult` (or its :func:`figure_data`).
         title: the title (default: the source, the fitted terms and the rms).
 
     Returns:

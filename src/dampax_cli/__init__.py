@@ -17,6 +17,7 @@ import gc
 import os
 import sys
 
+from . import _figures
 from ._parser import PROG as PROG
 from ._parser import build_parser as build_parser
 from ._parser import version as version
@@ -26,11 +27,13 @@ from ._parser import version as version
 COMMAND: tuple[str, ...] | None = None
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, figure_process: bool = False) -> int:
     """The ``dampax`` console script: parse here, import dampax only to run a command.
 
     Arguments:
         argv: the arguments without the program name; default ``sys.argv[1:]``.
+        figure_process: fork the process that draws a fit's figure (``_figures``) before
+            dampax is imported (:func:`console` only: a process with nothing else loaded).
 
     Returns:
         The exit status of :func:`dampax._cli.run_parsed`. ``--help``, ``--version`` and
@@ -42,12 +45,15 @@ def main(argv: list[str] | None = None) -> int:
     COMMAND = tuple(sys.argv[1:] if argv is None else argv)
     if args.quiet:  # XLA's own (C++) warnings, read when JAX loads
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    if figure_process and _figures.wanted(args):
+        _figures.start()
     from dampax._cli import run_parsed
 
     try:
         return run_parsed(args)
     finally:
         COMMAND = None
+        _figures.close()
 
 
 def console() -> None:
@@ -60,10 +66,11 @@ def console() -> None:
     on: 12-25 % of the CPU of a repeated ``dampax fit --example``;
     ``dampax._fit._linalg.one_blas_thread``), and Python's cyclic collector every 100,000
     allocations instead of 700 (tracing and a fit's results make many short-lived objects and
-    few cycles: the example 5 % faster)."""
+    few cycles: the example 5 % faster); and a fit's figure drawn by a process forked before
+    dampax loads (``_figures``)."""
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     gc.set_threshold(100_000, 50, 1000)
-    leave(main())
+    leave(main(figure_process=True))
 
 
 def leave(status: int) -> None:

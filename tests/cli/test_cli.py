@@ -206,7 +206,7 @@ def test_console_script_holds_blas_to_one_thread_unless_told():
     OPENBLAS_NUM_THREADS stands. Read from the library itself (threadpoolctl) in the process
     of ``dampax_cli.console`` with its command replaced."""
     code = ("import gc, dampax_cli\n"
-            "def main():\n"
+            "def main(**kwargs):\n"
             "    import numpy\n"
             "    from threadpoolctl import threadpool_info\n"
             "    print(sorted({d['num_threads'] for d in threadpool_info()"

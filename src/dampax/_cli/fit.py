@@ -20,6 +20,7 @@ import warnings
 
 import numpy as np
 
+from dampax_cli import _figures
 from dampax_cli._arguments import add_fit_arguments as add_arguments  # noqa: F401 (SUBCOMMANDS)
 
 from .._fit import (
@@ -35,9 +36,9 @@ from .._fit import (
     full_starts,
 )
 from .._fit._api import spacing_omega0
-from .._io import write_text
+from .._io import atomic_path, write_text
 from .._oscillator import Oscillator
-from .._plot_fit import import_figure_modules, plot_fit, plot_joint_fit
+from .._plot_fit import figure_data, import_figure_modules, plot_fit, plot_joint_fit
 from .._trace import load_trace
 from ._common import (
     PROG,
@@ -216,7 +217,7 @@ def run_fit(args: argparse.Namespace) -> int:
             def rest():
                 comparison = ranked.result() if early else _ranking(args, trace, result, kw)
                 return comparison, _posterior(args, trace, result, free, kw, start)
-        with beside(plot_fit, result, out_dir / "fit.png") as figure:
+        with beside(_fit_figure, result, out_dir / "fit.png") as figure:
             comparison, post = rest()  # the ranking (and posterior) while the figure is drawn
     for w in {str(w.message) for w in caught}:
         print(f"{PROG}: warning: {_cli_words(w)}", file=sys.stderr)
@@ -288,13 +289,30 @@ def _ranking(args: argparse.Namespace, trace, result, kw: dict):
 
 
 def _ranking_early(args: argparse.Namespace, trace, kw: dict):
-    """:func:`_ranking` beside the fit, then the figure's matplotlib imported in the same
-    thread (0.3-0.5 s of Python) while the fit still runs: the figure, drawn once the fit
-    has ended, then only draws."""
+    """:func:`_ranking` beside the fit, then, where no figure process draws the figure
+    (``dampax_cli._figures``), the figure's matplotlib imported in the same thread (0.3-0.5 s
+    of Python) while the fit still runs: the figure, drawn once the fit has ended, then only
+    draws."""
     try:
         return _ranking(args, trace, None, kw)
     finally:
-        import_figure_modules()
+        if not _figures.running():  # (else the figure process draws)
+            import_figure_modules()
+
+
+def _fit_figure(result, path):
+    """fit.png: drawn by the figure process that the console script forked before dampax
+    loaded (``dampax_cli._figures``), where there is one, into a temporary file of this
+    command's outputs; else (or where it fails) here. Its warnings are this thread's."""
+    if _figures.running():
+        try:
+            with atomic_path(path) as tmp:
+                for text in _figures.draw(figure_data(result), tmp):
+                    warnings.warn(text, stacklevel=2)
+            return path
+        except _figures.Unavailable:
+            pass
+    return plot_fit(result, path)
 
 
 def _posterior(args: argparse.Namespace, trace, result, free, kw: dict, start):
