@@ -277,6 +277,27 @@ def _is_header(fields: list[str], decimal_comma: bool) -> bool:
     return bool(filled) and all(math.isnan(_number(f, decimal_comma)) for f in filled)
 
 
+def _comment_header(text: str, first_data_line: int, delim: str | None, decimal_comma: bool,
+                    n_fields: int) -> list[str] | None:
+    """The names in the last comment line before the data ("# t x" of ``numpy.savetxt``,
+    "# time [s]<tab>position [mm]") where it reads as the header of the data's columns: as
+    many names as fields, none a number, one at least saying what its column holds (a time or
+    a position, by name or unit); else None (a comment, skipped as before). Its units count:
+    a time in ms was read as seconds."""
+    before = text.splitlines()[:first_data_line - 1]
+    comments = [line.strip().lstrip("\ufeff") for line in before]
+    comments = [line for line in comments if line.startswith(("#", "%"))]
+    if not comments:
+        return None
+    fields = _split(comments[-1].lstrip("#%").strip(), delim)
+    if delim is None:
+        fields = _join_units(fields)
+    if len(fields) != n_fields or not _is_header(fields, decimal_comma) or \
+            not any(_meaning(f)[1] > 0 for f in fields):
+        return None
+    return fields
+
+
 def _normalise(name: str) -> str:
     return re.sub(r"\s+", " ", name.strip().strip('"').strip("'")).lower()
 
@@ -307,9 +328,16 @@ _POSITION_UNITS = frozenset({"m", "mm", "cm", "um", "µm", "nm", "in", "ft", "de
                              "degrees", "°", "rad", "radian", "radians", "mrad"})
 
 
+#: units a name may end in after "_" ("time_ms", "x_mm"): not "min", "in", "ft", "s" or "m",
+#: which end names of other things there ("x_min", "x_in", "x_s"); a name in seconds or metres
+#: reads the same without its unit
+_SUFFIX_UNITS = (_TIME_UNITS | _POSITION_UNITS) - {"min", "in", "ft", "s", "m"}
+
+
 def _name_and_unit(name: str) -> tuple[list[str], str]:
     """(the words of a column name, its unit or ""), lower case: "Time_Elapsed(s)" ->
-    (["time", "elapsed"], "s"); "x [m]" -> (["x"], "m"); "t / s" -> (["t"], "s")."""
+    (["time", "elapsed"], "s"); "x [m]" -> (["x"], "m"); "t / s" -> (["t"], "s");
+    "time_ms" -> (["time"], "ms")."""
     text = name.strip().strip('"').strip("'").strip()
     unit = ""
     found = re.search(r"[\(\[]\s*([^\)\]]*?)\s*[\)\]]\s*$", text)
@@ -321,6 +349,9 @@ def _name_and_unit(name: str) -> tuple[list[str], str]:
             text, unit = slash.group(1), slash.group(2)
     text = re.sub(r"([a-z])([A-Z])", r"\1 \2", text)  # TimeElapsed -> Time Elapsed
     words = [w for w in re.split(r"[\s_\-.:,;]+", text.lower()) if w]
+    if not unit and len(words) >= 2 and words[-1] in _SUFFIX_UNITS and \
+            re.search(r"_" + re.escape(words[-1]) + r"$", text.lower()):
+        words, unit = words[:-1], words[-1]  # "time_ms", "x_mm", "angle_deg"
     return words, unit.strip().lower()
 
 
@@ -463,7 +494,9 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     """Read a measured trace x(t) from a delimited text file.
 
     Accepts comma, semicolon, tab or whitespace separated columns, with or without a header
-    line, CRLF or LF line ends, comment lines (``#``), separator lines (``-----``), empty
+    line (or with the header in the last comment line before the data, ``# t x`` as
+    ``numpy.savetxt`` writes it, where its names fit the columns and say what one of them
+    holds), CRLF or LF line ends, comment lines (``#``), separator lines (``-----``), empty
     trailing fields, decimal commas in semicolon/tab/space separated files and clock-time
     stamps ``HH:MM:SS.fff`` (read as seconds).
 
@@ -542,6 +575,8 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     counts = [len(_split(line, delim)) for _, line in body[:_SAMPLE_LINES]] or [len(first)]
     n_fields = max(len(first), max(set(counts), key=counts.count))
 
+    commented = names is None and (names := _comment_header(
+        text, lines[0][0], delim, decimal_comma, n_fields)) is not None
     from_rate = rate is not None and rate != "auto"
     if n_fields < 2 and not from_rate:
         raise ValueError(f"{path_str}: only one column (delimiter "
@@ -553,7 +588,12 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
                                                   path_str)
     i_time = None if time is None else _column(time, names, n_fields, "time", path_str)
     if names is not None and (i_pos is None or (use_time and i_time is None)):
-        i_time, i_pos = _choose_columns(names, i_time, i_pos, use_time, path_str)
+        try:
+            i_time, i_pos = _choose_columns(names, i_time, i_pos, use_time, path_str)
+        except ValueError:
+            if not commented:
+                raise
+            names = None  # a comment that does not settle the columns: read by position
     if i_pos is None:  # no header: the second column (the only one with a rate)
         i_pos = 1 if n_fields >= 2 else 0
     if i_time is None and use_time:  # no header: the first column

@@ -216,19 +216,27 @@ PAIRS = list(zip(TIME.tolist(), POS.tolist(), strict=True))
     ("units_row", "t,x\nms,mm\n{rows_ms}", 1e-3, "mm"),
     ("greek_mu", "Time (\u03bcs),x (mm)\n{rows_us}", 1e-6, "mm"),
     ("minus", "t;x\n{rows_minus}", 1.0, "m"),
+    ("suffix", "time_ms,x_mm\n{rows_ms}", 1e-3, "mm"),
+    ("savetxt", "# t x_mm\n{rows_ws}", 1.0, "mm"),
+    ("comment_header", "# logger v2, run 7\n# time [ms]\tposition [mm]\n{rows_ms_tab}", 1e-3,
+     "mm"),
 ])
 def test_lab_files_read_as_written(tmp_path, name, text, time_factor, unit):
     """Files as lab software writes them read the numbers written, in seconds, with the
     position unit the header names (each was misread without a word: an aligned header
     with spaces in its names read the velocity as the angle; "x / mm" and '"x (mm)"' were
     reported in metres; a units row was dropped and ms read as s; "\u03bcs" (Greek mu) was
-    seconds; U+2212 minus signs dropped every negative sample)."""
+    seconds; U+2212 minus signs dropped every negative sample; "time_ms" was read in seconds;
+    a header in the last comment line, as numpy.savetxt writes it, was skipped with its
+    units)."""
     from dampax._fit._problem import units_of
 
     rows = {
         "rows_ws3": "".join(f"{t:.4f}   {x:.6f}   {-8 * x:.6f}\n" for t, x in PAIRS),
         "rows_csv": "".join(f"{t!r},{x!r}\n" for t, x in PAIRS),
         "rows_ms": "".join(f"{t * 1e3!r},{x!r}\n" for t, x in PAIRS),
+        "rows_ws": "".join(f"{t!r} {x!r}\n" for t, x in PAIRS),
+        "rows_ms_tab": "".join(f"{t * 1e3!r}\t{x!r}\n" for t, x in PAIRS),
         "rows_us": "".join(f"{t * 1e6!r},{x!r}\n" for t, x in PAIRS),
         "rows_minus": "".join(f"{t!r};{-x!r}\n".replace("-", MINUS).replace(".", ",")
                               for t, x in PAIRS),
@@ -241,6 +249,19 @@ def test_lab_files_read_as_written(tmp_path, name, text, time_factor, unit):
     np.testing.assert_allclose(trace.x, want_x, rtol=1e-9)
     assert trace.time_factor == time_factor and trace.n_dropped == 0
     assert units_of(trace, None) == unit
+
+
+@pytest.mark.parametrize("comment", ["# sample data", "# x y z", "# run 1 of 3", "% a b"])
+def test_a_comment_that_is_not_the_header_stays_a_comment(tmp_path, comment):
+    """A comment before headerless data that does not name its columns (other words, another
+    count of names, numbers) is skipped as before: the first column is the time, the second
+    the position."""
+    path = tmp_path / "c.txt"
+    path.write_text(comment + "\n" + "".join(f"{t!r} {x!r}\n" for t, x in PAIRS))
+    trace = load_trace(path)
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-12)
+    np.testing.assert_allclose(trace.x, POS, rtol=1e-12)
+    assert (trace.time_column, trace.position_column) == ("#0", "#1")
 
 
 def test_a_windows_file_is_read_in_its_code_page(tmp_path):
