@@ -31,6 +31,7 @@ from .._models._cubic import phase_excess_sampled
 from .._models._decay import _decay_constants, _decay_from, decay
 from .._oscillator import Oscillator
 from .._solve import solve
+from .._trig import sincos
 from ._params import (
     Constants,
     EnvelopeParams,
@@ -99,7 +100,7 @@ def _ansatz_curve(tau, q: TraceCoords, consts: Constants, span, opts):
     phi = jnp.arctan2(q.y, q.x0)
     if consts.k3 is None:
         f = decay(tau, d2 * A, d1, d0 / A)
-        return q.offset + A * f * jnp.cos(phase_rate(q.w0, d1) * tau + phi)
+        return q.offset + A * f * sincos(phase_rate(q.w0, d1) * tau + phi)[1]
 
     k = _decay_constants(d2 * A, d1, d0 / A)
     f = _decay_from(k, tau)
