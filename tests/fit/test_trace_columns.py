@@ -276,3 +276,132 @@ def test_a_windows_file_is_read_in_its_code_page(tmp_path):
     trace = load_trace(path)
     np.testing.assert_allclose(trace.t, TIME, rtol=1e-9)
     assert units_of(trace, None) == "\u00b0"
+
+
+def _rows(fmt, scale_t=1.0, scale_x=1.0):
+    return "".join(fmt(t * scale_t, x * scale_x) for t, x in PAIRS)
+
+
+def _de(value: float, digits: int) -> str:
+    return f"{value:.{digits}f}".replace(".", ",")
+
+
+#: files as instruments and spreadsheets write them (a helper's audit of the loader found each
+#: misread without a word, or refused): (name, content, time factor, position unit)
+EXPORTS = [
+    ("excel_us_thousands", "Time (ms),Position (mm)\n" + _rows(
+        lambda t, x: f'"{t:,.1f}",{x:.6f}\n', 1e3, 1e3), 1e-3, "mm"),
+    ("quoted_decimal_commas", "temps (s),position (m)\n" + _rows(
+        lambda t, x: f'"{_de(t, 4)}","{_de(x, 6)}"\n'), 1.0, "m"),
+    ("arduino_millis", "millis,angle\n" + _rows(lambda t, x: f"{t:.0f},{x:.6f}\n", 1e3), 1e-3,
+     "m"),
+    ("pasco_runs", "Time (ms) Run #1,Position (mm) Run #1\n" + _rows(
+        lambda t, x: f"{t:.1f},{x:.6f}\n", 1e3, 1e3), 1e-3, "mm"),
+    ("gost_units", "Time, ms;Position, mm\n" + _rows(
+        lambda t, x: f"{_de(t, 1)};{_de(x, 6)}\n", 1e3, 1e3), 1e-3, "mm"),
+    ("pandas_unnamed", ",0,1\n" + "".join(f"{i},{t!r},{x!r}\n" for i, (t, x) in
+                                         enumerate(PAIRS)), 1.0, "m"),
+    ("excel_de_thousands", "Zeit (ms);Winkel (°)\n" + _rows(
+        lambda t, x: f"{t:,.0f}".replace(",", ".") + f";{_de(x, 6)}\n", 1e3), 1e-3, "°"),
+    ("tab_us_thousands", "Time (ms)\tPosition (mm)\n" + _rows(
+        lambda t, x: f"{t:,.0f}\t{x:.6f}\n", 1e3, 1e3), 1e-3, "mm"),
+    ("tracker_title", "mass A\nt,x\n" + _rows(lambda t, x: f"{t!r},{x!r}\n"), 1.0, "m"),
+    ("title_above_tabs", "Pendulum experiment\nTime (s)\tVelocity (m/s)\tPosition (m)\n" +
+     _rows(lambda t, x: f"{t!r}\t{-8 * x!r}\t{x!r}\n"), 1.0, "m"),
+    ("vernier_units_row", "Latest\nTime\tPosition\n(s)\t(mm)\n" + _rows(
+        lambda t, x: f"{t!r}\t{x!r}\n", 1.0, 1e3), 1.0, "mm"),
+    ("excel_sep_hint", "sep=;\nZeit (s);Weg (mm)\n" + _rows(
+        lambda t, x: f"{_de(t, 4)};{_de(x, 6)}\n", 1.0, 1e3), 1.0, "mm"),
+    ("fortran_exponents", _rows(lambda t, x: f"{t:.8E}  {x:.8E}\n".replace("E", "D")), 1.0,
+     "m"),
+    ("clock_decimal_comma", "Uhrzeit;Winkel (°)\n" + _rows(
+        lambda t, x: f"00:00:{_de(t, 3).zfill(6)};{_de(x, 6)}\n"), 1.0, "°"),
+    ("oscilloscope_settings", "".join(
+        (f"Record Length,{N},Points," if i == 0 else ",,,") + f"{t!r},{x!r},\n"
+        for i, (t, x) in enumerate(PAIRS)), 1.0, "m"),
+    ("labview", "LabVIEW Measurement\nWriter_Version\t2\n***End_of_Header***\n"
+     "X_Value\tVelocity\tDisplacement\tComment\n" + _rows(
+         lambda t, x: f"{t!r}\t{-8 * x!r}\t{x!r}\n"), 1.0, "m"),
+    ("aligned_words", "      Time   Cart Position   Cart Velocity\n" + _rows(
+        lambda t, x: f"{t:10.4f}{x:16.6f}{-8 * x:16.6f}\n"), 1.0, "m"),
+    ("millivolts", "Time (s),Channel A (mV)\n" + _rows(lambda t, x: f"{t!r},{x!r}\n"), 1.0,
+     "mV"),
+]
+
+
+@pytest.mark.parametrize("name, text, time_factor, unit", EXPORTS, ids=[e[0] for e in EXPORTS])
+def test_instrument_exports_read_as_written(tmp_path, name, text, time_factor, unit):
+    """Every sample read as written, in seconds, with the position unit named: quoted fields
+    with the separator or a decimal comma inside, thousands separators (1,000.5 and 1.000),
+    Arduino's millis, PASCO's "(ms) Run #1", "Time, ms", pandas' unnamed columns, a title or
+    metadata above the header, Excel's "sep=;", Fortran's D exponents, clock times with a
+    decimal comma, an oscilloscope's settings in the columns before the data, LabVIEW's
+    X_Value, names of several words in aligned columns, and units kept as written (mV)."""
+    from dampax._fit._problem import units_of
+
+    path = tmp_path / f"{name}.txt"
+    path.write_text(text, encoding="utf-8")
+    trace = load_trace(path)
+    scale_x = 1e3 if unit == "mm" else 1.0
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(trace.x, POS * scale_x, rtol=1e-6)
+    assert trace.time_factor == time_factor and trace.n_dropped == 0, trace
+    assert units_of(trace, None) == unit
+
+
+def test_utf16_and_iso_timestamps(tmp_path):
+    """Excel's "Unicode text" (UTF-16 with its byte-order mark) and ISO date-times (seconds
+    of the epoch, so differences are the elapsed time)."""
+    path = tmp_path / "u16.txt"
+    path.write_text("time (s)\tx (mm)\n" + _rows(lambda t, x: f"{t!r}\t{x!r}\n"),
+                    encoding="utf-16")
+    trace = load_trace(path)
+    np.testing.assert_allclose(trace.t, TIME, rtol=1e-12)
+    assert trace.position_column == "x (mm)"
+    path = tmp_path / "iso.csv"
+    path.write_text("Timestamp,Position (mm)\n" + _rows(
+        lambda t, x: f"2024-01-15 10:30:{t:06.3f},{x!r}\n"))
+    trace = load_trace(path)
+    np.testing.assert_allclose(trace.t - trace.t[0], TIME - TIME[0], atol=1e-6)
+
+
+def test_rows_that_lost_a_field_are_dropped_not_shifted(tmp_path):
+    """A missing time (a leading tab) or a blank field in aligned columns leaves the row
+    out: the fields after it were read one column to the left (the velocity as the
+    position)."""
+    lines = [f"{t!r}\t{x!r}\t{-8 * x!r}\n" for t, x in PAIRS]
+    lines[3] = f"\t{POS[3]!r}\t{-8 * POS[3]!r}\n"
+    path = tmp_path / "tab.txt"
+    path.write_text("time\tposition\tvelocity\n" + "".join(lines))
+    trace = load_trace(path)
+    assert trace.n_dropped == 1 and len(trace) == N - 1
+    np.testing.assert_allclose(trace.x, np.delete(POS, 3), rtol=1e-12)
+    aligned = [f"{t:10.4f}{x:12.6f}{-8 * x:12.6f}\n" for t, x in PAIRS]
+    aligned[5] = f"{TIME[5]:10.4f}{'':12s}{-8 * POS[5]:12.6f}\n"
+    path.write_text("      time    position    velocity\n" + "".join(aligned))
+    trace = load_trace(path)
+    assert trace.n_dropped == 1
+    np.testing.assert_allclose(trace.x, np.delete(POS, 5), rtol=1e-6)
+
+
+def test_files_that_cannot_be_read_right_say_why(tmp_path):
+    """Decimal commas in a comma-separated file (every number split in two), an
+    oscilloscope's "X,CH1" (its X is the time: the time column goes back and forth while the
+    position rises at every row) and a time unit the loader does not convert are said, not
+    read wrong; numpy scalars are numbers."""
+    path = tmp_path / "cc.csv"
+    path.write_text("t,x\n" + _rows(lambda t, x: f"{_de(t, 2)},{_de(x, 6)}\n"))
+    with pytest.raises(ValueError, match="the header names 2 columns and the rows have 4 "
+                                         "fields: numbers with decimal commas"):
+        load_trace(path)
+    t = np.arange(200) * 0.01
+    path.write_text("X,CH1\n" + "".join(f"{a:.2f},{b:.6f}\n" for a, b in
+                                        zip(t, np.cos(8.0 * t), strict=True)))
+    with pytest.raises(ValueError, match="the time column 'CH1' goes back and forth while the "
+                                         "position column 'X' rises at every row"):
+        load_trace(path)
+    path.write_text("Time (1e-3 s),x\n" + _rows(lambda t, x: f"{t!r},{x!r}\n"))
+    with pytest.warns(UserWarning, match="is in '1e-3 s', which is not a unit dampax converts"):
+        load_trace(path)
+    path.write_text("x\n" + _rows(lambda t, x: f"{x!r}\n"))
+    assert load_trace(path, rate=np.float32(100.0), scale=np.float64(2.0)).rate == 100.0
