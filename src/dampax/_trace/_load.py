@@ -174,12 +174,18 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
                scale: float = 1.0) -> Trace:
     """Read a measured trace x(t) from a delimited text file.
 
-    Accepts comma, semicolon, tab or whitespace separated columns, with or without a header
-    line (or with the header in the last comment line before the data, ``# t x`` as
-    ``numpy.savetxt`` writes it, where its names fit the columns and say what one of them
-    holds), CRLF or LF line ends, comment lines (``#``), separator lines (``-----``), empty
-    trailing fields, decimal commas in semicolon/tab/space separated files and clock-time
-    stamps ``HH:MM:SS.fff`` (read as seconds).
+    Accepts comma, semicolon, tab or whitespace separated columns (Excel's ``sep=;`` line
+    too), quoted fields, with or without a header line: the names just above the first row
+    of numbers, below a title or metadata, with a units row under them, or in the last
+    comment line before the data (``# t x`` as ``numpy.savetxt`` writes it, where its names
+    fit the columns and say what one of them holds); UTF-8, UTF-16 and cp1252; CRLF or LF
+    line ends, comment lines (``#``), separator lines (``-----``), empty trailing fields;
+    the decimal mark the numbers show (a point, or a comma with dots or a point grouping
+    thousands: ``1.234,5``, ``1,234.5``), Fortran's ``1.0D-03``; clock times
+    ``HH:MM:SS.fff`` and ISO date-times (read as seconds). Times are converted to seconds by
+    their column's unit (``(ms)``, ``_ms``, ``, ms``, ``(minutes)``, Arduino's ``millis``;
+    an unknown unit is warned about). A row that lost a field in aligned columns is left
+    out, not read shifted.
 
     Arguments:
         path: the file.
