@@ -153,12 +153,17 @@ def all_or_nothing() -> Iterator[None]:
             _discard(tmp)
         raise
     staged = _STAGED.pop()
-    for tmp, path in staged:
+    for i, (tmp, path) in enumerate(staged):
         if _STAGED:  # a block inside a block: the outer one decides
             _STAGED[-1].append((tmp, path))
-        else:
+            continue
+        try:
             os.replace(tmp, path)
-            PARTIAL.discard(tmp)
+        except OSError as err:  # (a folder at the target's name): no temporary file is left
+            for left, _ in staged[i:]:
+                _discard(left)
+            raise _named(err, path) from None
+        PARTIAL.discard(tmp)
 
 
 @contextlib.contextmanager

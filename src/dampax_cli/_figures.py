@@ -15,10 +15,12 @@ outputs, or is removed with them). Measured in benchmarks/README.md (issue 36, f
 session).
 
 The worker never writes a file the command did not make (it opens the temporary file without
-creating it: one the command has removed stays removed), ignores Ctrl-C (the command handles
-it and removes its temporary files), holds none of the command's standard streams, sends the
-warnings of its drawing back to the command, and ends when the command's end of the pipe
-closes, whether or not a figure was asked for.
+creating it: one the command has removed stays removed), ignores Ctrl-C (held back from the
+fork until it does: the command handles it and removes its temporary files), holds none of the
+command's standard streams (its pipes stay clear of a closed fd 0, 1 or 2), sends the warnings
+and the log messages of its drawing back to the command (which warns and logs them as its
+own drawing did), and ends when the command's end of the pipe closes, whether or not a figure
+was asked for. Starting it never fails a command: where it cannot start, there is none.
 Where there is no worker (no ``fork`` on this platform, macOS, ``DAMPAX_FIGURE_PROCESS=0``, a
 caller other than the console script) or it fails, :func:`draw` raises :class:`Unavailable`
 and the command draws the figure in its own process, as before.
@@ -60,30 +62,63 @@ def wanted(args) -> bool:
 def start() -> bool:
     """Fork the worker (once per process), only while nothing but the launcher is loaded: no
     JAX, no other thread (a forked copy of a process with threads may hold their locks).
-    Returns whether a worker runs."""
+    Returns whether a worker runs; never raises (a worker that cannot start is no worker)."""
     global _WORKER
     if _WORKER is not None:
         return True
     if "jax" in sys.modules or "numpy" in sys.modules or threading.active_count() != 1:
         return False
-    requests_r, requests_w = os.pipe()
-    replies_r, replies_w = os.pipe()
-    for stream in (sys.stdout, sys.stderr):
-        stream.flush()
+    import signal
+
+    for stream in (sys.stdout, sys.stderr):  # (None where the command's fd 1 or 2 is closed)
+        try:
+            stream.flush()
+        except (AttributeError, OSError, ValueError):
+            pass
+    fds: list[int] = []
+    blocked = False
     try:
+        for _ in range(2):
+            fds.extend(_high(fd) for fd in os.pipe())
+        # Ctrl-C held back until the worker ignores it (a KeyboardInterrupt in its first
+        # instants ran the launcher's own code in the copy, onto the command's stderr)
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        blocked = True
         pid = os.fork()
-    except OSError:
-        for fd in (requests_r, requests_w, replies_r, replies_w):
+    except Exception:  # noqa: BLE001 - no worker: the command draws its figure
+        for fd in fds:
             os.close(fd)
+        if blocked:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         return False
+    requests_r, requests_w, replies_r, replies_w = fds
     if pid == 0:  # the worker: never returns
-        os.close(requests_w)
-        os.close(replies_r)
-        _serve(requests_r, replies_w)
+        try:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+            os.close(requests_w)
+            os.close(replies_r)
+            _serve(requests_r, replies_w)
+        finally:
+            os._exit(1)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     os.close(requests_r)
     os.close(replies_w)
     _WORKER = (pid, requests_w, replies_r)
     return True
+
+
+def _high(fd: int) -> int:
+    """``fd`` moved to 3 or above (where the command's fd 0, 1 or 2 is closed, a pipe took
+    its number, and the worker's own standard streams, pointed at /dev/null, closed it)."""
+    import fcntl
+
+    if fd > 2:
+        return fd
+    try:
+        return fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 3)
+    finally:
+        os.close(fd)
 
 
 def running() -> bool:
@@ -120,10 +155,19 @@ def draw(data, path) -> list[str]:
         _reap(pid)
     if reply is None:
         raise Unavailable("the figure process ended without an answer")
-    status, detail = reply
-    if status != "ok":
+    status, detail, logged = reply
+    if status != "ok":  # (the command draws, and logs what it logs)
         raise Unavailable(f"the figure process could not draw: {detail}")
+    _log_again(logged)
     return list(detail)
+
+
+def _log_again(records) -> None:
+    """The worker's log records of WARNING and above, logged here as they were there."""
+    import logging
+
+    for name, level, message in records:
+        logging.getLogger(name).log(level, "%s", message)
 
 
 def close() -> None:
@@ -193,16 +237,19 @@ def _figure_module():
 def _serve(requests: int, replies: int):
     """The worker's life: import, wait for one figure, draw it, answer, end (``os._exit``:
     none of the command's exit handlers or buffers are the worker's)."""
-    import signal
+    import logging
 
     status = 0
     try:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
         # the command's standard streams are not the worker's (a caller reading them to
         # their end would wait for the worker too); what it has to say goes through the pipe
         devnull = os.open(os.devnull, os.O_RDWR)
         for fd in (0, 1, 2):
             os.dup2(devnull, fd)
+        if devnull > 2:
+            os.close(devnull)
+        said = _collector()
+        logging.getLogger().addHandler(said)
         try:
             module = _figure_module()
             from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: F401
@@ -212,10 +259,27 @@ def _serve(requests: int, replies: int):
             ready = f"{type(err).__name__}: {err}"
         request = _receive(requests)
         if request is not None:
-            _send(replies, _drawn(module, *request) if ready is None else ("failed", ready))
+            reply = _drawn(module, *request) if ready is None else ("failed", ready)
+            _send(replies, (*reply, said.records))
     except BaseException:  # noqa: BLE001 - a closed pipe: the command has gone
         status = 1
     os._exit(status)
+
+
+def _collector():
+    """A logging handler of the worker that keeps (logger, level, message) of the records of
+    WARNING and above (matplotlib's "findfont: ..."), for the command to log again."""
+    import logging
+
+    class Said(logging.Handler):
+        def __init__(self):
+            super().__init__(logging.WARNING)
+            self.records = []
+
+        def emit(self, record):
+            self.records.append((record.name, record.levelno, record.getMessage()))
+
+    return Said()
 
 
 def _drawn(module, data, path: str):

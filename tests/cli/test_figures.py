@@ -51,24 +51,55 @@ def _maxima(folder: Path) -> Path:
     return path
 
 
+#: the console script, with ``_figures.draw`` noting in $MARK that the worker drew
+_CONSOLE = """
+import os, sys, dampax_cli
+from dampax_cli import _figures
+real = _figures.draw
+def draw(*args):
+    out = real(*args)
+    with open(os.environ["MARK"], "w") as fh:
+        fh.write("drawn")
+    return out
+_figures.draw = draw
+sys.argv = ["dampax"] + sys.argv[1:]
+dampax_cli.console()
+"""
+
+
 def test_the_console_script_draws_the_same_figure_in_its_worker(tmp_path):
     """``dampax fit FILE --envelope`` through the console script, with its figure process and
-    without (``DAMPAX_FIGURE_PROCESS=0``): the same fit.png byte for byte, the same report,
-    and no temporary file left."""
+    without (``DAMPAX_FIGURE_PROCESS=0``): the worker draws (it is not the command's own
+    drawing after a failure), the same fit.png byte for byte and the same report, its log
+    messages (matplotlib's "findfont", from a matplotlibrc naming a font that does not exist)
+    on the command's stderr, and no temporary file left; with the command's stdin and stderr
+    closed the worker still draws (a closed stderr ended the command with status 1, a closed
+    stdin's number taken by a pipe stopped the worker)."""
     path = _maxima(tmp_path)
-    script = ("import sys, dampax_cli; sys.argv = ['dampax'] + sys.argv[1:]; "
-              "dampax_cli.console()")
+    (tmp_path / "mpl").mkdir()
+    (tmp_path / "mpl" / "matplotlibrc").write_text("font.family: NoSuchFontFamily\n")
+    args = ["fit", str(path), "--envelope", "--free", "mu", "--m", "0.5", "--k", "20",
+            "--no-compare", "--out"]
     outputs = {}
     for worker in ("1", "0"):
-        out = tmp_path / f"out{worker}"
-        env = {**os.environ, "DAMPAX_FIGURE_PROCESS": worker}
-        proc = _python(script, "fit", path, "--envelope", "--free", "mu", "--m", "0.5", "--k",
-                       "20", "--no-compare", "--out", out, env=env)
+        out, mark = tmp_path / f"out{worker}", tmp_path / f"mark{worker}"
+        env = {**os.environ, "DAMPAX_FIGURE_PROCESS": worker, "MARK": str(mark),
+               "MPLCONFIGDIR": str(tmp_path / "mpl")}
+        proc = _python(_CONSOLE, *args, out, env=env)
         assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png"]
+        assert mark.exists() == (worker == "1")
+        assert "findfont: Font family 'NoSuchFontFamily' not found" in proc.stderr
         outputs[worker] = ((out / "fit.png").read_bytes(),
                            [line for line in proc.stdout.splitlines() if "written:" not in line])
     assert outputs["1"][0][:8] == b"\x89PNG\r\n\x1a\n"
     assert outputs["1"] == outputs["0"]
+    out, mark = tmp_path / "closed", tmp_path / "mark-closed"
+    code = _CONSOLE.replace('"', "'")
+    command = " ".join([sys.executable, "-c", f'"{code}"', *args, str(out), "<&- 2>&-"])
+    proc = subprocess.run(["bash", "-c", command], capture_output=True, text=True, timeout=240,
+                          env={**os.environ, "MARK": str(mark)})
+    assert proc.returncode == 0 and mark.exists()
+    assert (out / "fit.png").read_bytes() == outputs["0"][0]
 
 
 _FAILING = """

@@ -78,6 +78,19 @@ def test_all_or_nothing_keeps_the_earlier_set_when_a_write_fails(tmp_path):
     assert _snapshot(tmp_path) == {"a.txt": b"new a", "b.txt": b"new b"}
 
 
+def test_a_rename_that_fails_leaves_no_temporary_file(tmp_path):
+    """A folder where an output goes: its rename fails at the end of the block, with an error
+    naming it, and none of the block's temporary files is left (they were before)."""
+    (tmp_path / "b.txt").mkdir()
+    with pytest.raises(OSError, match="b.txt"):
+        with _io.all_or_nothing():
+            _io.write_text(tmp_path / "a.txt", "new a")
+            _io.write_text(tmp_path / "b.txt", "new b")
+            _io.write_text(tmp_path / "c.txt", "new c")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    assert not _io.PARTIAL
+
+
 def test_errormap_over_the_file_size_limit_leaves_the_earlier_outputs(tmp_path, capsys):
     """`dampax errormap` under a file size limit (as `ulimit -f`) that the netCDF file fits
     but the figure does not: exit 2 with one line naming the figure and the limit; the
