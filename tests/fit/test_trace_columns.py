@@ -405,3 +405,8 @@ def test_files_that_cannot_be_read_right_say_why(tmp_path):
         load_trace(path)
     path.write_text("x\n" + _rows(lambda t, x: f"{x!r}\n"))
     assert load_trace(path, rate=np.float32(100.0), scale=np.float64(2.0)).rate == 100.0
+    # a PASCO column by its name alone
+    path.write_text("Time (s) Run #1,Position (mm) Run #1,Velocity (m/s) Run #1\n" +
+                    _rows(lambda t, x: f"{t!r},{x!r},0.0\n"))
+    assert load_trace(path, time="Time", position="Position").position_column == \
+        "Position (mm) Run #1"

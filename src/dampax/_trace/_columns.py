@@ -301,6 +301,9 @@ def _choose_columns(names: list[str], i_time: int | None, i_pos: int | None, nee
 
 
 def _strip_unit(name: str) -> str:
+    """A column's name without its unit (and PASCO's " Run #1" after it), for a lookup by
+    name: "Position (mm) Run #1" -> "Position"."""
+    name = re.sub(r"\s+run\s*#?\s*\d+\s*$", "", name, flags=re.IGNORECASE)
     return re.sub(r"\s*[\(\[].*?[\)\]]\s*$", "", name).strip()
 
 
