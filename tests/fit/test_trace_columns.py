@@ -387,8 +387,9 @@ def test_rows_that_lost_a_field_are_dropped_not_shifted(tmp_path):
 def test_files_that_cannot_be_read_right_say_why(tmp_path):
     """Decimal commas in a comma-separated file (every number split in two), an
     oscilloscope's "X,CH1" (its X is the time: the time column goes back and forth while the
-    position rises at every row) and a time unit the loader does not convert are said, not
-    read wrong; numpy scalars are numbers."""
+    position rises at every row), a logger's second header with the columns in another order
+    (the velocity was read as the position after it) and a time unit the loader does not
+    convert are said, not read wrong; numpy scalars are numbers."""
     path = tmp_path / "cc.csv"
     path.write_text("t,x\n" + _rows(lambda t, x: f"{_de(t, 2)},{_de(x, 6)}\n"))
     with pytest.raises(ValueError, match="the header names 2 columns and the rows have 4 "
@@ -400,6 +401,15 @@ def test_files_that_cannot_be_read_right_say_why(tmp_path):
     with pytest.raises(ValueError, match="the time column 'CH1' goes back and forth while the "
                                          "position column 'X' rises at every row"):
         load_trace(path)
+    rows = [f"{t!r},{x!r},{-8 * x!r}\n" for t, x in PAIRS]
+    path.write_text("time,position,velocity\n" + "".join(rows[:6]) + "time,velocity,position\n"
+                    + "".join(f"{t!r},{-8 * x!r},{x!r}\n" for t, x in PAIRS[6:]))
+    with pytest.raises(ValueError, match="line 8 repeats the header with its columns in "
+                                         "another order"):
+        load_trace(path)
+    path.write_text("time,position,velocity\n" + "".join(rows[:6]) +
+                    "time,position,velocity\n" + "".join(rows[6:]))  # (repeated as it was)
+    assert load_trace(path).n_dropped == 1
     path.write_text("Time (1e-3 s),x\n" + _rows(lambda t, x: f"{t!r},{x!r}\n"))
     with pytest.warns(UserWarning, match="is in '1e-3 s', which is not a unit dampax converts"):
         load_trace(path)

@@ -21,6 +21,7 @@ from ._columns import (
     _comment_header,
     _header,
     _name_and_unit,
+    _normalise,
 )
 from ._text import (
     _SAMPLE_LINES,
@@ -311,7 +312,7 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     n_rows = len(body)
     times = np.full(n_rows, np.nan)
     xs = np.full(n_rows, np.nan)
-    for r, (_, line) in enumerate(body):
+    for r, (number, line) in enumerate(body):
         fields = _split(line, delim)
         if delim is None and len(fields) < modal:
             continue  # a blank field in aligned columns: the fields after it shifted left
@@ -319,6 +320,8 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
             xs[r] = _number(fields[i_pos], mark)
         if i_time is not None and i_time < len(fields):
             times[r] = _number(fields[i_time], mark)
+        if math.isnan(xs[r]) and names is not None and len(fields) == len(names):
+            _same_header(fields, names, number, path_str)
     # a time column in ms, us or min (by its header's unit) is read in seconds
     unit = _name_and_unit(names[i_time])[1] \
         if i_time is not None and names is not None and i_time < len(names) else ""
@@ -403,3 +406,15 @@ def _check_axes(t, x, time_name: str | None, position_name: str, path: str) -> N
     warnings.warn(f"{path}: the position column {position_name!r} rises at every row (a time "
                   "or a sample counter?): a free decay goes back and forth; choose it with "
                   "position=", UserWarning, stacklevel=3)
+
+
+def _same_header(fields: list[str], names: list[str], number: int, path: str) -> None:
+    """A ValueError where a row repeats the header with its columns in another order (a
+    logger restarted mid-file: the rows after it were read by the first header's columns,
+    the velocity as the position); a header repeated as it was is a row left out."""
+    key = [_normalise(f) for f in fields]
+    if key != [_normalise(n) for n in names] and sorted(key) == sorted(
+            _normalise(n) for n in names):
+        raise ValueError(f"{path}: line {number} repeats the header with its columns in "
+                         f"another order ({', '.join(repr(f) for f in fields)}): a logger "
+                         "restarted mid-file? Split the file there")
