@@ -95,9 +95,13 @@ def _header(rows: list[list[str]], raw: list[str], n_fields: int, delim: str | N
                 (len(fields) < 2 <= n_fields):
             break
         run.insert(0, i)
+    named = {i: _header_names(rows[i], raw[i], delim, n_fields) for i in run}
+    # names as many as the columns (one more: a column the data leave empty); a title's words
+    # are not names
+    run = [i for i in run if n_fields <= len(named[i]) <= n_fields + 1 and (
+        i == 0 or any(_meaning(n)[1] > 0 for n in named[i]))]  # (below a title: names)
     if not run:
         return None, -1
-    named = {i: _header_names(rows[i], raw[i], delim, n_fields) for i in run}
     best = max(run, key=lambda i: (sum(_meaning(n)[1] for n in named[i]), -i))
     names = named[best]
     below = rows[best + 1] if best + 1 < len(rows) else None
@@ -121,9 +125,10 @@ def _comment_header(text: str, first_data_line: int, delim: str | None, mark: st
     fields = _split(comments[-1].lstrip("#%").strip(), delim)
     if delim is None:
         fields = _join_units(fields)
+    meanings = [_meaning(f) for f in fields]
     if len(fields) != n_fields or not _is_header(fields, mark) or \
-            not any(_meaning(f)[1] > 0 for f in fields):
-        return None
+            not any(rank > 0 for _, rank in meanings) or not all(kind for kind, _ in meanings):
+        return None  # ("# columns: time, position" is a sentence, not names)
     return fields
 
 

@@ -266,13 +266,14 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     if start == len(rows):  # not one number: the first line is the header where it reads so
         start = 1 if _is_header(rows[0], ".") else 0
     counts = [len(r) for r in rows[start:]] or [len(rows[0])]
-    n_fields = modal = max(set(counts), key=counts.count)
+    n_fields = max(set(counts), key=counts.count)
     mark = _decimal_mark([f for r in rows[start:] for f in r], delim)
     names, _ = _header(rows[:start], sample[:start], n_fields, delim, mark)
     body = lines[start:]
     if names is not None:
         n_fields = max(n_fields, len(names))
-    _refuse_split_decimals(names, counts, delim, path_str)
+    _refuse_split_decimals(rows[start - 1] if start and _is_header(rows[start - 1], mark)
+                           else None, counts, delim, path_str)
 
     commented = names is None and (names := _comment_header(
         text, lines[min(start, len(lines) - 1)][0], delim, mark, n_fields)) is not None
@@ -314,8 +315,6 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     xs = np.full(n_rows, np.nan)
     for r, (number, line) in enumerate(body):
         fields = _split(line, delim)
-        if delim is None and len(fields) < modal:
-            continue  # a blank field in aligned columns: the fields after it shifted left
         if i_pos < len(fields):
             xs[r] = _number(fields[i_pos], mark)
         if i_time is not None and i_time < len(fields):

@@ -38,7 +38,7 @@ def _number(field: str, mark: str) -> float:
         return math.nan
     if mark == "," and _GROUPED[","].fullmatch(text):
         text = text.replace(".", "")
-    for candidate in (text, text.replace(",", ".") if mark == "," and text.count(",") == 1
+    for candidate in (text, text.replace(",", ".") if mark in ",?" and text.count(",") == 1
                       and "." not in text else None,
                       text.replace(",", "") if mark == "." and _GROUPED["."].fullmatch(text)
                       else None):
@@ -47,7 +47,7 @@ def _number(field: str, mark: str) -> float:
                 return float(_FORTRAN.sub("e", candidate))
             except ValueError:
                 pass
-    clock = _CLOCK.match(text.replace(",", ".") if mark == "," else text)
+    clock = _CLOCK.match(text.replace(",", ".") if mark in ",?" else text)
     if clock:
         h, m, sec = clock.groups()
         return 3600.0 * int(h) + 60.0 * int(m) + float(sec)
@@ -66,7 +66,8 @@ def _decimal_mark(fields, delimiter: str | None) -> str:
     """The decimal mark of a file's numbers ("." or ","), from the fields that show it: a
     mark followed by other than three digits ("0,05", "1.5"), both marks ("1.234,5"), or one
     mark repeated ("1.234.567" groups with dots); where none does (every mark followed by
-    three digits), "," in a file not separated by commas, else "."."""
+    three digits), "?" in a file not separated by commas (a point is the decimal mark, and
+    so is a lone comma: "1.194" and "0,125" read as before), else "."."""
     votes = {",": 0, ".": 0}
     for field in fields:
         text = _clean(field)
@@ -83,7 +84,7 @@ def _decimal_mark(fields, delimiter: str | None) -> str:
                 votes[mark] += 1
     if votes[","] != votes["."]:
         return "," if votes[","] > votes["."] else "."
-    return "," if delimiter != "," else "."
+    return "?" if delimiter != "," else "."
 
 
 def _split(line: str, delimiter: str | None) -> list[str]:
@@ -114,18 +115,15 @@ def _content_lines(text: str) -> list[tuple[int, str]]:
 
 
 def _choose_delimiter(lines: list[str]) -> str | None:
-    """The separator whose most common field count (of 2 or more) holds for the most lines,
-    then a character before whitespace, then the one giving the most lines of 2 fields or
-    more (a title line of two words above a tab-separated header and data made whitespace
-    win, and the title the header)."""
-    best, best_score = None, (-1, False, -1)
+    """The separator giving the most lines with >= 2 fields and a consistent field count."""
+    best, best_score = None, (-1, -1)
     for delim in _DELIMITERS:
         counts = [len(_split(line, delim)) for line in lines]
         multi = [c for c in counts if c >= 2]
         if not multi:
             continue
         common = max(set(multi), key=multi.count)
-        score = (multi.count(common), delim is not None, len(multi))
+        score = (len(multi), multi.count(common))
         if score > best_score:
             best, best_score = delim, score
     return best
@@ -162,6 +160,8 @@ def _first_data_row(rows: list[list[str]]) -> int:
 
 def _numeric_columns(rows: list[list[str]], n_fields: int, taken: set) -> list[int]:
     """The columns (not ``taken``) whose fields are numbers in most of ``rows``, in order."""
+    if any(re.search(r"\d\s+[\d+-]", f) for r in rows for f in r):
+        return []  # numbers split across fields by a wrong delimiter: no guess
     share = [sum(j < len(r) and _numeric(r[j]) for r in rows) / max(len(rows), 1)
              for j in range(n_fields)]
     return [j for j in range(n_fields) if share[j] > 0.5 and j not in taken]
