@@ -185,7 +185,7 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     thousands: ``1.234,5``, ``1,234.5``), Fortran's ``1.0D-03``; clock times
     ``HH:MM:SS.fff`` and ISO date-times (read as seconds). Times are converted to seconds by
     their column's unit (``(ms)``, ``_ms``, ``, ms``, ``(minutes)``, Arduino's ``millis``;
-    an unknown unit is warned about). A row that lost a field in aligned columns is left
+    an unknown unit is warned about). A tab-separated row whose first field is empty is left
     out, not read shifted.
 
     Arguments:
