@@ -42,7 +42,6 @@ def _place(fig, *, nrows: int = 1, ncols: int = 1, left: float, right: float, bo
                         hspace=hspace / panel_h)
 
 
-
 # ----------------------------------------------------------------------------------------------
 # issue 11: the posterior of a fit (corner plot)
 

@@ -81,13 +81,13 @@ def _header_names(fields: list[str], line: str, delim: str | None, n_fields: int
 
 
 def _header(rows: list[list[str]], raw: list[str], n_fields: int, delim: str | None,
-            mark: str) -> tuple[list[str] | None, int]:
-    """(the names, the index of the header line) among the lines above the data (``rows``
-    split, ``raw`` as read), or (None, -1) where none reads as a header. Of the lines of
-    names just above the data (a title of one field above them, "mass A" of Tracker, is
-    not one), the one whose names say most about their columns (:func:`_meaning`; the first
-    of equals), with a units row under it written into its names: a title line above the
-    names made the title the header (a units row under it, the names a units row)."""
+            mark: str) -> list[str] | None:
+    """The names among the lines above the data (``rows`` split, ``raw`` as read), or None
+    where none reads as a header. Of the lines of names just above the data with as many
+    names as the data have columns (one more: a column the data leave empty; a title's
+    words, Tracker's "mass A", are not names), below a title only those that say what a
+    column holds, the one whose names say most (:func:`_meaning`; the first of equals),
+    with a units row under it written into its names."""
     run = []
     for i in range(len(rows) - 1, -1, -1):
         fields = rows[i]
@@ -101,13 +101,13 @@ def _header(rows: list[list[str]], raw: list[str], n_fields: int, delim: str | N
     run = [i for i in run if n_fields <= len(named[i]) <= n_fields + 1 and (
         i == 0 or any(_meaning(n)[1] > 0 for n in named[i]))]  # (below a title: names)
     if not run:
-        return None, -1
+        return None
     best = max(run, key=lambda i: (sum(_meaning(n)[1] for n in named[i]), -i))
     names = named[best]
     below = rows[best + 1] if best + 1 < len(rows) else None
     if below is not None and _is_units_row(below, mark):
         names = _with_units_row(names, below)
-    return names, best
+    return names
 
 
 def _comment_header(text: str, first_data_line: int, delim: str | None, mark: str,

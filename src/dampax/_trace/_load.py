@@ -268,7 +268,7 @@ def load_trace(path, *, time=None, position=None, rate=None, delimiter=None,
     counts = [len(r) for r in rows[start:]] or [len(rows[0])]
     n_fields = max(set(counts), key=counts.count)
     mark = _decimal_mark([f for r in rows[start:] for f in r], delim)
-    names, _ = _header(rows[:start], sample[:start], n_fields, delim, mark)
+    names = _header(rows[:start], sample[:start], n_fields, delim, mark)
     body = lines[start:]
     if names is not None:
         n_fields = max(n_fields, len(names))
